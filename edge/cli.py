@@ -1,0 +1,36 @@
+"""The `edge` command."""
+import argparse
+import sys
+
+from edge.modelfiles import ModelError
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="edge", description="edgepose: full-body pose from a headset, controllers and IMU trackers")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+
+    ev = sub.add_parser("eval", help="measure reconstruction quality on BVH clips or sample files")
+    ev.add_argument("--data", nargs="+", required=True, help="BVH files, folders of them, or edgepose sample .npz files")
+    ev.add_argument("--split", choices=("train", "val"), help="filter a folder by its MANIFEST.tsv")
+    ev.add_argument("--samples", type=int, default=1, help="latent samples N (1 = plain CVAE at the prior mean)")
+    ev.add_argument("--no-ssi", action="store_true", help="keep the starting sample for the whole clip")
+    ev.add_argument("--precision", choices=("fp32", "int8"), default="fp32")
+    ev.add_argument("--max-frames", type=int, default=None, help="evaluate at most this many frames per clip")
+    ev.add_argument("--json", required=True, help="write the metrics here")
+    ev.add_argument("--dump", help="write one .npz per clip (gt_pos, pred_pos) into this folder")
+    ev.add_argument("--models", help="model folder (default: the shipped models/)")
+    ev.add_argument("--seed", type=int, default=0)
+
+    args = ap.parse_args(argv)
+    try:
+        if args.cmd == "eval":
+            from edge import eval as ev_mod
+            return ev_mod.main(args)
+    except ModelError as e:
+        print(f"edge: {e}", file=sys.stderr)
+        return 2
+    return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,100 @@
+"""`edge eval`: reconstruction quality on BVH clips or sample files, through the real per-frame pipeline."""
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from edge import quat
+from edge.bvh import BvhError
+from edge.features import head_joint, wrist_joints
+from edge.pipeline import Pipeline
+from edge.plausibility import PlausibilityScorer
+from edge.progress import Progress
+from edge.skeleton import JOINT_NAMES, PARENTS
+from edge.takes import find_clips, load_take
+from edge import metrics
+
+WARMUP_S = 1.0
+
+
+def run_take(pipe, take, max_frames=None):
+    """Feed a take frame by frame. Returns predicted positions [T,J,3] and pelvis rotations [T,4]."""
+    T = take.frames if max_frames is None else min(take.frames, max_frames)
+    pred = np.zeros((T, len(JOINT_NAMES), 3))
+    pelvis = np.zeros((T, 4))
+    pipe.reset()
+    for t in range(T):
+        pose = pipe.step(take.signals.slice(t, t + 1))
+        pred[t] = pose.positions
+        pelvis[t] = quat.from_matrix(pose.rotations[0])
+    return pred, pelvis
+
+
+def evaluate(paths, split=None, samples=1, no_ssi=False, precision="fp32", max_frames=None, dump=None,
+             models=None, seed=0, log=print):
+    files = find_clips(paths, split)
+    if not files:
+        raise SystemExit(f"edge eval: no clips found in {paths}" + (f" for split {split!r}" if split else ""))
+    if samples > 1 and not no_ssi:
+        log("note: sample selection (SSI) is not in the runtime yet; the N samples run without switching (as --no-ssi)")
+    pipe = Pipeline(models, samples=samples, seed=seed, precision=precision)
+    scorer = PlausibilityScorer(pipe.autoencoder, pipe.threshold)
+    parts, per_clip, skipped = [], [], []
+    if dump:
+        Path(dump).mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    with Progress(len(files), "eval") as bar:
+        for f in files:
+            try:
+                take = load_take(f)
+            except BvhError as e:
+                skipped.append(str(e))
+                log(f"skipped: {e}")
+                bar.update()
+                continue
+            pred, pelvis = run_take(pipe, take, max_frames)
+            T = len(pred)
+            w = int(round(WARMUP_S * take.fps))
+            if T - w < 4:
+                skipped.append(f"{f}: shorter than the {WARMUP_S:.0f} s warm-up")
+                bar.update()
+                continue
+            sig = take.signals.slice(0, T)
+            head = head_joint(sig.head_pos, sig.head_rot)
+            wrists = wrist_joints(sig.hand_pos, sig.hand_rot)
+            bad = scorer.lower_body_error(pred[w:], pelvis[w:]) > scorer.threshold
+            m = metrics.clip_metrics(pred[w:], take.gt_pos[w:T], take.fps, head[w:], wrists[w:], bad)
+            parts.append(m)
+            s = metrics.summarize([m])
+            per_clip.append({"clip": str(f), "frames": s["frames"], "mpjpe_cm": round(s["mpjpe_cm"], 3),
+                             "implausible_rate": round(s["implausible_rate"], 4)})
+            if dump:
+                np.savez_compressed(Path(dump) / (Path(f).stem + ".npz"), joint_names=np.array(JOINT_NAMES),
+                                    parents=PARENTS, fps=take.fps, gt_pos=take.gt_pos[:T].astype(np.float32),
+                                    pred_pos=pred.astype(np.float32))
+            bar.update(postfix=f"mpjpe {metrics.summarize(parts)['mpjpe_cm']:.2f} cm")
+    if not parts:
+        raise SystemExit("edge eval: no clip could be evaluated: " + "; ".join(skipped))
+    result = {"clips": len(parts), "samples": samples, "ssi": False, "precision": precision,
+              "split": split, "warmup_s": WARMUP_S, **metrics.summarize(parts),
+              "plausibility_threshold_m": pipe.threshold, "seconds": round(time.time() - t0, 1),
+              "joint_names": list(JOINT_NAMES), "skipped": skipped, "per_clip": per_clip}
+    return result
+
+
+def main(args):
+    try:
+        result = evaluate(args.data, args.split, args.samples, args.no_ssi, args.precision, args.max_frames,
+                          args.dump, args.models, args.seed)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"edge eval: {e}", file=sys.stderr)
+        return 2
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
+    keys = ("clips", "frames", "mpjpe_cm", "mpjve_cm_s", "mpjae_cm_s2", "jitter_m_s3", "ee_error_cm",
+            "foot_skate_cm_s", "implausible_rate")
+    print("  ".join(f"{k}={result[k]:.4g}" if isinstance(result[k], float) else f"{k}={result[k]}" for k in keys))
+    print(f"wrote {args.json}")
+    return 0

@@ -1,0 +1,160 @@
+"""Retarget BVH clips from the three source skeletons onto the canonical skeleton.
+
+Each canonical bone takes the world direction of the matching source bone; bone lengths stay
+canonical. Joints with one child get the shortest-arc swing from their parent's frame (no twist);
+the pelvis and chest, which fan out to several children, get a two-axis frame (hip/shoulder line and
+spine). Leaves (head, wrists, toes) keep their parent's orientation. The root translation is scaled
+by the leg-length ratio and the clip is put on the floor.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+from edge import quat
+from edge.bvh import BvhClip, BvhError
+from edge.skeleton import JOINT, JOINT_NAMES, NUM_JOINTS, OFFSETS, PARENTS, TOE_HEIGHT
+
+_SIDES = ("l", "r")
+
+# Canonical joint -> source joint, per source skeleton.
+SOURCE_MAPS = {
+    "cmu": {
+        "pelvis": "Hips", "spine": "Spine", "chest": "Spine1", "neck": "Neck", "head": "Head",
+        **{f"{s}_{k}": f"{S}{v}" for s, S in zip(_SIDES, ("Left", "Right")) for k, v in (
+            ("collar", "Shoulder"), ("shoulder", "Arm"), ("elbow", "ForeArm"), ("wrist", "Hand"),
+            ("hip", "UpLeg"), ("knee", "Leg"), ("ankle", "Foot"), ("toe", "ToeBase"))},
+    },
+    "daz": {
+        "pelvis": "hip", "spine": "abdomen", "chest": "chest", "neck": "neck", "head": "head",
+        **{f"{s}_{k}": f"{s}{v}" for s in _SIDES for k, v in (
+            ("collar", "Collar"), ("shoulder", "Shldr"), ("elbow", "ForeArm"), ("wrist", "Hand"),
+            ("hip", "Thigh"), ("knee", "Shin"), ("ankle", "Foot"), ("toe", "Foot_end"))},
+    },
+    "bandai": {
+        "pelvis": "Hips", "spine": "Spine", "chest": "Chest", "neck": "Neck", "head": "Head",
+        **{f"{s}_{k}": f"{v}_{S}" for s, S in zip(_SIDES, ("L", "R")) for k, v in (
+            ("collar", "Shoulder"), ("shoulder", "UpperArm"), ("elbow", "LowerArm"), ("wrist", "Hand"),
+            ("hip", "UpperLeg"), ("knee", "LowerLeg"), ("ankle", "Foot"), ("toe", "Toes"))},
+    },
+}
+
+
+def detect_source(clip: BvhClip):
+    names = set(clip.names)
+    for source, mapping in SOURCE_MAPS.items():
+        if all(v in names for v in mapping.values()):
+            return source
+    raise BvhError(f"{clip.path}: skeleton not recognised (expected CMU, CMU-Daz or Bandai joint names)")
+
+
+@dataclass
+class Motion:
+    """A clip on the canonical skeleton: local rotations [T,J,4], root positions [T,3] (metres), fps."""
+    rotations: np.ndarray
+    root: np.ndarray
+    fps: float
+    name: str = ""
+
+    @property
+    def frames(self):
+        return self.rotations.shape[0]
+
+
+def _frame(primary, secondary):
+    """Orthonormal frame [...,3,3] whose first column is primary and second lies in the primary/secondary plane."""
+    a = primary / np.linalg.norm(primary, axis=-1, keepdims=True)
+    b = secondary - np.sum(secondary * a, axis=-1, keepdims=True) * a
+    b = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    return np.stack([a, b, np.cross(a, b)], axis=-1)
+
+
+# Two-axis frames for joints that fan out: (primary vector, secondary vector) as joint-name pairs.
+_FAN_FRAMES = {
+    "pelvis": (("r_hip", "l_hip"), ("pelvis", "spine")),
+    "chest": (("chest", "neck"), ("r_shoulder", "l_shoulder")),
+}
+
+
+def retarget(clip: BvhClip, source=None, unit=0.01):
+    """Source clip -> canonical Motion, plus the source joint world positions [T,J,3] (metres) it followed."""
+    source = source or detect_source(clip)
+    mapping = SOURCE_MAPS[source]
+    _, src_world = clip.world()
+    src = np.stack([src_world[:, clip.index(mapping[n])] for n in JOINT_NAMES], axis=1) * unit
+    T = clip.frames
+    rest = np.zeros((NUM_JOINTS, 3))
+    for j in range(1, NUM_JOINTS):
+        rest[j] = rest[PARENTS[j]] + OFFSETS[j]
+
+    children = {j: np.flatnonzero(PARENTS == j) for j in range(NUM_JOINTS)}
+    world = np.zeros((T, NUM_JOINTS, 4))
+    local = np.zeros((T, NUM_JOINTS, 4))
+    for j, name in enumerate(JOINT_NAMES):
+        parent_world = world[:, PARENTS[j]] if j > 0 else np.tile([1.0, 0, 0, 0], (T, 1))
+        if name in _FAN_FRAMES:
+            (a0, a1), (b0, b1) = _FAN_FRAMES[name]
+            f_src = _frame(src[:, JOINT[a1]] - src[:, JOINT[a0]], src[:, JOINT[b1]] - src[:, JOINT[b0]])
+            f_rest = _frame(rest[JOINT[a1]] - rest[JOINT[a0]], rest[JOINT[b1]] - rest[JOINT[b0]])
+            world[:, j] = quat.from_matrix(f_src @ f_rest.T)
+        elif len(children[j]) == 1:
+            c = children[j][0]
+            d = src[:, c] - src[:, j]
+            d = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-9)
+            u = quat.rotate(parent_world, np.broadcast_to(OFFSETS[c] / np.linalg.norm(OFFSETS[c]), (T, 3)))
+            world[:, j] = quat.normalize(quat.mul(quat.between(u, d), parent_world))
+        else:  # leaf: keep the parent's orientation
+            world[:, j] = parent_world
+        local[:, j] = quat.mul(quat.inv(parent_world), world[:, j]) if j > 0 else world[:, j]
+
+    # Root translation: scale by leg length so stride matches the canonical legs.
+    def leg(p):
+        return np.linalg.norm(p[:, JOINT["l_knee"]] - p[:, JOINT["l_hip"]], axis=-1) + \
+            np.linalg.norm(p[:, JOINT["l_ankle"]] - p[:, JOINT["l_knee"]], axis=-1)
+    scale = (np.linalg.norm(OFFSETS[JOINT["l_knee"]]) + np.linalg.norm(OFFSETS[JOINT["l_ankle"]])) / np.median(leg(src))
+    root = src[:, 0] * scale
+    motion = Motion(quat.unroll(quat.normalize(local)), root, clip.fps, clip.path)
+    place_on_floor(motion)
+    return motion, src
+
+
+def place_on_floor(motion: Motion):
+    """Shift the clip vertically so the lower toe's 5th-percentile height is the rest toe height."""
+    from edge.skeleton import fk
+    _, pos = fk(quat.to_matrix(motion.rotations), motion.root)
+    lowest = np.min(pos[:, [JOINT["l_toe"], JOINT["r_toe"]], 1], axis=1)
+    motion.root[:, 1] += TOE_HEIGHT - np.percentile(lowest, 5)
+
+
+def direction_errors_deg(motion: Motion, src):
+    """Angle between each canonical bone and its source bone, [T, J-1] degrees (bone = joint j minus its parent)."""
+    from edge.skeleton import fk
+    _, pos = fk(quat.to_matrix(motion.rotations), motion.root)
+    j = np.arange(1, NUM_JOINTS)
+    a = pos[:, j] - pos[:, PARENTS[j]]
+    b = src[:, j] - src[:, PARENTS[j]]
+    cos = np.sum(a * b, -1) / np.maximum(np.linalg.norm(a, axis=-1) * np.linalg.norm(b, axis=-1), 1e-12)
+    return np.degrees(np.arccos(np.clip(cos, -1, 1)))
+
+
+LIMB_BONES = np.array([JOINT[f"{s}_{k}"] for s in _SIDES for k in ("elbow", "wrist", "knee", "ankle", "toe")]) - 1
+
+
+def resample(motion: Motion, fps=60.0):
+    """Resample to a new rate: slerp for rotations, linear for the root."""
+    if abs(motion.fps - fps) < 1e-3:
+        return Motion(motion.rotations, motion.root, fps, motion.name)
+    duration = (motion.frames - 1) / motion.fps
+    t = np.arange(0.0, duration + 1e-9, 1.0 / fps) * motion.fps
+    i0 = np.minimum(np.floor(t).astype(int), motion.frames - 1)
+    i1 = np.minimum(i0 + 1, motion.frames - 1)
+    w = t - i0
+    rot = quat.slerp(motion.rotations[i0], motion.rotations[i1], np.broadcast_to(w[:, None], (len(t), NUM_JOINTS)))
+    root = motion.root[i0] * (1 - w[:, None]) + motion.root[i1] * w[:, None]
+    return Motion(quat.unroll(rot), root, fps, motion.name)
+
+
+def load_motion(path, fps=60.0):
+    """BVH file -> canonical Motion at the model rate."""
+    from edge import bvh
+    motion, _ = retarget(bvh.load(path))
+    return resample(motion, fps)

@@ -1,0 +1,117 @@
+"""Tracker signals as the board sees them, synthesised from a canonical-skeleton motion.
+
+One place for this: training, `edge eval` and the device simulator all call `synthesize`.
+- headset: 6-DoF pose of the eyes (head joint plus an eye offset in the head frame);
+- controllers: 6-DoF poses at the grip (wrist plus a grip offset in the wrist frame);
+- waist puck: an IMU, so orientation and linear acceleration only (no position).
+"""
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from edge import quat
+from edge.skeleton import HEAD, JOINT, fk
+
+EYE_OFFSET = np.array([0.0, 0.09, 0.09])          # head joint -> between the eyes, head frame
+GRIP_OFFSET = np.array([[0.07, -0.02, 0.02],      # left wrist -> controller grip, wrist frame
+                        [-0.07, -0.02, 0.02]])    # right
+GRAVITY = np.array([0.0, -9.81, 0.0])
+
+
+@dataclass
+class Signals:
+    """Tracker signals over T frames (or one frame with T=1). Positions in metres, quaternions (w,x,y,z)."""
+    head_pos: np.ndarray    # [T,3] headset
+    head_rot: np.ndarray    # [T,4]
+    hand_pos: np.ndarray    # [T,2,3] left, right controllers
+    hand_rot: np.ndarray    # [T,2,4]
+    waist_rot: np.ndarray   # [T,4] puck orientation (IMU fusion output)
+    waist_acc: np.ndarray   # [T,3] puck linear acceleration in the sensor frame, m/s^2
+
+    @property
+    def frames(self):
+        return self.head_pos.shape[0]
+
+    def slice(self, a, b):
+        return Signals(**{f.name: getattr(self, f.name)[a:b] for f in fields(self)})
+
+    def as_dict(self, prefix=""):
+        return {prefix + f.name: getattr(self, f.name).astype(np.float32) for f in fields(self)}
+
+    @classmethod
+    def from_dict(cls, d, prefix=""):
+        return cls(**{f.name: np.asarray(d[prefix + f.name], dtype=np.float64) for f in fields(cls)})
+
+
+def world_pose(rotations, root):
+    """Canonical motion -> (world rotation matrices [T,J,3,3], world positions [T,J,3])."""
+    return fk(quat.to_matrix(rotations), root)
+
+
+def synthesize(rotations, root, fps, rng=None, noise=None):
+    """Local rotations [T,J,4] and root positions [T,3] -> Signals. `noise` (a DeviceNoise) needs `rng`."""
+    world_rot_m, pos = world_pose(rotations, root)
+    return synthesize_from_pose(world_rot_m, pos, fps, rng, noise)
+
+
+def synthesize_from_pose(world_rot_m, pos, fps, rng=None, noise=None):
+    """World joint rotations [T,J,3,3] and positions [T,J,3] -> Signals."""
+    world_rot = quat.from_matrix(world_rot_m)
+    head_rot = world_rot[..., HEAD, :]
+    wrists = [JOINT["l_wrist"], JOINT["r_wrist"]]
+    hand_rot = world_rot[..., wrists, :]
+    head_pos = pos[..., HEAD, :] + quat.rotate(head_rot, EYE_OFFSET)
+    hand_pos = pos[..., wrists, :] + quat.rotate(hand_rot, GRIP_OFFSET)
+    waist_rot = world_rot[..., 0, :]
+    # Linear acceleration (gravity removed, as a BNO055 reports it) in the sensor frame.
+    acc_world = np.gradient(np.gradient(pos[..., 0, :], axis=0), axis=0) * fps * fps
+    sig = Signals(head_pos, head_rot, hand_pos, hand_rot, waist_rot, quat.rotate(quat.inv(waist_rot), acc_world))
+    if noise is not None:
+        sig = noise.apply(sig, fps, rng)
+    return sig
+
+
+def _smooth_noise(rng, shape, fps, std, corr_s):
+    """AR(1) noise with stationary std `std` and correlation time `corr_s` along axis 0."""
+    a = np.exp(-1.0 / (fps * corr_s))
+    w = rng.standard_normal(shape) * std * np.sqrt(1 - a * a)
+    out = np.empty(shape)
+    out[0] = rng.standard_normal(shape[1:]) * std
+    for t in range(1, shape[0]):
+        out[t] = a * out[t - 1] + w[t]
+    return out
+
+
+def _random_small_rotations(rng, shape, max_deg):
+    axis = rng.standard_normal(shape + (3,))
+    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
+    ang = np.radians(rng.uniform(0, max_deg, shape))
+    return quat.from_axis_angle(axis, ang)
+
+
+@dataclass
+class DeviceNoise:
+    """Device noise for training (LoBSTR appendix: ~1 cm position, rotations up to 1.5 deg) plus IMU yaw drift."""
+    pos_std_m: float = 0.01          # slowly wandering tracking offset
+    pos_corr_s: float = 0.5
+    jitter_std_m: float = 0.002      # per-sample optical/inside-out jitter
+    rot_max_deg: float = 1.5
+    yaw_offset_std_deg: float = 3.0  # residual heading error of the puck after calibration
+    yaw_drift_deg_s: float = 0.5     # gyro-integration drift rate (std)
+
+    def apply(self, s: Signals, fps, rng):
+        # Axis 0 is time; any further leading axes are independent sequences (a training batch).
+        T, batch = s.frames, s.waist_rot.shape[1:-1]
+        off = _smooth_noise(rng, (T, *batch, 3, 3), fps, self.pos_std_m, self.pos_corr_s)
+        off += rng.standard_normal((T, *batch, 3, 3)) * self.jitter_std_m
+        head_pos = s.head_pos + off[..., 0, :]
+        hand_pos = s.hand_pos + off[..., 1:, :]
+        rot_noise = _random_small_rotations(rng, (T, *batch, 4), self.rot_max_deg)
+        head_rot = quat.mul(rot_noise[..., 0, :], s.head_rot)
+        hand_rot = quat.mul(rot_noise[..., 1:3, :], s.hand_rot)
+        t = (np.arange(T) / fps).reshape((T,) + (1,) * len(batch))
+        yaw = np.radians(rng.normal(0, self.yaw_offset_std_deg, batch) + rng.normal(0, self.yaw_drift_deg_s, batch) * t)
+        waist_rot = quat.mul(quat.from_yaw(yaw), quat.mul(rot_noise[..., 3, :], s.waist_rot))
+        acc = s.waist_acc + rng.standard_normal(s.waist_acc.shape) * 0.1
+        return Signals(head_pos, quat.normalize(head_rot), hand_pos, quat.normalize(hand_rot),
+                       quat.normalize(waist_rot), acc)

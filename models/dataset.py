@@ -1,0 +1,149 @@
+"""Motion-capture clips -> canonical motions at the model rate, cached, and training windows.
+
+Reads `MANIFEST.tsv` from the mocap folder; `--sources` keeps e.g. CMU only (Bandai is CC BY-NC).
+"""
+import argparse
+import csv
+import hashlib
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from edge import quat
+from edge.bvh import BvhError
+from edge.contacts import contact_labels
+from edge.features import sequence_features
+from edge.progress import Progress
+from edge.retarget import load_motion
+from edge.signals import DeviceNoise, synthesize_from_pose, world_pose
+from edge.skeleton import FEET, HEAD, PREDICTED
+
+SOURCE_FOLDERS = {"cmu": ("cmu_amc2bvh",), "daz": ("cmu_daz_ateliercircle",), "bandai": ("bandai_namco_ccbync",)}
+FPS = 60.0
+
+
+def read_manifest(root):
+    """Rows of MANIFEST.tsv as dicts, or None when the folder has none."""
+    path = Path(root) / "MANIFEST.tsv"
+    if not path.exists():
+        return None
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f, delimiter="\t"))
+
+
+def clip_paths(root, split=None, sources=None):
+    root = Path(root)
+    rows = read_manifest(root)
+    if rows is None:
+        return sorted(root.rglob("*.bvh"))
+    folders = None if not sources else tuple(f for s in sources for f in SOURCE_FOLDERS[s])
+    return [root / r["file"] for r in rows
+            if (split is None or r["split"] == split) and (folders is None or r["file"].startswith(folders))]
+
+
+def _load(path):
+    try:
+        m = load_motion(path, FPS)
+        return str(path), m.rotations.astype(np.float32), m.root.astype(np.float32)
+    except BvhError as e:
+        return str(path), None, str(e)
+
+
+@dataclass
+class ClipSet:
+    """Concatenated clips: rotations [F,J,4], root [F,3], contacts [F,2], and clip start offsets."""
+    names: list
+    starts: np.ndarray
+    rotations: np.ndarray
+    root: np.ndarray
+    contacts: np.ndarray
+
+    def lengths(self):
+        return np.diff(np.append(self.starts, len(self.root)))
+
+
+def build(root, split, sources=None, cache_dir=".cache", workers=2):
+    paths = clip_paths(root, split, sources)
+    key = hashlib.sha1(("v3|" + "|".join(map(str, paths))).encode()).hexdigest()[:12]
+    cache = Path(cache_dir) / f"clips-{split}-{key}.npz"
+    if cache.exists():
+        d = np.load(cache, allow_pickle=False)
+        return ClipSet(list(d["names"]), d["starts"], d["rotations"], d["root"], d["contacts"])
+    names, rots, roots, cons = [], [], [], []
+    with ProcessPoolExecutor(workers) as ex, Progress(len(paths), f"load {split}") as bar:
+        for path, rot, root_pos in ex.map(_load, paths, chunksize=8):
+            bar.update()
+            if rot is None:
+                print(f"skipped: {root_pos}")
+                continue
+            _, pos = world_pose(rot.astype(np.float64), root_pos.astype(np.float64))
+            names.append(path)
+            rots.append(rot)
+            roots.append(root_pos)
+            cons.append(contact_labels(pos[:, FEET], FPS))
+    starts = np.cumsum([0] + [len(r) for r in roots[:-1]])
+    cs = ClipSet(names, starts, np.concatenate(rots), np.concatenate(roots), np.concatenate(cons))
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    np.savez(cache, names=np.array(names), starts=starts, rotations=cs.rotations, root=cs.root, contacts=cs.contacts)
+    return cs
+
+
+def window_starts(cs: ClipSet, window):
+    """Every valid window start (global frame index), stride 1."""
+    out = [s + np.arange(n - window + 1) for s, n in zip(cs.starts, cs.lengths()) if n >= window]
+    return np.concatenate(out)
+
+
+def make_batch(cs: ClipSet, starts, window, rng, noise: DeviceNoise = None):
+    """Time-major batch [W,B,...] of model inputs and targets, with device noise synthesised per window."""
+    idx = starts[None, :] + np.arange(window)[:, None]          # [W,B]
+    rot = cs.rotations[idx].astype(np.float64)                  # [W,B,J,4]
+    root = cs.root[idx].astype(np.float64)
+    # Random heading and floor position: the data should not teach the model where the room is.
+    yaw = quat.from_yaw(rng.uniform(-np.pi, np.pi, len(starts)))
+    shift = np.concatenate([rng.uniform(-2, 2, (len(starts), 1)), np.zeros((len(starts), 1)),
+                            rng.uniform(-2, 2, (len(starts), 1))], axis=1)
+    rot = rot.copy()
+    rot[:, :, 0] = quat.mul(yaw[None], rot[:, :, 0])
+    root = quat.rotate(yaw[None], root) + shift[None]
+    world_rot, gt_pos = world_pose(rot, root)
+    sig = synthesize_from_pose(world_rot, gt_pos, FPS, rng, noise)
+    feats, points, yaw_q = sequence_features(sig, FPS)
+    inv_yaw = quat.inv(yaw_q)[..., None, :]
+    gt_rel = quat.rotate(inv_yaw, gt_pos - gt_pos[..., HEAD:HEAD + 1, :])   # head-anchored, character frame
+    root_local = quat.mul(quat.inv(yaw_q), sig.waist_rot)                 # puck orientation in the yaw frame
+    local_m = quat.to_matrix(rot[..., PREDICTED, :])
+    return {
+        "features": feats.astype(np.float32),
+        "gt_rel": gt_rel.astype(np.float32),
+        "root_rot": quat.to_matrix(root_local).astype(np.float32),
+        "rot6d": quat.matrix_to_6d(local_m).reshape(local_m.shape[:-3] + (-1,)).astype(np.float32),
+        "contacts": cs.contacts[idx],
+    }
+
+
+def pose_batch(cs: ClipSet, frames):
+    """Ground-truth poses for the autoencoder: local positions [B,63], root rotation in the yaw frame [B,3,3]."""
+    from edge.plausibility import local_pose
+    rot = cs.rotations[frames].astype(np.float64)
+    root = cs.root[frames].astype(np.float64)
+    rm, pos = world_pose(rot, root)
+    local, root_local = local_pose(pos, quat.from_matrix(rm[:, 0]))
+    return {"positions": local.reshape(len(frames), -1).astype(np.float32),
+            "root_rot": quat.to_matrix(root_local).astype(np.float32)}
+
+
+def main():
+    ap = argparse.ArgumentParser(description="Build the canonical-motion cache from the mocap folder.")
+    ap.add_argument("--data", default="../shared/mocap")
+    ap.add_argument("--sources", nargs="*", default=None, choices=sorted(SOURCE_FOLDERS))
+    a = ap.parse_args()
+    for split in ("train", "val"):
+        cs = build(a.data, split, a.sources)
+        print(split, len(cs.names), "clips", len(cs.root), "frames", f"{len(cs.root) / FPS / 60:.1f} min")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,74 @@
+"""Export the trained networks as one-step ONNX graphs and write models/manifest.json.
+
+    python -m models.export [--ckpt .cache/train] [--out models]
+
+The decoder's GRU is written out as Gemm + Sigmoid/Tanh (DecoderStep): ONNX Runtime cannot quantize
+the ONNX GRU op and PyTorch has mis-exported nn.GRU before.
+"""
+import argparse
+import json
+import shutil
+from pathlib import Path
+
+import torch
+
+from edge.features import NUM_FEATURES
+from edge.modelfiles import write_manifest
+from edge.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS
+from models.nets import CVAE, HIDDEN, LATENT, DecoderStep, PoseAE
+
+
+def load_checkpoint(ckpt):
+    ckpt = Path(ckpt)
+    cvae, ae = CVAE(), PoseAE()
+    cvae.load_state_dict(torch.load(ckpt / "cvae.pt", weights_only=True))
+    ae.load_state_dict(torch.load(ckpt / "ae.pt", weights_only=True))
+    meta = json.loads((ckpt / "meta.json").read_text())
+    return cvae.eval(), ae.eval(), meta
+
+
+def export_decoder(cvae, path):
+    step = DecoderStep(cvae).eval()
+    n = 4
+    args = (torch.zeros(n, NUM_FEATURES), torch.zeros(n, LATENT), torch.zeros(n, HIDDEN))
+    torch.onnx.export(step, args, str(path), dynamo=False, external_data=False, opset_version=17,
+                      input_names=["features", "latent", "hidden"],
+                      output_names=["rot6d", "contacts", "hidden_out"],
+                      dynamic_axes={k: {0: "N"} for k in ("features", "latent", "hidden", "rot6d", "contacts", "hidden_out")})
+
+
+def export_autoencoder(ae, path):
+    torch.onnx.export(ae, (torch.zeros(4, NUM_JOINTS * 3),), str(path), dynamo=False, external_data=False,
+                      opset_version=17, input_names=["positions"], output_names=["rot6d"],
+                      dynamic_axes={"positions": {0: "N"}, "rot6d": {0: "N"}})
+
+
+def export_all(ckpt, out):
+    out = Path(out)
+    cvae, ae, meta = load_checkpoint(ckpt)
+    export_decoder(cvae, out / "decoder.onnx")
+    export_autoencoder(ae, out / "autoencoder.onnx")
+    info = {
+        "fps": 60.0, "latent": LATENT, "hidden": HIDDEN, "features": NUM_FEATURES,
+        "joint_names": list(JOINT_NAMES), "parents": PARENTS.tolist(),
+        "plausibility_threshold_m": meta["plausibility_threshold_m"],
+        "training": {k: v for k, v in meta.items() if k != "plausibility_threshold_m"},
+    }
+    write_manifest(out, ["decoder.onnx", "autoencoder.onnx"], info)
+    # Keep the PyTorch weights beside the ONNX files: the parity tests compare the two.
+    (out / "checkpoints").mkdir(exist_ok=True)
+    for name in ("cvae.pt", "ae.pt", "meta.json"):
+        shutil.copyfile(Path(ckpt) / name, out / "checkpoints" / name)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--ckpt", default=".cache/train")
+    ap.add_argument("--out", default="models")
+    a = ap.parse_args()
+    export_all(a.ckpt, a.out)
+    print(f"wrote {a.out}/decoder.onnx, {a.out}/autoencoder.onnx, {a.out}/manifest.json")
+
+
+if __name__ == "__main__":
+    main()

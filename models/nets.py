@@ -1,0 +1,134 @@
+"""The SSI networks (section 4.2) in PyTorch: the CVAE and the pose autoencoder, plus one-step export wrappers."""
+import torch
+from torch import nn
+
+from edge.features import NUM_FEATURES
+from edge.skeleton import LEVELS, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, HEAD
+
+LATENT = 30
+HIDDEN = 128
+ROT_OUT = NUM_PREDICTED * 6
+# 6D of the identity, so an untrained head starts at the rest pose.
+_IDENTITY_6D = torch.tensor([1.0, 0, 0, 0, 1.0, 0]).repeat(NUM_PREDICTED)
+
+
+def matrix_from_6d(r6):
+    a, b = r6[..., 0:3], r6[..., 3:6]
+    x = nn.functional.normalize(a, dim=-1)
+    y = nn.functional.normalize(b - (x * b).sum(-1, keepdim=True) * x, dim=-1)
+    return torch.stack([x, y, torch.cross(x, y, dim=-1)], dim=-1)
+
+
+def fk_positions(root_rot, local_rot):
+    """root_rot [...,3,3], local_rot [...,J-1,3,3] -> joint positions [...,J,3] with the pelvis at the origin."""
+    offsets = torch.as_tensor(OFFSETS, dtype=local_rot.dtype)
+    rots = [None] * NUM_JOINTS
+    pos = [None] * NUM_JOINTS
+    rots[0] = root_rot
+    pos[0] = torch.zeros(root_rot.shape[:-2] + (3,), dtype=root_rot.dtype)
+    for idx in LEVELS:
+        for j in idx:
+            p = PARENTS[j]
+            rots[j] = rots[p] @ local_rot[..., j - 1, :, :]
+            pos[j] = pos[p] + (rots[p] @ offsets[j])
+    return torch.stack(pos, dim=-2)
+
+
+class Normalizer(nn.Module):
+    def __init__(self, dim):
+        super().__init__()
+        self.register_buffer("mean", torch.zeros(dim))
+        self.register_buffer("std", torch.ones(dim))
+
+    def fit(self, x):
+        x = x.reshape(-1, x.shape[-1])
+        self.mean.copy_(x.mean(0))
+        self.std.copy_(x.std(0).clamp_min(1e-3))
+
+    def forward(self, x):
+        return (x - self.mean) / self.std
+
+
+class CVAE(nn.Module):
+    """Encoder: FC 24->128, GRU 128, mu/logvar 30. Decoder: FC 54->128, GRU 128, ReLU, rotation and contact heads."""
+
+    def __init__(self):
+        super().__init__()
+        self.norm = Normalizer(NUM_FEATURES)
+        self.enc_fc = nn.Linear(NUM_FEATURES, HIDDEN)
+        self.enc_gru = nn.GRU(HIDDEN, HIDDEN)
+        self.mu = nn.Linear(HIDDEN, LATENT)
+        self.logvar = nn.Linear(HIDDEN, LATENT)
+        self.dec_fc = nn.Linear(LATENT + NUM_FEATURES, HIDDEN)
+        self.dec_gru = nn.GRU(HIDDEN, HIDDEN)
+        self.rot_head = nn.Linear(HIDDEN, ROT_OUT)
+        self.contact_head = nn.Linear(HIDDEN, 2)
+
+    def encode(self, x):
+        h, _ = self.enc_gru(torch.relu(self.enc_fc(self.norm(x))))
+        return self.mu(h), self.logvar(h).clamp(-10, 5)
+
+    def decode(self, x, z, h0=None):
+        inp = torch.relu(self.dec_fc(torch.cat([z, self.norm(x)], dim=-1)))
+        h, hn = self.dec_gru(inp, h0)
+        h = torch.relu(h)
+        return self.rot_head(h) + _IDENTITY_6D, torch.sigmoid(self.contact_head(h)), hn
+
+    def forward(self, x, sample=True):
+        """x [W,B,24] time-major -> rot6d [W,B,120], contacts [W,B,2], mu, logvar."""
+        mu, logvar = self.encode(x)
+        z = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu) if sample else mu
+        rot, con, _ = self.decode(x, z)
+        return rot, con, mu, logvar
+
+
+class DecoderStep(nn.Module):
+    """One decoder frame with the GRU cell written out as Gemm + Sigmoid/Tanh (exports and quantizes cleanly).
+
+    Inputs: features [N,24], latent [N,30], hidden [N,128]; outputs: rot6d [N,120], contacts [N,2], hidden [N,128].
+    """
+
+    def __init__(self, cvae: CVAE):
+        super().__init__()
+        self.norm = cvae.norm
+        self.fc = cvae.dec_fc
+        g = cvae.dec_gru
+        self.w_ih = nn.Linear(HIDDEN, 3 * HIDDEN)
+        self.w_hh = nn.Linear(HIDDEN, 3 * HIDDEN)
+        with torch.no_grad():
+            self.w_ih.weight.copy_(g.weight_ih_l0)
+            self.w_ih.bias.copy_(g.bias_ih_l0)
+            self.w_hh.weight.copy_(g.weight_hh_l0)
+            self.w_hh.bias.copy_(g.bias_hh_l0)
+        self.rot_head = cvae.rot_head
+        self.contact_head = cvae.contact_head
+        self.register_buffer("identity6d", _IDENTITY_6D.clone())
+
+    def forward(self, features, latent, hidden):
+        x = torch.relu(self.fc(torch.cat([latent, self.norm(features)], dim=-1)))
+        gi = self.w_ih(x)
+        gh = self.w_hh(hidden)
+        r = torch.sigmoid(gi[:, :HIDDEN] + gh[:, :HIDDEN])
+        u = torch.sigmoid(gi[:, HIDDEN:2 * HIDDEN] + gh[:, HIDDEN:2 * HIDDEN])
+        n = torch.tanh(gi[:, 2 * HIDDEN:] + r * gh[:, 2 * HIDDEN:])
+        h = (1 - u) * n + u * hidden
+        y = torch.relu(h)
+        return self.rot_head(y) + self.identity6d, torch.sigmoid(self.contact_head(y)), h
+
+
+class PoseAE(nn.Module):
+    """SSI anomaly autoencoder: local joint positions (J*3) -> 28 -> 14 -> 7 -> 7 -> 14 -> 28 -> rotations (6 per predicted joint)."""
+
+    SIZES = (NUM_JOINTS * 3, 28, 14, 7, 7, 14, 28, ROT_OUT)
+
+    def __init__(self):
+        super().__init__()
+        self.norm = Normalizer(NUM_JOINTS * 3)
+        layers = []
+        for a, b in zip(self.SIZES[:-1], self.SIZES[1:]):
+            layers += [nn.Linear(a, b), nn.ReLU()]
+        self.net = nn.Sequential(*layers[:-1])
+        self.register_buffer("identity6d", _IDENTITY_6D.clone())
+
+    def forward(self, positions):
+        return self.net(self.norm(positions)) + self.identity6d

@@ -1,0 +1,185 @@
+"""Train the pose autoencoder and the CVAE on the `train` split, select on `val`, export ONNX.
+
+    python -m models.train --data ../shared/mocap [--sources cmu daz] [--minutes 40]
+
+Seeded, CPU only, with a progress bar and a log (models/train_log.txt). Loss (SSI eq. 1):
+  L = w_pos * MSE(FK positions, head-anchored, m^2) + lambda * KL + gamma * BCE(contacts) + w_rot * MSE(6D)
+"""
+import argparse
+import json
+import multiprocessing as mp
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from edge.progress import Progress
+from edge.signals import DeviceNoise
+from edge.skeleton import HEAD, LOWER_BODY, NUM_PREDICTED
+from models import dataset as ds
+from models.nets import CVAE, PoseAE, fk_positions, matrix_from_6d
+
+LOSS = {"w_pos": 1000.0, "lambda_kl": 5.0, "gamma_bce": 0.1, "w_rot": 0.1}
+
+
+def _producer(q, root, sources, window, batch, seed):
+    torch.set_num_threads(1)
+    cs = ds.build(root, "train", sources)
+    starts = ds.window_starts(cs, window)
+    rng = np.random.default_rng(seed)
+    noise = DeviceNoise()
+    while True:
+        q.put(ds.make_batch(cs, rng.choice(starts, batch), window, rng, noise))
+
+
+def to_t(b):
+    return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in b.items()}
+
+
+def cvae_losses(model, b, sample=True):
+    rot6d, con, mu, logvar = model(b["features"], sample)
+    local = matrix_from_6d(rot6d.reshape(rot6d.shape[:-1] + (NUM_PREDICTED, 6)))
+    pos = fk_positions(b["root_rot"], local)
+    pos = pos - pos[..., HEAD:HEAD + 1, :]
+    err = pos - b["gt_rel"]
+    mse = (err ** 2).sum(-1).mean()
+    kl = (-0.5 * (1 + logvar - mu ** 2 - logvar.exp())).mean()
+    bce = torch.nn.functional.binary_cross_entropy(con.clamp(1e-6, 1 - 1e-6), b["contacts"])
+    rot = ((rot6d - b["rot6d"]) ** 2).mean()
+    mpjpe = err.norm(dim=-1).mean()
+    return mse, kl, bce, rot, mpjpe
+
+
+def train_ae(cs_train, cs_val, steps, seed, log):
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    ae = PoseAE()
+    ae.norm.fit(torch.from_numpy(ds.pose_batch(cs_train, rng.integers(0, len(cs_train.root), 20000))["positions"]))
+    opt = torch.optim.Adam(ae.parameters(), lr=1e-3)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, steps, eta_min=1e-5)
+    with Progress(steps, "autoencoder") as bar:
+        for it in range(steps):
+            b = to_t(ds.pose_batch(cs_train, rng.integers(0, len(cs_train.root), 1024)))
+            loss = ae_error(ae, b).pow(2).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            sched.step()
+            bar.update(postfix=f"err {ae_error(ae, b).mean().item() * 100:.2f} cm" if it % 50 == 0 else None)
+    ae.eval()
+    with torch.no_grad():
+        vb = to_t(ds.pose_batch(cs_val, np.arange(len(cs_val.root))))
+        lower = ae_error(ae, vb)[:, LOWER_BODY].mean(-1).numpy()
+    threshold = float(np.percentile(lower, 99))
+    log(f"autoencoder: val lower-body error mean {lower.mean() * 100:.2f} cm, p99 (threshold) {threshold * 100:.2f} cm")
+    return ae, threshold
+
+
+def ae_error(ae, b):
+    """Per-joint reconstruction distance [B,J] (metres)."""
+    rot6d = ae(b["positions"])
+    local = matrix_from_6d(rot6d.reshape(-1, NUM_PREDICTED, 6))
+    pos = fk_positions(b["root_rot"], local)
+    inp = b["positions"].reshape(-1, pos.shape[1], 3)
+    pos = pos + inp[:, :1]  # the pelvis stays where the input put it
+    return (pos - inp).norm(dim=-1)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default="../shared/mocap")
+    ap.add_argument("--sources", nargs="*", default=None, choices=sorted(ds.SOURCE_FOLDERS),
+                    help="train on these sources only (cmu daz = CMU only, commercial-safe)")
+    ap.add_argument("--minutes", type=float, default=45.0, help="CVAE wall-clock budget")
+    ap.add_argument("--ae-steps", type=int, default=4000)
+    ap.add_argument("--batch", type=int, default=256)
+    ap.add_argument("--window", type=int, default=60)
+    ap.add_argument("--lr", type=float, default=1e-3)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", default="models")
+    ap.add_argument("--ckpt", default=".cache/train")
+    a = ap.parse_args()
+
+    out, ckpt = Path(a.out), Path(a.ckpt)
+    ckpt.mkdir(parents=True, exist_ok=True)
+    logf = open(out / "train_log.txt", "w")
+
+    def log(msg):
+        print(msg, flush=True)
+        logf.write(msg + "\n")
+        logf.flush()
+
+    torch.manual_seed(a.seed)
+    torch.set_num_threads(2)
+    log(f"args: {vars(a)}  loss: {LOSS}")
+    cs_train = ds.build(a.data, "train", a.sources)
+    cs_val = ds.build(a.data, "val", a.sources)
+    log(f"train: {len(cs_train.names)} clips, {len(cs_train.root) / 3600:.1f} min; val: {len(cs_val.names)} clips, "
+        f"{len(cs_val.root) / 3600:.1f} min (60 Hz)")
+
+    q = mp.get_context("fork").Queue(maxsize=8)
+    procs = [mp.get_context("fork").Process(target=_producer, args=(q, a.data, a.sources, a.window, a.batch, a.seed + 1 + k),
+                                            daemon=True) for k in range(1)]
+    for p in procs:
+        p.start()
+
+    t0 = time.time()
+    ae, threshold = train_ae(cs_train, cs_val, a.ae_steps, a.seed, log)
+    torch.save(ae.state_dict(), ckpt / "ae.pt")
+    log(f"autoencoder trained in {time.time() - t0:.0f} s")
+
+    # Validation: fixed clean windows of 4 s, latent at the prior mean (what N=1 runs).
+    vrng = np.random.default_rng(1234)
+    vstarts = ds.window_starts(cs_val, 240)
+    val_batches = [to_t(ds.make_batch(cs_val, vrng.choice(vstarts, 128), 240, vrng, None)) for _ in range(4)]
+
+    model = CVAE()
+    model.norm.fit(torch.cat([to_t(q.get())["features"] for _ in range(8)]))
+    opt = torch.optim.Adam(model.parameters(), lr=a.lr)
+    budget = a.minutes * 60
+    best, best_it, it = float("inf"), -1, 0
+    t1 = time.time()
+    bar = Progress(int(budget), "cvae (s)")
+    while time.time() - t1 < budget:
+        frac = (time.time() - t1) / budget
+        for g in opt.param_groups:
+            g["lr"] = 1e-5 + 0.5 * (a.lr - 1e-5) * (1 + np.cos(np.pi * frac))
+        b = to_t(q.get())
+        model.train()
+        mse, kl, bce, rot, mpjpe = cvae_losses(model, b)
+        loss = LOSS["w_pos"] * mse + LOSS["lambda_kl"] * kl + LOSS["gamma_bce"] * bce + LOSS["w_rot"] * rot
+        opt.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+        opt.step()
+        it += 1
+        if it % 20 == 0:
+            bar.n = int(time.time() - t1) - 1
+            bar.update(postfix=f"it {it} train {mpjpe.item() * 100:.2f} cm kl {kl.item():.3f} bce {bce.item():.3f}")
+        if it % 400 == 0 or time.time() - t1 >= budget:
+            model.eval()
+            with torch.no_grad():
+                v = np.mean([cvae_losses(model, vb, sample=False)[4].item() for vb in val_batches]) * 100
+            model.train()
+            log(f"it {it} t {time.time() - t1:.0f}s lr {opt.param_groups[0]['lr']:.2e} train mpjpe {mpjpe.item() * 100:.2f} "
+                f"kl {kl.item():.4f} bce {bce.item():.4f} | val mpjpe (head-anchored, no IK) {v:.2f} cm")
+            if v < best:
+                best, best_it = v, it
+                torch.save(model.state_dict(), ckpt / "cvae.pt")
+    bar.close()
+    for p in procs:
+        p.terminate()
+    log(f"cvae: {it} iterations in {time.time() - t1:.0f} s; best val {best:.2f} cm at it {best_it}")
+    meta = {"plausibility_threshold_m": threshold, "iterations": it, "best_iteration": best_it,
+            "val_mpjpe_cm_training": best, "minutes": a.minutes, "sources": a.sources or sorted(ds.SOURCE_FOLDERS),
+            "loss": LOSS, "batch": a.batch, "window": a.window, "lr": a.lr, "seed": a.seed,
+            "train_clips": len(cs_train.names), "train_minutes": len(cs_train.root) / 3600}
+    (ckpt / "meta.json").write_text(json.dumps(meta, indent=2))
+    from models.export import export_all
+    export_all(ckpt, out)
+    log("exported ONNX models and manifest")
+
+
+if __name__ == "__main__":
+    main()

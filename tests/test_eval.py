@@ -1,0 +1,61 @@
+"""`edge eval` end to end on the bundled sample, and its handling of bad input."""
+import json
+
+import numpy as np
+import pytest
+
+from edge.cli import main
+from edge.pipeline import Pipeline
+from edge.takes import from_sample
+from tests.conftest import SAMPLE
+
+REQUIRED = ("clips", "frames", "samples", "precision", "mpjpe_cm", "mpjve_cm_s", "mpjae_cm_s2", "jitter_m_s3",
+            "ee_error_cm", "foot_skate_cm_s", "implausible_rate")
+
+
+def test_eval_on_the_bundled_sample_writes_metrics_and_dumps(tmp_path):
+    out = tmp_path / "m.json"
+    assert main(["eval", "--data", str(SAMPLE), "--max-frames", "400", "--json", str(out), "--dump", str(tmp_path / "d")]) == 0
+    m = json.loads(out.read_text())
+    for k in REQUIRED:
+        assert k in m
+    assert m["clips"] == 1 and m["frames"] == 400 - 60 and m["samples"] == 1
+    assert all(np.isfinite(m[k]) for k in REQUIRED if k != "precision")
+    # A walk seen through the trained model: centimetre-level, not metre-level errors.
+    assert m["mpjpe_cm"] < 10.0 and m["ee_error_cm"] < 5.0
+    d = np.load(tmp_path / "d" / (SAMPLE.stem + ".npz"))
+    assert d["gt_pos"].shape == d["pred_pos"].shape == (400, 21, 3)
+    assert list(d["parents"])[:3] == [-1, 0, 1] and float(d["fps"]) == 60.0
+    # The dump is enough to recompute the headline metric.
+    err = np.linalg.norm(d["pred_pos"][60:] - d["gt_pos"][60:], axis=-1).mean() * 100
+    assert err == pytest.approx(m["mpjpe_cm"], rel=1e-4)
+
+
+def test_pipeline_is_deterministic():
+    take = from_sample(SAMPLE)
+    outs = []
+    for _ in range(2):
+        pipe = Pipeline()
+        outs.append(np.stack([pipe.step(take.signals.slice(t, t + 1)).positions for t in range(50)]))
+    assert np.array_equal(outs[0], outs[1])
+
+
+def test_missing_data_path_is_a_clear_error(tmp_path, capsys):
+    assert main(["eval", "--data", str(tmp_path / "nope.bvh"), "--json", str(tmp_path / "m.json")]) == 2
+    assert "no such file" in capsys.readouterr().err
+
+
+def test_malformed_bvh_is_skipped_with_its_reason(tmp_path, capsys):
+    bad = tmp_path / "broken.bvh"
+    bad.write_text("HIERARCHY\nROOT Hips\n{\n  OFFSET 0 0 0\n")
+    with pytest.raises(SystemExit, match="no clip could be evaluated.*broken.bvh"):
+        main(["eval", "--data", str(bad), "--json", str(tmp_path / "m.json")])
+    out = tmp_path / "m2.json"
+    assert main(["eval", "--data", str(bad), str(SAMPLE), "--max-frames", "120", "--json", str(out)]) == 0
+    m = json.loads(out.read_text())
+    assert m["clips"] == 1 and "broken.bvh" in m["skipped"][0]
+
+
+def test_bad_sample_count_is_refused():
+    with pytest.raises(ValueError, match="samples"):
+        Pipeline(samples=0)

@@ -1,0 +1,74 @@
+"""Tracker synthesis and the model's input features: the same code path for training and the board."""
+import numpy as np
+
+from edge import quat
+from edge.features import body_points, derive_waist_position, sequence_features
+from edge.signals import DeviceNoise, synthesize
+from edge.skeleton import JOINT, NUM_JOINTS, PELVIS_HEIGHT, fk
+
+
+def walking_motion(T=120, fps=60.0):
+    rot = np.tile([1.0, 0, 0, 0], (T, NUM_JOINTS, 1))
+    phase = np.sin(np.arange(T) / fps * 2 * np.pi)
+    x = np.array([1.0, 0, 0])
+    rot[:, JOINT["l_hip"]] = quat.from_axis_angle(x, 0.4 * phase)
+    rot[:, JOINT["r_hip"]] = quat.from_axis_angle(x, -0.4 * phase)
+    rot[:, JOINT["l_shoulder"]] = quat.from_axis_angle(np.array([0, 0, 1.0]), -1.2 + 0.2 * phase)
+    root = np.stack([np.zeros(T), np.full(T, PELVIS_HEIGHT), np.arange(T) / fps * 1.2], -1)
+    return rot, root
+
+
+def test_features_do_not_depend_on_where_the_user_stands_or_faces():
+    rot, root = walking_motion()
+    f0, _, _ = sequence_features(synthesize(rot, root, 60.0), 60.0)
+    turn = quat.from_yaw(np.array(2.1))
+    rot2 = rot.copy()
+    rot2[:, 0] = quat.mul(turn, rot[:, 0])
+    root2 = quat.rotate(turn, root) + np.array([3.0, 0.0, -5.0])
+    f1, _, _ = sequence_features(synthesize(rot2, root2, 60.0), 60.0)
+    assert np.allclose(f0, f1, atol=1e-9)
+
+
+def test_waist_is_exact_when_the_spine_is_straight():
+    rot, root = walking_motion()
+    sig = synthesize(rot, root, 60.0)
+    points, _ = body_points(sig)
+    assert np.allclose(points[:, 3], root, atol=1e-9)
+
+
+def test_velocity_features_are_zero_when_standing_still():
+    rot, root = walking_motion(T=30)
+    rot[:] = rot[:1]
+    root[:] = root[:1]
+    f, _, _ = sequence_features(synthesize(rot, root, 60.0), 60.0)
+    assert np.allclose(f[:, 12:], 0, atol=1e-9)
+    assert np.allclose(f[:, 12 - 3:12:2], 0)  # the waist sits at the local origin in X and Z
+
+
+def test_headset_sits_at_the_eyes_and_controllers_at_the_grip():
+    rot, root = walking_motion(T=10)
+    sig = synthesize(rot, root, 60.0)
+    wr, pos = fk(quat.to_matrix(rot), root)
+    assert np.allclose(np.linalg.norm(sig.head_pos - pos[:, JOINT["head"]], axis=-1), np.hypot(0.09, 0.09))
+    d = np.linalg.norm(sig.hand_pos - pos[:, [JOINT["l_wrist"], JOINT["r_wrist"]]], axis=-1)
+    assert np.allclose(d, np.linalg.norm([0.07, 0.02, 0.02]))
+
+
+def test_device_noise_has_the_lobstr_scale():
+    rot, root = walking_motion(T=6000)
+    clean = synthesize(rot, root, 60.0)
+    noisy = synthesize(rot, root, 60.0, np.random.default_rng(0), DeviceNoise())
+    dpos = np.linalg.norm(noisy.head_pos - clean.head_pos, axis=-1)
+    assert 0.005 < np.sqrt(np.mean(dpos ** 2)) / np.sqrt(3) < 0.02
+    drot = np.degrees(quat.angle(quat.mul(quat.inv(clean.hand_rot), noisy.hand_rot)))
+    assert drot.max() <= 1.5 + 1e-6
+    # The puck's heading drifts; its tilt does not.
+    dyaw = np.degrees(quat.yaw(noisy.waist_rot) - quat.yaw(clean.waist_rot))
+    assert np.std(np.diff(dyaw)) < 1.0 and np.ptp(dyaw) > 0.1
+
+
+def test_derived_waist_follows_the_puck_tilt():
+    head = np.array([0.0, 1.6, 0.0])
+    tilt = quat.from_axis_angle(np.array([1.0, 0, 0]), np.radians(30))
+    w = derive_waist_position(head, tilt)
+    assert w[2] < -0.1  # pelvis pushed back when the trunk leans forward

@@ -1,0 +1,116 @@
+"""Shipped ONNX models: manifest checks and parity with the PyTorch networks they were exported from."""
+import shutil
+
+import numpy as np
+import pytest
+
+from edge.features import sequence_features
+from edge.inference import Decoder, load_models
+from edge.modelfiles import DEFAULT_DIR, ModelError, load_manifest
+from edge.takes import from_sample
+from tests.conftest import SAMPLE
+
+
+def test_manifest_matches_the_shipped_files():
+    m = load_manifest()
+    assert set(m["paths"]) == {"decoder.onnx", "autoencoder.onnx"}
+    assert 0.0 < m["plausibility_threshold_m"] < 1.0
+
+
+@pytest.fixture
+def model_copy(tmp_path):
+    for name in ("decoder.onnx", "autoencoder.onnx", "manifest.json"):
+        shutil.copy(DEFAULT_DIR / name, tmp_path / name)
+    return tmp_path
+
+
+def test_corrupt_model_file_is_refused_with_a_clear_message(model_copy):
+    data = bytearray((model_copy / "decoder.onnx").read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    (model_copy / "decoder.onnx").write_bytes(bytes(data))
+    with pytest.raises(ModelError, match="corrupt or altered"):
+        load_models(model_copy)
+
+
+def test_missing_model_file_is_refused_with_a_clear_message(model_copy):
+    (model_copy / "autoencoder.onnx").unlink()
+    with pytest.raises(ModelError, match="missing"):
+        load_models(model_copy)
+
+
+def test_missing_manifest_says_how_to_make_one(tmp_path):
+    with pytest.raises(ModelError, match="models.export"):
+        load_models(tmp_path)
+
+
+def test_model_that_is_not_onnx_fails_at_load(model_copy):
+    from edge.modelfiles import write_manifest
+    import json
+    (model_copy / "decoder.onnx").write_bytes(b"not a model")
+    info = json.loads((model_copy / "manifest.json").read_text())
+    info.pop("files")
+    write_manifest(model_copy, ["decoder.onnx", "autoencoder.onnx"], info)
+    with pytest.raises(ModelError, match="cannot load model"):
+        load_models(model_copy)
+
+
+def _sample_features(T=300):
+    take = from_sample(SAMPLE)
+    f, _, _ = sequence_features(take.signals, take.fps)
+    return f[:T].astype(np.float32)
+
+
+def _torch_models(torch):
+    from models.nets import CVAE, PoseAE
+    ck = DEFAULT_DIR / "checkpoints"
+    cvae, ae = CVAE(), PoseAE()
+    cvae.load_state_dict(torch.load(ck / "cvae.pt", weights_only=True))
+    ae.load_state_dict(torch.load(ck / "ae.pt", weights_only=True))
+    return cvae.eval(), ae.eval()
+
+
+def test_onnx_decoder_matches_pytorch_over_a_300_frame_closed_loop(torch):
+    from models.nets import DecoderStep
+    cvae, _ = _torch_models(torch)
+    step = DecoderStep(cvae).eval()
+    feats = _sample_features(300)
+    n = 8
+    m = load_manifest()
+    dec = Decoder(m["paths"]["decoder.onnx"], n, m["latent"], m["hidden"], m["features"])
+    z = np.random.default_rng(0).standard_normal((n, m["latent"])).astype(np.float32)
+    dec.latent[:] = z
+    h = torch.zeros(n, m["hidden"])
+    worst = 0.0
+    with torch.no_grad():
+        for t in range(len(feats)):
+            x = torch.from_numpy(np.repeat(feats[t:t + 1], n, 0))
+            rot, con, h = step(x, torch.from_numpy(z), h)
+            dec.features[:] = feats[t]
+            dec.step()
+            worst = max(worst, np.abs(dec.rot6d - rot.numpy()).max(), np.abs(dec.contacts - con.numpy()).max(),
+                        np.abs(dec.state - h.numpy()).max())
+    assert worst < 1e-4
+
+
+def test_written_out_gru_cell_matches_torch_gru(torch):
+    from models.nets import DecoderStep
+    cvae, _ = _torch_models(torch)
+    step = DecoderStep(cvae).eval()
+    feats = torch.from_numpy(_sample_features(200))[:, None].repeat(1, 3, 1)
+    z = torch.randn(1, 3, 30).repeat(200, 1, 1)
+    with torch.no_grad():
+        rot_seq, con_seq, _ = cvae.decode(feats, z)
+        h = torch.zeros(3, 128)
+        for t in range(200):
+            rot, con, h = step(feats[t], z[t], h)
+            assert torch.allclose(rot, rot_seq[t], atol=1e-4)
+            assert torch.allclose(con, con_seq[t], atol=1e-5)
+
+
+def test_onnx_autoencoder_matches_pytorch(torch):
+    _, ae = _torch_models(torch)
+    _, _, onnx_ae = load_models()
+    x = np.random.default_rng(0).standard_normal((64, 63)).astype(np.float32) * 0.3
+    with torch.no_grad():
+        ref = ae(torch.from_numpy(x)).numpy()
+    assert np.abs(onnx_ae(x) - ref).max() < 1e-4

@@ -1,0 +1,55 @@
+"""Retargeting onto the canonical skeleton, resampling and FK."""
+import numpy as np
+import pytest
+
+from edge import bvh, quat
+from edge.retarget import LIMB_BONES, direction_errors_deg, resample, retarget
+from edge.skeleton import JOINT, NUM_JOINTS, OFFSETS, PARENTS, REST, fk
+from tests.conftest import SKELETON_CLIPS
+
+
+def test_fk_of_identity_rotations_is_the_rest_pose():
+    rot = np.broadcast_to(np.eye(3), (NUM_JOINTS, 3, 3)).copy()
+    _, pos = fk(rot, np.zeros(3))
+    assert np.allclose(pos, REST)
+
+
+def test_fk_keeps_bone_lengths_under_any_rotation():
+    q = quat.normalize(np.random.default_rng(0).standard_normal((10, NUM_JOINTS, 4)))
+    _, pos = fk(quat.to_matrix(q), np.zeros((10, 3)))
+    lengths = np.linalg.norm(pos[:, 1:] - pos[:, PARENTS[1:]], axis=-1)
+    assert np.allclose(lengths, np.linalg.norm(OFFSETS[1:], axis=-1))
+
+
+@pytest.mark.parametrize("source", sorted(SKELETON_CLIPS))
+def test_limb_directions_match_the_source_within_two_degrees(mocap, source):
+    clip = bvh.load(mocap / SKELETON_CLIPS[source])
+    motion, src = retarget(clip)
+    err = direction_errors_deg(motion, src)
+    assert err[:, LIMB_BONES].mean() < 2.0
+    # Spine and neck chain also follow the source exactly.
+    spine = [JOINT[n] - 1 for n in ("chest", "neck", "head")]
+    assert err[:, spine].mean() < 2.0
+
+
+@pytest.mark.parametrize("source", sorted(SKELETON_CLIPS))
+def test_retargeted_clip_stands_on_the_floor(mocap, source):
+    motion, _ = retarget(bvh.load(mocap / SKELETON_CLIPS[source]))
+    _, pos = fk(quat.to_matrix(motion.rotations), motion.root)
+    lowest = pos[:, [JOINT["l_toe"], JOINT["r_toe"]], 1].min(1)
+    assert abs(np.percentile(lowest, 5) - 0.02) < 1e-6
+    assert 1.5 < np.median(pos[:, JOINT["head"], 1]) + 0.1 < 1.9
+
+
+def test_resample_30_to_60_keeps_duration_and_interpolates():
+    from edge.retarget import Motion
+    T = 31
+    angles = np.linspace(0, np.pi / 2, T)
+    rot = np.tile([1.0, 0, 0, 0], (T, NUM_JOINTS, 1))
+    rot[:, JOINT["l_knee"]] = quat.from_axis_angle(np.array([1.0, 0, 0]), angles)
+    root = np.stack([np.linspace(0, 1, T), np.ones(T), np.zeros(T)], -1)
+    out = resample(Motion(rot, root, 30.0), 60.0)
+    assert out.frames == 61 and out.fps == 60.0
+    assert np.allclose(out.root[1, 0], 1 / 60)
+    mid = quat.angle(out.rotations[1, JOINT["l_knee"]])
+    assert np.isclose(mid, np.pi / 2 / 60)
