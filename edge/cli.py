@@ -20,12 +20,27 @@ def main(argv=None):
     ev.add_argument("--dump", help="write one .npz per clip (gt_pos, pred_pos) into this folder")
     ev.add_argument("--models", help="model folder (default: the shipped models/)")
     ev.add_argument("--seed", type=int, default=0)
+    ev.add_argument("--no-ik", action="store_true", help="skip foot-contact and arm IK (the bare network)")
+    ev.add_argument("--lookahead", type=int, default=None, help="SSI look-ahead tau in frames (default 10 for N>1, 0 for N=1)")
+
+    st = sub.add_parser("ssi-study", help="SSI target hitting / collision avoidance against N (SSI Table 3)")
+    st.add_argument("--data", nargs="+", required=True)
+    st.add_argument("--task", choices=("high-kick", "low-kick", "avoid"), required=True)
+    st.add_argument("--samples", default="1,10,100", help="comma-separated N values")
+    st.add_argument("--runs", type=int, default=5, help="runs per N, each with its own latent seed")
+    st.add_argument("--split", choices=("train", "val"))
+    st.add_argument("--max-clips", type=int, default=None)
+    st.add_argument("--models")
+    st.add_argument("--json", required=True)
 
     args = ap.parse_args(argv)
     try:
         if args.cmd == "eval":
             from edge import eval as ev_mod
             return ev_mod.main(args)
+        if args.cmd == "ssi-study":
+            from edge import study
+            return study.main(args)
     except ModelError as e:
         print(f"edge: {e}", file=sys.stderr)
         return 2

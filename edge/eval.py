@@ -6,7 +6,6 @@ from pathlib import Path
 
 import numpy as np
 
-from edge import quat
 from edge.bvh import BvhError
 from edge.features import head_joint, wrist_joints
 from edge.pipeline import Pipeline
@@ -20,28 +19,39 @@ WARMUP_S = 1.0
 
 
 def run_take(pipe, take, max_frames=None):
-    """Feed a take frame by frame. Returns predicted positions [T,J,3] and pelvis rotations [T,4]."""
+    """Feed a take frame by frame. Returns predicted positions [T,J,3], pelvis rotations [T,3,3] and
+    which frames were part of a sample transition [T]. Output frame o arrives tau frames after input o."""
     T = take.frames if max_frames is None else min(take.frames, max_frames)
     pred = np.zeros((T, len(JOINT_NAMES), 3))
-    pelvis = np.zeros((T, 4))
+    pelvis = np.zeros((T, 3, 3))
+    switching = np.zeros(T, bool)
+
+    def keep(pose):
+        pred[pose.frame] = pose.positions
+        pelvis[pose.frame] = pose.rotations[0]
+        switching[pose.frame] = pose.transition
+
     pipe.reset()
     for t in range(T):
         pose = pipe.step(take.signals.slice(t, t + 1))
-        pred[t] = pose.positions
-        pelvis[t] = quat.from_matrix(pose.rotations[0])
-    return pred, pelvis
+        if pose is not None:
+            keep(pose)
+    for pose in pipe.flush():
+        keep(pose)
+    return pred, pelvis, switching
 
 
 def evaluate(paths, split=None, samples=1, no_ssi=False, precision="fp32", max_frames=None, dump=None,
-             models=None, seed=0, log=print):
+             models=None, seed=0, lookahead=None, ik=True, log=print):
     files = find_clips(paths, split)
     if not files:
         raise SystemExit(f"edge eval: no clips found in {paths}" + (f" for split {split!r}" if split else ""))
-    if samples > 1 and not no_ssi:
-        log("note: sample selection (SSI) is not in the runtime yet; the N samples run without switching (as --no-ssi)")
-    pipe = Pipeline(models, samples=samples, seed=seed, precision=precision)
+    pipe = Pipeline(models, samples=samples, seed=seed, precision=precision, ssi=not no_ssi, lookahead=lookahead,
+                    foot_ik=ik, arm_ik=ik)
     scorer = PlausibilityScorer(pipe.autoencoder, pipe.threshold)
     parts, per_clip, skipped = [], [], []
+    switches = switch_frames = 0
+    peaks_after, peaks_quiet = [], []
     if dump:
         Path(dump).mkdir(parents=True, exist_ok=True)
     t0 = time.time()
@@ -54,7 +64,9 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision="fp32", max_f
                 log(f"skipped: {e}")
                 bar.update()
                 continue
-            pred, pelvis = run_take(pipe, take, max_frames)
+            pred, pelvis, switching = run_take(pipe, take, max_frames)
+            switches += len(pipe.switches)
+            switch_frames += int(switching.sum())
             T = len(pred)
             w = int(round(WARMUP_S * take.fps))
             if T - w < 4:
@@ -65,6 +77,9 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision="fp32", max_f
             head = head_joint(sig.head_pos, sig.head_rot)
             wrists = wrist_joints(sig.hand_pos, sig.hand_rot)
             bad = scorer.lower_body_error(pred[w:], pelvis[w:]) > scorer.threshold
+            after, quiet = metrics.transition_peaks(pred[w:], take.fps, [s0 - w for _, s0, _, _ in pipe.switches])
+            peaks_after += after
+            peaks_quiet += quiet
             m = metrics.clip_metrics(pred[w:], take.gt_pos[w:T], take.fps, head[w:], wrists[w:], bad)
             parts.append(m)
             s = metrics.summarize([m])
@@ -77,8 +92,14 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision="fp32", max_f
             bar.update(postfix=f"mpjpe {metrics.summarize(parts)['mpjpe_cm']:.2f} cm")
     if not parts:
         raise SystemExit("edge eval: no clip could be evaluated: " + "; ".join(skipped))
-    result = {"clips": len(parts), "samples": samples, "ssi": False, "precision": precision,
+    result = {"clips": len(parts), "samples": samples, "ssi": pipe.ssi, "precision": precision, "ik": ik,
+              "lookahead_frames": pipe.lookahead, "ssi_switches": switches, "transition_frames": switch_frames,
               "split": split, "warmup_s": WARMUP_S, **metrics.summarize(parts),
+              "transition_jerk": {
+                  "switches_measured": len(peaks_after),
+                  "peak_after_switch_mean_m_s3": float(np.mean(peaks_after)) if peaks_after else None,
+                  "peak_quiet_window_median_m_s3": float(np.median(peaks_quiet)) if peaks_quiet else None,
+                  "ratio": float(np.mean(peaks_after) / np.median(peaks_quiet)) if peaks_after and peaks_quiet else None},
               "plausibility_threshold_m": pipe.threshold, "seconds": round(time.time() - t0, 1),
               "joint_names": list(JOINT_NAMES), "skipped": skipped, "per_clip": per_clip}
     return result
@@ -87,7 +108,7 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision="fp32", max_f
 def main(args):
     try:
         result = evaluate(args.data, args.split, args.samples, args.no_ssi, args.precision, args.max_frames,
-                          args.dump, args.models, args.seed)
+                          args.dump, args.models, args.seed, args.lookahead, not args.no_ik)
     except (FileNotFoundError, ValueError) as e:
         print(f"edge eval: {e}", file=sys.stderr)
         return 2

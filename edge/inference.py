@@ -24,31 +24,30 @@ def make_session(path, threads=1):
 
 def _bind(io, name, arr, output=False):
     fn = io.bind_output if output else io.bind_input
-    if output:
-        fn(name, "cpu", 0, arr.dtype, list(arr.shape), arr.ctypes.data)
-    else:
-        fn(name, "cpu", 0, arr.dtype, list(arr.shape), arr.ctypes.data)
+    fn(name, "cpu", 0, arr.dtype, list(arr.shape), arr.ctypes.data)
 
 
 class Decoder:
-    """The CVAE decoder for N samples at once: features [24] broadcast to N rows, fixed latents, GRU state kept here."""
+    """The CVAE decoder step on `rows` rows at once, on preallocated buffers.
 
-    def __init__(self, path, samples, latent_dim, hidden_dim, n_features, threads=1):
-        self.session = make_session(path, threads)
-        names = {i.name for i in self.session.get_inputs()}
+    recurrent=True keeps the GRU state here, ping-ponged between two buffers so input and output never
+    alias (`state` is what the next step reads). recurrent=False is a one-shot batch: fill `hidden`.
+    """
+
+    def __init__(self, session, rows, latent_dim, hidden_dim, n_features, recurrent=True):
+        names = {i.name for i in session.get_inputs()}
         if names != {"features", "latent", "hidden"}:
-            raise ModelError(f"{path}: expected inputs features/latent/hidden, found {sorted(names)}")
-        n = samples
-        self.features = np.zeros((n, n_features), np.float32)
-        self.latent = np.zeros((n, latent_dim), np.float32)
-        self.hidden = [np.zeros((n, hidden_dim), np.float32), np.zeros((n, hidden_dim), np.float32)]
-        out_dims = {o.name: o.shape[1] for o in self.session.get_outputs()}
-        self.rot6d = np.zeros((n, out_dims["rot6d"]), np.float32)
-        self.contacts = np.zeros((n, 2), np.float32)
-        # Two bindings that ping-pong the hidden state, so input and output never alias.
+            raise ModelError(f"decoder model: expected inputs features/latent/hidden, found {sorted(names)}")
+        self.session, self.rows = session, rows
+        self.features = np.zeros((rows, n_features), np.float32)
+        self.latent = np.zeros((rows, latent_dim), np.float32)
+        self.hidden = [np.zeros((rows, hidden_dim), np.float32), np.zeros((rows, hidden_dim), np.float32)]
+        out_dims = {o.name: o.shape[1] for o in session.get_outputs()}
+        self.rot6d = np.zeros((rows, out_dims["rot6d"]), np.float32)
+        self.contacts = np.zeros((rows, 2), np.float32)
         self._io = []
-        for k in range(2):
-            io = self.session.io_binding()
+        for k in range(2 if recurrent else 1):
+            io = session.io_binding()
             _bind(io, "features", self.features)
             _bind(io, "latent", self.latent)
             _bind(io, "hidden", self.hidden[k])
@@ -57,6 +56,7 @@ class Decoder:
             _bind(io, "hidden_out", self.hidden[1 - k], output=True)
             self._io.append(io)
         self._cur = 0
+        self.recurrent = recurrent
 
     @property
     def state(self):
@@ -69,26 +69,47 @@ class Decoder:
         self._cur = 0
 
     def step(self):
-        """Run one frame on the bound buffers (fill `features`/`latent` first)."""
+        """Run one frame on the bound buffers (fill `features`, `latent` and, one-shot, `state` first)."""
         self.session.run_with_iobinding(self._io[self._cur])
-        self._cur = 1 - self._cur
+        if self.recurrent:
+            self._cur = 1 - self._cur
 
 
 class Autoencoder:
-    """The plausibility autoencoder: local positions [B,J*3] -> rotations [B,(J-1)*6]."""
+    """The plausibility autoencoder: local positions [B,J*3] -> rotations [B,(J-1)*6].
 
-    def __init__(self, path, threads=1):
-        self.session = make_session(path, threads)
+    Calls with the batch size given at construction go through preallocated, bound buffers.
+    """
+
+    def __init__(self, session, rows=None):
+        self.session = session
+        self.rows = rows
+        if rows:
+            self.inp = np.zeros((rows, session.get_inputs()[0].shape[1]), np.float32)
+            self.out = np.zeros((rows, session.get_outputs()[0].shape[1]), np.float32)
+            self._io = session.io_binding()
+            _bind(self._io, "positions", self.inp)
+            _bind(self._io, "rot6d", self.out, output=True)
 
     def __call__(self, positions):
+        if self.rows and len(positions) == self.rows:
+            self.inp[:] = positions
+            self.session.run_with_iobinding(self._io)
+            return self.out
         return self.session.run(None, {"positions": np.ascontiguousarray(positions, dtype=np.float32)})[0]
 
 
-def load_models(folder=None, samples=1, threads=1, precision="fp32"):
+def open_models(folder=None, threads=1, precision="fp32"):
+    """Verify the manifest and open both sessions: (manifest, decoder session, autoencoder session)."""
     kw = {} if folder is None else {"folder": folder}
     suffix = "" if precision == "fp32" else f".{precision}"
     names = (f"decoder{suffix}.onnx", f"autoencoder{suffix}.onnx")
     manifest = load_manifest(need=names, **kw)
-    dec = Decoder(manifest["paths"][names[0]], samples, manifest["latent"], manifest["hidden"], manifest["features"], threads)
-    ae = Autoencoder(manifest["paths"][names[1]], threads)
-    return manifest, dec, ae
+    return manifest, make_session(manifest["paths"][names[0]], threads), make_session(manifest["paths"][names[1]], threads)
+
+
+def load_models(folder=None, samples=1, threads=1, precision="fp32"):
+    """Manifest, a recurrent Decoder for `samples` rows and an Autoencoder."""
+    manifest, dec_s, ae_s = open_models(folder, threads, precision)
+    dec = Decoder(dec_s, samples, manifest["latent"], manifest["hidden"], manifest["features"])
+    return manifest, dec, Autoencoder(ae_s)

@@ -44,3 +44,23 @@ def summarize(parts):
         "implausible_rate": tot("implausible_sum") / frames,
         "per_joint_mpjpe_cm": (100 * sum(p["per_joint_sum"] for p in parts) / frames).round(3).tolist(),
     }
+
+
+def jerk_per_frame(pred, fps):
+    """Mean joint jerk magnitude per frame [T-3] (m/s^3), aligned so entry i covers frames i..i+3."""
+    jerk = np.diff(pred, n=3, axis=0) * fps ** 3
+    return np.linalg.norm(jerk, axis=-1).mean(-1)
+
+
+def transition_peaks(pred, fps, switch_starts, window_s=1.0):
+    """RPM-style transition check: peak jerk in the window after each switch, and the peak jerk of
+    every window of the same length that contains no switch. Returns (after_switch, quiet) lists."""
+    j = jerk_per_frame(pred, fps)
+    w = int(round(window_s * fps))
+    starts = sorted(s for s in switch_starts if 0 <= s < len(j))
+    after = [float(j[s:s + w].max()) for s in starts if s + w <= len(j)]
+    busy = np.zeros(len(j), bool)
+    for s in starts:
+        busy[max(s - 3, 0):s + w] = True
+    quiet = [float(j[a:a + w].max()) for a in range(0, len(j) - w + 1, w) if not busy[a:a + w].any()]
+    return after, quiet

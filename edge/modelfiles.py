@@ -4,10 +4,12 @@ The runtime refuses to start on a missing or altered model file, with a message 
 """
 import hashlib
 import json
+import os
 from pathlib import Path
 
 MANIFEST = "manifest.json"
-DEFAULT_DIR = Path(__file__).resolve().parent.parent / "models"
+# The shipped models; EDGEPOSE_MODELS points the runtime at another folder.
+DEFAULT_DIR = Path(os.environ.get("EDGEPOSE_MODELS", Path(__file__).resolve().parent.parent / "models"))
 
 
 class ModelError(RuntimeError):

@@ -6,14 +6,30 @@ those rotations reconstructs the pose, and the mean lower-body joint distance is
 import numpy as np
 
 from edge import quat
-from edge.features import heading, to_local
+from edge.features import to_local
+from edge.skeleton import LEGS, NUM_JOINTS, NUM_PREDICTED, fk_legs
+
+# Rows of the autoencoder's rotation output (joint index - 1) for hip, knee and ankle of each leg.
+_LEG_ROWS = LEGS[:, :3] - 1
 
 
-def local_pose(world_pos, pelvis_rot):
-    """World positions [...,J,3] and pelvis orientation -> (positions in the character frame, pelvis rotation in it)."""
-    yaw_q = heading(pelvis_rot)
-    local = to_local(world_pos, world_pos[..., 0, :], yaw_q)
-    return local, quat.mul(quat.inv(yaw_q), pelvis_rot)
+def yaw_matrix(rot_m):
+    """Heading-only rotation [...,3,3] of rotation matrices: about +Y, facing their +Z axis."""
+    fwd = rot_m[..., :, 2]
+    theta = np.arctan2(fwd[..., 0], fwd[..., 2])
+    c, s = np.cos(theta), np.sin(theta)
+    out = np.zeros(rot_m.shape)
+    out[..., 0, 0], out[..., 0, 2], out[..., 1, 1], out[..., 2, 0], out[..., 2, 2] = c, s, 1.0, -s, c
+    return out
+
+
+def local_pose(world_pos, pelvis_rot_m):
+    """World positions [...,J,3] and pelvis rotation [...,3,3] -> (positions in the character frame, pelvis rotation in it)."""
+    yaw = yaw_matrix(pelvis_rot_m)
+    yaw_t = np.swapaxes(yaw, -1, -2)
+    rel = world_pos - world_pos[..., :1, :] * np.array([1.0, 0.0, 1.0])
+    local = (yaw_t[..., None, :, :] @ rel[..., None])[..., 0]
+    return local, yaw_t @ pelvis_rot_m
 
 
 class PlausibilityScorer:
@@ -23,13 +39,12 @@ class PlausibilityScorer:
         self.autoencoder = autoencoder
         self.threshold = threshold_m
 
-    def lower_body_error(self, world_pos, pelvis_rot):
-        """world_pos [B,J,3], pelvis_rot [B,4] -> [B] error in metres."""
-        from edge.skeleton import LOWER_BODY, NUM_PREDICTED, fk
-        local, root_local = local_pose(world_pos, pelvis_rot)
-        rot6d = self.autoencoder(local.reshape(len(local), -1))
-        rots = np.empty(local.shape[:-1] + (3, 3))
-        rots[:, 0] = quat.to_matrix(root_local)
-        quat.matrix_from_6d(rot6d.reshape(len(local), NUM_PREDICTED, 6).astype(np.float64), out=rots[:, 1:])
-        _, recon = fk(rots, local[:, 0])
-        return np.linalg.norm(recon[:, LOWER_BODY] - local[:, LOWER_BODY], axis=-1).mean(-1)
+    def lower_body_error(self, world_pos, pelvis_rot_m):
+        """world_pos [B,J,3], pelvis_rot_m [B,3,3] -> [B] error in metres."""
+        local, root_local = local_pose(world_pos, pelvis_rot_m)
+        B = len(local)
+        rot6d = self.autoencoder(local.reshape(B, NUM_JOINTS * 3)).reshape(B, NUM_PREDICTED, 6)
+        legs = quat.matrix_from_6d(rot6d[:, _LEG_ROWS].astype(np.float64))     # [B,2,3,3,3]
+        recon = fk_legs(root_local, local[:, 0], legs)                      # [B,2,4,3]
+        d = recon - local[:, LEGS]
+        return np.sqrt(np.einsum("...i,...i->...", d, d)).mean(axis=(1, 2))

@@ -51,6 +51,9 @@ LOWER_BODY = np.array([JOINT[n] for n in ("l_hip", "l_knee", "l_ankle", "l_toe",
 FEET = np.array([JOINT["l_toe"], JOINT["r_toe"]])
 ANKLES = np.array([JOINT["l_ankle"], JOINT["r_ankle"]])
 HEAD = JOINT["head"]
+TOES = FEET
+# The two legs as (hip, knee, ankle, toe) rows: lower-body FK runs both legs at once.
+LEGS = np.array([[JOINT[f"{s}_{k}"] for k in ("hip", "knee", "ankle", "toe")] for s in "lr"])
 WRISTS = np.array([JOINT["l_wrist"], JOINT["r_wrist"]])
 
 # Joints grouped by depth, so FK runs one batched step per level instead of one per joint.
@@ -81,10 +84,16 @@ TOE_HEIGHT = 0.02
 PELVIS_HEIGHT = TOE_HEIGHT - REST[JOINT["l_toe"], 1]
 
 
-def fk(local_rot, root_pos, offsets=OFFSETS):
-    """Forward kinematics. local_rot [...,J,3,3], root_pos [...,3] -> (world_rot [...,J,3,3], world_pos [...,J,3])."""
-    world_rot = np.empty_like(local_rot)
-    world_pos = np.empty(local_rot.shape[:-2] + (3,), dtype=local_rot.dtype)
+def fk(local_rot, root_pos, offsets=OFFSETS, out=None):
+    """Forward kinematics. local_rot [...,J,3,3], root_pos [...,3] -> (world_rot [...,J,3,3], world_pos [...,J,3]).
+
+    `out` = (world_rot, world_pos) arrays to fill instead of allocating.
+    """
+    if out is None:
+        world_rot = np.empty_like(local_rot)
+        world_pos = np.empty(local_rot.shape[:-2] + (3,), dtype=local_rot.dtype)
+    else:
+        world_rot, world_pos = out
     world_rot[..., 0, :, :] = local_rot[..., 0, :, :]
     world_pos[..., 0, :] = root_pos
     for idx in LEVELS:
@@ -92,3 +101,18 @@ def fk(local_rot, root_pos, offsets=OFFSETS):
         world_rot[..., idx, :, :] = world_rot[..., par, :, :] @ local_rot[..., idx, :, :]
         world_pos[..., idx, :] = world_pos[..., par, :] + (world_rot[..., par, :, :] @ offsets[idx][..., None])[..., 0]
     return world_rot, world_pos
+
+
+def fk_legs(pelvis_rot, pelvis_pos, leg_local, offsets=OFFSETS):
+    """Positions of both legs only. pelvis_rot [B,3,3], pelvis_pos [B,3], leg_local [B,2,3,3,3]
+    (hip, knee, ankle local rotations per leg) -> [B,2,4,3] (hip, knee, ankle, toe)."""
+    off = offsets[LEGS]                                               # [2,4,3]
+    pos = np.empty(leg_local.shape[:2] + (4, 3))
+    rot = pelvis_rot[:, None]                                         # [B,1,3,3]
+    base = pelvis_pos[:, None]
+    for k in range(4):
+        base = base + (rot @ off[:, k, :, None])[..., 0]
+        pos[:, :, k] = base
+        if k < 3:
+            rot = rot @ leg_local[:, :, k]
+    return pos

@@ -130,9 +130,8 @@ def pose_batch(cs: ClipSet, frames):
     rot = cs.rotations[frames].astype(np.float64)
     root = cs.root[frames].astype(np.float64)
     rm, pos = world_pose(rot, root)
-    local, root_local = local_pose(pos, quat.from_matrix(rm[:, 0]))
-    return {"positions": local.reshape(len(frames), -1).astype(np.float32),
-            "root_rot": quat.to_matrix(root_local).astype(np.float32)}
+    local, root_local = local_pose(pos, rm[:, 0])
+    return {"positions": local.reshape(len(frames), -1).astype(np.float32), "root_rot": root_local.astype(np.float32)}
 
 
 def main():

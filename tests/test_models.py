@@ -76,7 +76,8 @@ def test_onnx_decoder_matches_pytorch_over_a_300_frame_closed_loop(torch):
     feats = _sample_features(300)
     n = 8
     m = load_manifest()
-    dec = Decoder(m["paths"]["decoder.onnx"], n, m["latent"], m["hidden"], m["features"])
+    from edge.inference import make_session
+    dec = Decoder(make_session(m["paths"]["decoder.onnx"]), n, m["latent"], m["hidden"], m["features"])
     z = np.random.default_rng(0).standard_normal((n, m["latent"])).astype(np.float32)
     dec.latent[:] = z
     h = torch.zeros(n, m["hidden"])

@@ -1,0 +1,137 @@
+"""Analytic two-bone IK and foot-contact locking, batched over samples and limbs (numpy).
+
+SSI 3.1: when a foot is in contact, lock it and solve the thigh/shin analytically; LoBSTR 3.4.1: on
+release, ease from the locked position back to the network's foot over 10 frames (slow-in/slow-out).
+The arm pass puts the wrists on the controllers (the SSI paper's section 6 limitation).
+"""
+import numpy as np
+
+from edge.quat import cross
+
+
+def _dot(a, b):
+    return np.einsum("...i,...i->...", a, b)
+
+
+def _normalize(v, eps=1e-9):
+    return v / np.maximum(np.sqrt(_dot(v, v))[..., None], eps)
+
+
+def _axis_angle_matrix(axis, angle):
+    """Rodrigues: rotation matrices [...,3,3] about unit axes [...,3] by angles [...]: I + s K + (1-c) K^2."""
+    c, s = np.cos(angle), np.sin(angle)
+    x, y, z = axis[..., 0], axis[..., 1], axis[..., 2]
+    outer = axis[..., :, None] * axis[..., None, :] * (1.0 - c)[..., None, None]
+    sx, sy, sz = s * x, s * y, s * z
+    outer[..., 0, 0] += c
+    outer[..., 1, 1] += c
+    outer[..., 2, 2] += c
+    outer[..., 0, 1] -= sz
+    outer[..., 1, 0] += sz
+    outer[..., 0, 2] += sy
+    outer[..., 2, 0] -= sy
+    outer[..., 1, 2] -= sx
+    outer[..., 2, 1] += sx
+    return outer
+
+
+def _angle_between(u, v):
+    return np.arccos(np.clip(_dot(u, v) / np.sqrt(_dot(u, u) * _dot(v, v) + 1e-18), -1.0, 1.0))
+
+
+def two_bone_ik(a, b, c, target, a_rot, b_rot, pole):
+    """Rotate a chain a->b->c (e.g. hip->knee->ankle) so c reaches `target`, keeping bone lengths.
+
+    a, b, c, target, pole [...,3]; a_rot, b_rot world rotations [...,3,3].
+    Returns the new world rotations of a and b. `pole` is the bend direction used when the chain is straight.
+    """
+    ab, cb, ca, ta = b - a, c - b, c - a, target - a
+    lab = np.sqrt(_dot(ab, ab))
+    lcb = np.sqrt(_dot(cb, cb))
+    lat = np.clip(np.sqrt(_dot(ta, ta)), 1e-4, (lab + lcb) * (1 - 1e-4))
+    ac_ab_0 = _angle_between(ca, ab)
+    ba_bc_0 = _angle_between(-ab, cb)
+    ac_at_0 = _angle_between(ca, ta)
+    ac_ab_1 = np.arccos(np.clip((lcb * lcb - lab * lab - lat * lat) / (-2 * lab * lat), -1, 1))
+    ba_bc_1 = np.arccos(np.clip((lat * lat - lab * lab - lcb * lcb) / (-2 * lab * lcb), -1, 1))
+    bend = cross(ca, ab)
+    straight = _dot(bend, bend)[..., None] < 1e-12
+    axis0 = _normalize(np.where(straight, cross(ca, pole), bend))
+    axis1 = _normalize(cross(ca, ta))
+    r0 = _axis_angle_matrix(axis0, ac_ab_1 - ac_ab_0)
+    r1 = _axis_angle_matrix(axis0, ba_bc_1 - ba_bc_0)
+    r20 = _axis_angle_matrix(axis1, ac_at_0) @ r0
+    return r20 @ a_rot, r20 @ (r1 @ b_rot)
+
+
+def apply_limb_ik(local_rot, world_rot, world_pos, parents, chains, targets, weights, poles, end_world_rot=None,
+                  offsets=None):
+    """Solve several two-bone chains for a batch of poses, updating the pose in place.
+
+    local_rot, world_rot [B,J,3,3], world_pos [B,J,3]; chains [K,3] joint indices (root, mid, end);
+    targets [B,K,3]; weights [B,K] in [0,1] blend from the current end position to the target;
+    poles [K,3] bend directions in the mid joint's frame; end_world_rot [B,K,3,3] sets the end joints'
+    world orientation (None keeps it). With `offsets` (the skeleton's), world rotations and positions
+    of the chain joints are updated too; positions of joints below the chain ends are not.
+    """
+    ia, ib, ic = chains[:, 0], chains[:, 1], chains[:, 2]
+    a, b, c = world_pos[:, ia], world_pos[:, ib], world_pos[:, ic]
+    goal = c + weights[..., None] * (targets - c)
+    a_rot, b_rot = world_rot[:, ia], world_rot[:, ib]
+    pole = (b_rot @ poles[..., None])[..., 0]
+    a_new, b_new = two_bone_ik(a, b, c, goal, a_rot, b_rot, pole)
+    end_rot = world_rot[:, ic] if end_world_rot is None else end_world_rot
+    parent_rot = world_rot[:, parents[ia]]
+    local_rot[:, ia] = np.swapaxes(parent_rot, -1, -2) @ a_new
+    local_rot[:, ib] = np.swapaxes(a_new, -1, -2) @ b_new
+    local_rot[:, ic] = np.swapaxes(b_new, -1, -2) @ end_rot
+    if offsets is not None:
+        world_rot[:, ia], world_rot[:, ib], world_rot[:, ic] = a_new, b_new, end_rot
+        knee = a + (a_new @ offsets[ib][..., None])[..., 0]
+        world_pos[:, ib] = knee
+        world_pos[:, ic] = knee + (b_new @ offsets[ic][..., None])[..., 0]
+
+
+def smoothstep(x):
+    x = np.clip(x, 0.0, 1.0)
+    return x * x * (3 - 2 * x)
+
+
+class FootLock:
+    """Per-sample, per-foot contact locks with a smooth release (LoBSTR 3.4.1).
+
+    While a foot's contact probability is above 0.5 its ankle is held where contact began; after
+    release the IK weight eases from 1 to 0 over `release_frames` frames. A lock also lets go when the
+    network's own ankle has moved more than `max_slip` metres from it: the contact was wrong, and
+    holding on would drag the leg.
+    """
+
+    def __init__(self, samples, feet=2, release_frames=10, max_slip=0.08):
+        self.release_frames, self.max_slip = release_frames, max_slip
+        self.lock_pos = np.zeros((samples, feet, 3))
+        self.locked = np.zeros((samples, feet), bool)
+        self.raw = np.zeros((samples, feet), bool)
+        self.since_release = np.full((samples, feet), release_frames, dtype=np.float64)
+        self.weight = np.zeros((samples, feet))
+
+    def reset(self):
+        self.locked[:] = False
+        self.raw[:] = False
+        self.since_release[:] = self.release_frames
+        self.weight[:] = 0
+
+    def update(self, contacts, ankle_pos):
+        """contacts [B,2] probabilities, ankle_pos [B,2,3] -> IK targets [B,2,3] and weights [B,2]."""
+        raw = contacts > 0.5
+        slipped = self.locked & (np.linalg.norm(ankle_pos - self.lock_pos, axis=-1) > self.max_slip)
+        # Lock on a new contact, or on a continuing one once an earlier release has fully eased out;
+        # a lock taken mid-release starts where the foot is drawn, so the foot does not jump.
+        start = raw & ~self.locked & (~self.raw | (self.weight == 0))
+        drawn = ankle_pos + self.weight[..., None] * (self.lock_pos - ankle_pos)
+        self.lock_pos[start] = drawn[start]
+        self.locked[:] = (self.locked & raw & ~slipped) | start
+        self.raw[:] = raw
+        self.since_release[self.locked] = 0
+        self.since_release[~self.locked] += 1
+        self.weight[:] = np.where(self.locked, 1.0, 1.0 - smoothstep(self.since_release / self.release_frames))
+        return self.lock_pos, self.weight
