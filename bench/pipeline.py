@@ -7,11 +7,14 @@ the pipeline / decoder ratio. A benchmark, not a test: it prints figures and ass
 """
 import argparse
 import json
+import sys
 import os
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from edge.pipeline import Pipeline
 from edge.takes import from_sample
