@@ -224,7 +224,8 @@ class Pipeline:
         if N > 1:
             ctx = FrameContext(t, self._pos[:N], self._world[:N], self._world[:N, 0])
             b.cost[s] = self.criteria.cost(ctx)
-            if self.ssi and t > self.trans_end:
+            # A new switch waits until the last transition has been sent, so transitions never overlap.
+            if self.ssi and t - self.lookahead > self.trans_end:
                 self._maybe_switch(t, s)
         return self._emit(t - self.lookahead)
 
