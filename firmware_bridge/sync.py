@@ -1,0 +1,206 @@
+"""Align sources running at their own rates and clocks to the 60 Hz model clock.
+
+Every device stamps samples with its own clock. Per device we estimate the offset to the board's
+clock with a minimum-delay filter (transport delay is never negative, so the smallest
+`received - device_time` over a recent window is the offset plus the smallest delay), then keep
+each stream's recent samples in time order and interpolate them at the model tick: linear for
+positions, slerp for rotations. Late and out-of-order samples are inserted where they belong;
+samples older than what we keep are dropped and counted.
+
+A stream that has said nothing for `lost_after` seconds is lost: its last value is held (the
+controllers drift to a neutral pose beside the body, expressed in the headset's heading frame so
+they follow the user), and when it comes back the output blends from the held value to the live
+one over a cosine schedule (RPM's bounded correction) instead of snapping.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+from edge import quat
+from edge.signals import Signals
+
+# Where lost controllers settle, in the headset's heading frame (hands hanging beside the hips).
+NEUTRAL_HANDS = np.array([[0.22, -0.75, 0.05], [-0.22, -0.75, 0.05]])
+
+
+class ClockOffset:
+    """Board-minus-device clock offset from a minimum-delay filter over a sliding window of samples."""
+
+    def __init__(self, window=200):
+        self.window = np.full(window, np.inf)
+        self.n = 0
+
+    def update(self, device_t, received_t):
+        self.window[self.n % len(self.window)] = received_t - device_t
+        self.n += 1
+        return self.offset
+
+    @property
+    def offset(self):
+        return float(self.window.min()) if self.n else 0.0
+
+
+class Stream:
+    """The last few samples of one device (time-sorted, board clock), values as flat float vectors."""
+
+    def __init__(self, width, capacity=32):
+        self.t = np.full(capacity, -np.inf)
+        self.v = np.zeros((capacity, width))
+        self.clock = ClockOffset()
+        self.last_device_t = -np.inf
+        self.backwards = 0
+        self.dropped = 0
+
+    def add(self, device_t, received_t, values):
+        if device_t < self.last_device_t - 1.0:       # the device clock jumped back (a reset): start over
+            self.clock = ClockOffset()
+            self.t[:] = -np.inf
+            self.backwards += 1
+            self.last_device_t = device_t
+        else:
+            self.last_device_t = max(self.last_device_t, device_t)
+        t = device_t + self.clock.update(device_t, received_t)
+        oldest = int(np.argmin(self.t))
+        if t <= self.t[oldest] or np.any(self.t == t):
+            self.dropped += 1                         # older than anything we keep, or a duplicate
+            return
+        self.t[oldest] = t
+        self.v[oldest] = values
+
+    @property
+    def newest(self):
+        return float(self.t.max())
+
+    def sample(self, t):
+        """Interpolated value at board time t: (value, age of the newest sample used) or (None, inf)."""
+        valid = np.isfinite(self.t)
+        if not valid.any():
+            return None, np.inf
+        ts = np.where(valid, self.t, np.inf)
+        before = np.where(ts <= t, ts, -np.inf)
+        after = np.where(ts > t, ts, np.inf)
+        i0 = int(np.argmax(before))
+        i1 = int(np.argmin(after))
+        if not np.isfinite(before[i0]):              # t is older than everything kept: use the oldest
+            return self.v[i1].copy(), 0.0
+        if not np.isfinite(after[i1]):               # t is past the newest: hold it
+            return self.v[i0].copy(), t - ts[i0]
+        w = (t - ts[i0]) / (ts[i1] - ts[i0])
+        return interpolate(self.v[i0], self.v[i1], w), 0.0
+
+
+def interpolate(a, b, w):
+    """Linear for positions, slerp for the quaternions of a packed [pos3, quat4]* vector."""
+    out = a + w * (b - a)
+    for k in range(len(a) // 7):
+        q = slice(7 * k + 3, 7 * k + 7)
+        out[q] = quat.slerp(a[q], b[q], w)
+    return out
+
+
+@dataclass
+class Health:
+    """Which sources are lost at this tick, and how many samples were dropped for being late."""
+    lost: dict
+    dropped: int
+    backwards: int
+
+
+class FrameSynchronizer:
+    """Collects samples from all sources and produces one Signals frame per model tick.
+
+    Sources: the headset's head and its two controllers (each lost on its own: a controller that
+    leaves the cameras' view is flagged invalid by the headset) and the IMU trackers by name.
+    """
+
+    HANDS = ("l_hand", "r_hand")
+
+    def __init__(self, trackers=("waist",), lost_after=0.25, blend_s=0.5, decay_s=1.0, latency=0.0):
+        self.lost_after, self.blend_s, self.decay_s, self.latency = lost_after, blend_s, decay_s, latency
+        self.streams = {"head": Stream(7), "l_hand": Stream(7), "r_hand": Stream(7)}
+        self.streams.update({name: Stream(7) for name in trackers})    # [pos3 (unused), quat4]
+        self.trackers = tuple(trackers)
+        self._held = {}                              # source -> (value held when lost, time lost)
+        self._recover = {}                           # source -> (value at recovery, time recovered)
+        self._last = {}
+
+    def add_headset(self, s, received=None):
+        received = s.received if received is None else received
+        head = np.concatenate([s.head_pos, s.head_rot])
+        if not np.all(np.isfinite(head)):
+            return
+        self.streams["head"].add(s.t, received, head)
+        for k, name in enumerate(self.HANDS):
+            hand = np.concatenate([s.hand_pos[k], s.hand_rot[k]])
+            if s.hand_valid[k] and np.all(np.isfinite(hand)):
+                self.streams[name].add(s.t, received, hand)
+
+    def add_tracker(self, s, received=None):
+        stream = self.streams.get(s.tracker)
+        if stream is None or s.tracker in ("head",) + self.HANDS or not np.all(np.isfinite(s.quat)):
+            return
+        stream.add(s.t, s.received if received is None else received, np.concatenate([np.zeros(3), s.quat]))
+
+    def frame(self, t):
+        """Signals (T=1) at board time t (minus the configured latency), and the Health of every source."""
+        t = t - self.latency
+        head, age = self.streams["head"].sample(t)
+        if head is None:
+            return None, Health({name: True for name in self.streams}, 0, 0)
+        lost = {"head": age > self.lost_after}
+        head = self._guard("head", head, lost["head"], t)
+        hands = []
+        for k, name in enumerate(self.HANDS):
+            v, age = self.streams[name].sample(t)
+            lost[name] = v is None or age > self.lost_after
+            if v is None:
+                v = np.concatenate([self._neutral_hand(head, k), head[3:7]])
+            hands.append(self._guard(name, v, lost[name], t, lambda held, since, k=k: self._decay_hand(held, since, head, k)))
+        waist = None
+        for name in self.trackers:
+            v, age = self.streams[name].sample(t)
+            lost[name] = v is None or age > self.lost_after
+            if name == "waist":
+                if v is None:                        # never heard from: upright, facing where the headset faces
+                    v = np.concatenate([np.zeros(3), quat.from_yaw(quat.yaw(head[3:7]))])
+                waist = self._guard(name, v, lost[name], t)
+        if waist is None:
+            waist = np.concatenate([np.zeros(3), quat.from_yaw(quat.yaw(head[3:7]))])
+        sig = Signals(head[None, 0:3], quat.normalize(head[None, 3:7]),
+                      np.stack([hands[0][0:3], hands[1][0:3]])[None],
+                      quat.normalize(np.stack([hands[0][3:7], hands[1][3:7]]))[None],
+                      quat.normalize(waist[None, 3:7]), np.zeros((1, 3)))
+        streams = self.streams.values()
+        return sig, Health(lost, sum(s.dropped for s in streams), sum(s.backwards for s in streams))
+
+    def _neutral_hand(self, head, k):
+        return head[0:3] + quat.rotate(quat.from_yaw(quat.yaw(head[3:7])), NEUTRAL_HANDS[k])
+
+    def _decay_hand(self, held, since, head, k):
+        """A lost controller drifts from where it was lost to the neutral pose beside the body."""
+        a = min(since / self.decay_s, 1.0)
+        out = held.copy()
+        out[0:3] = (1 - a) * held[0:3] + a * self._neutral_hand(head, k)
+        return out
+
+    def _guard(self, name, live, is_lost, t, decay=None):
+        """Hold (and decay) while lost; cosine-blend back from the shown value after recovery."""
+        if is_lost:
+            if name not in self._held:
+                self._held[name] = (self._last.get(name, live).copy(), t)
+            held, since = self._held[name]
+            value = decay(held, t - since) if decay else held
+            self._last[name] = value
+            return value
+        if name in self._held:                        # just recovered
+            self._recover[name] = (self._last[name].copy(), t)
+            del self._held[name]
+        if name in self._recover:
+            start, t0 = self._recover[name]
+            a = (t - t0) / self.blend_s
+            if a >= 1.0:
+                del self._recover[name]
+            else:
+                live = interpolate(start, live, 0.5 - 0.5 * np.cos(np.pi * a))   # cosine schedule 0 -> 1
+        self._last[name] = live
+        return live
