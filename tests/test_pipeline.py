@@ -58,16 +58,23 @@ class ForcedSwitch:
         return c
 
 
-def test_transition_starts_at_the_oldest_unsent_frame_and_lands_on_the_new_sample(take):
-    pipe = Pipeline(samples=6, lookahead=10, transition=10, criteria=[])
-    pipe.criteria.criteria.append(ForcedSwitch(pipe, at=40))
-    out = {}
-    for t in range(80):
+def run_forced_switch(take, lookahead, at, frames, transition=10):
+    """Run with a switch forced at frame `at`; returns the pipeline, {frame: (positions, sample, in
+    transition)} and sample 3's own pose at frame at-1 as the buffer held it at the switch."""
+    pipe = Pipeline(samples=6, lookahead=lookahead, transition=transition, criteria=[])
+    pipe.criteria.criteria.append(ForcedSwitch(pipe, at=at))
+    out, own_new = {}, None
+    for t in range(frames):
         pose = pipe.step(take.signals.slice(t, t + 1))
         if pose is not None:
             out[pose.frame] = (pose.positions.copy(), pose.sample, pose.transition)
-        if t == 40:
-            own_new = pipe.buffer.positions[pipe.buffer.slot(39), 3].copy()
+        if t == at:
+            own_new = pipe.buffer.positions[pipe.buffer.slot(at - 1), 3].copy()
+    return pipe, out, own_new
+
+
+def test_transition_starts_at_the_oldest_unsent_frame_and_lands_on_the_new_sample(take):
+    pipe, out, own_new = run_forced_switch(take, lookahead=10, at=40, frames=80)
     assert pipe.switches == [(40, 30, 0, 3)]
     assert [f for f in out if out[f][2]] == list(range(30, 40))          # frames t-tau .. t-tau+T-1
     assert all(out[f][1] == 0 for f in range(10, 30))
@@ -77,14 +84,8 @@ def test_transition_starts_at_the_oldest_unsent_frame_and_lands_on_the_new_sampl
 
 
 def test_transition_longer_than_the_lookahead_continues_live(take):
-    pipe = Pipeline(samples=6, lookahead=3, transition=10, criteria=[])
-    pipe.criteria.criteria.append(ForcedSwitch(pipe, at=30))
-    frames = {}
-    for t in range(60):
-        pose = pipe.step(take.signals.slice(t, t + 1))
-        if pose is not None:
-            frames[pose.frame] = pose.transition
-    assert [f for f, tr in frames.items() if tr] == list(range(27, 37))
+    _, out, _ = run_forced_switch(take, lookahead=3, at=30, frames=60)
+    assert [f for f in out if out[f][2]] == list(range(27, 37))
 
 
 def test_ring_buffer_memory_is_fixed_over_20000_frames(take):
