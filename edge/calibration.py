@@ -1,0 +1,101 @@
+"""Standing calibration: IMU mounting offsets and the user's height scale (LoBSTR 4.2, SSI 4.4).
+
+The user stands upright in a T-pose (arms out, facing forward) for a few seconds. From that:
+- height scale: canonical eye height / measured headset height. The model works on the canonical
+  body, so tracker positions are multiplied by it (around the floor origin) and poses divided back.
+- per IMU tracker, a heading alignment A (yaw only: the IMU's magnetic/gyro heading reference against
+  the headset's) and a mounting rotation M (how the sensor sits on the body), so that
+  body orientation = A * sensor * M, and in the calibration pose every body part is upright facing
+  where the headset faces (the canonical rest pose has identity rotations).
+Limitation: a tracker mounted with a yaw twist folds that twist into A, which is exact for turning
+but slightly off for leaning; a second pose (a bow) would separate them.
+"""
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from edge import quat
+from edge.signals import EYE_OFFSET
+from edge.skeleton import PELVIS_HEIGHT, PELVIS_TO_HEAD
+
+CANONICAL_EYE_HEIGHT = PELVIS_HEIGHT + PELVIS_TO_HEAD[1] + EYE_OFFSET[1]
+VERSION = 1
+
+
+class CalibrationError(ValueError):
+    """A calibration file that cannot be used; the message says what to do."""
+
+
+def mean_quat(q):
+    """Average of nearby unit quaternions [K,4] (sign-aligned mean, renormalised)."""
+    q = np.asarray(q, dtype=np.float64)
+    q = np.where((q @ q[0])[:, None] < 0, -q, q)
+    return quat.normalize(q.mean(0))
+
+
+@dataclass
+class Calibration:
+    height_scale: float = 1.0
+    heading: float = 0.0                                  # headset yaw during calibration, radians
+    align: dict = field(default_factory=dict)             # tracker -> [4] yaw alignment A
+    mount: dict = field(default_factory=dict)             # tracker -> [4] mounting rotation M
+
+    def body_rotation(self, tracker, sensor_q):
+        """Sensor orientation(s) [...,4] -> body-part orientation A * q * M (identity if uncalibrated)."""
+        if tracker not in self.mount:
+            return sensor_q
+        return quat.mul(quat.mul(self.align[tracker], sensor_q), self.mount[tracker])
+
+    def to_json(self):
+        return {"version": VERSION, "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
+                "height_scale": self.height_scale, "heading_deg": float(np.degrees(self.heading)),
+                "trackers": {k: {"align": self.align[k].tolist(), "mount": self.mount[k].tolist()} for k in self.mount}}
+
+    def save(self, path):
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        Path(path).write_text(json.dumps(self.to_json(), indent=2) + "\n")
+
+    @classmethod
+    def load(cls, path):
+        try:
+            d = json.loads(Path(path).read_text())
+            if d.get("version") != VERSION:
+                raise CalibrationError(f"{path}: calibration version {d.get('version')} is not {VERSION}; run edge calibrate again")
+            scale = float(d["height_scale"])
+            if not 0.5 < scale < 2.0:
+                raise CalibrationError(f"{path}: height scale {scale:.3f} is implausible; run edge calibrate again")
+            cal = cls(scale, np.radians(float(d.get("heading_deg", 0.0))))
+            for name, t in d.get("trackers", {}).items():
+                a, m = np.array(t["align"], dtype=np.float64), np.array(t["mount"], dtype=np.float64)
+                if a.shape != (4,) or m.shape != (4,) or not (np.all(np.isfinite(a)) and np.all(np.isfinite(m))):
+                    raise CalibrationError(f"{path}: tracker {name!r} has a malformed rotation; run edge calibrate again")
+                cal.align[name], cal.mount[name] = quat.normalize(a), quat.normalize(m)
+            return cal
+        except FileNotFoundError:
+            raise CalibrationError(f"calibration file {path} not found: run `edge calibrate --config ...` first, "
+                                   f"or leave `calibration` out of the config to run uncalibrated") from None
+        except (ValueError, KeyError, TypeError) as e:
+            if isinstance(e, CalibrationError):
+                raise
+            raise CalibrationError(f"{path}: not a valid calibration file ({e}); run edge calibrate again") from None
+
+
+def calibrate(head_pos, head_rot, trackers):
+    """head_pos [K,3], head_rot [K,4] over the standing period; trackers: name -> sensor quats [K,4]."""
+    head_pos, head_rot = np.asarray(head_pos), np.asarray(head_rot)
+    height = float(np.median(head_pos[:, 1]))
+    if height < 0.8:
+        raise CalibrationError(f"headset only {height:.2f} m above the floor: stand upright during calibration "
+                               f"(and check the headset's floor level)")
+    heading = float(quat.yaw(mean_quat(head_rot)))
+    cal = Calibration(CANONICAL_EYE_HEIGHT / height, heading)
+    face = quat.from_yaw(np.array(heading))
+    for name, q in trackers.items():
+        s = mean_quat(q)
+        a = quat.from_yaw(np.array(heading - quat.yaw(s)))
+        cal.align[name] = a
+        cal.mount[name] = quat.normalize(quat.mul(quat.inv(quat.mul(a, s)), face))
+    return cal
