@@ -33,11 +33,32 @@ def main(argv=None):
     st.add_argument("--models")
     st.add_argument("--json", required=True)
 
+    run = sub.add_parser("run", help="the board service: sources in, poses out, live status")
+    run.add_argument("--config", required=True, help="TOML or JSON config (see firmware_bridge/config.py)")
+    run.add_argument("--seconds", type=float, default=None, help="stop after this long (default: run until Ctrl-C)")
+    run.add_argument("--json", help="write the run's counters and timings here at exit")
+
+    cal = sub.add_parser("calibrate", help="stand in a T-pose: store IMU mounting offsets and height scale")
+    cal.add_argument("--config", required=True)
+    cal.add_argument("--seconds", type=float, default=3.0)
+    cal.add_argument("--out", default="calibration.json")
+
+    li = sub.add_parser("listen", help="decode the board's pose stream on a serial port, with a status line")
+    li.add_argument("port")
+    li.add_argument("--baud", type=int, default=460800)
+    li.add_argument("--seconds", type=float, default=None)
+
     args = ap.parse_args(argv)
     try:
         if args.cmd == "eval":
             from edge import eval as ev_mod
             return ev_mod.main(args)
+        if args.cmd in ("run", "calibrate"):
+            from firmware_bridge import commands
+            return commands.run(args) if args.cmd == "run" else commands.calibrate(args)
+        if args.cmd == "listen":
+            from firmware_bridge import listen
+            return listen.main(args)
         if args.cmd == "ssi-study":
             from edge import study
             return study.main(args)

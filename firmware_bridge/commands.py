@@ -1,0 +1,84 @@
+"""`edge run` and `edge calibrate`: start-up checks with messages that say what to fix."""
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from edge.calibration import CalibrationError, calibrate as solve_calibration
+from edge.progress import Progress
+from firmware_bridge import config as config_mod
+from firmware_bridge.samples import HeadsetSample
+from firmware_bridge.transports import TransportError
+
+
+def _load(args):
+    try:
+        return config_mod.load(args.config)
+    except config_mod.ConfigError as e:
+        print(f"edge: {e}", file=sys.stderr)
+        return None
+
+
+def run(args):
+    cfg = _load(args)
+    if cfg is None:
+        return 2
+    from firmware_bridge.service import Service
+    try:
+        service = Service(cfg)
+    except (TransportError, CalibrationError) as e:
+        print(f"edge run: {e}", file=sys.stderr)
+        return 2
+    try:
+        summary = service.run(args.seconds)
+    except KeyboardInterrupt:
+        summary = service.summary()
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+    return 0
+
+
+def calibrate(args):
+    cfg = _load(args)
+    if cfg is None:
+        return 2
+    from firmware_bridge.service import Link
+    try:
+        links = [Link(u) for u in [cfg.headset] + cfg.trackers]
+    except TransportError as e:
+        print(f"edge calibrate: {e}", file=sys.stderr)
+        return 2
+    print("Stand upright, arms out to the sides (T-pose), facing forward. Hold still...", file=sys.stderr)
+    heads, rots, trackers = [], [], {name: [] for name in cfg.tracker_names}
+    start = time.monotonic()
+    with Progress(int(args.seconds * 10), "calibrate") as bar:
+        while time.monotonic() - start < args.seconds:
+            for link in links:
+                for s in link.drain(time.monotonic):
+                    if isinstance(s, HeadsetSample):
+                        heads.append(s.head_pos)
+                        rots.append(s.head_rot)
+                    elif s.tracker in trackers:
+                        trackers[s.tracker].append(s.quat)
+            time.sleep(0.005)
+            bar.n = int((time.monotonic() - start) * 10) - 1
+            bar.update()
+    for link in links:
+        link.close()
+    missing = [n for n, q in trackers.items() if not q] + ([] if heads else ["headset"])
+    if missing:
+        print(f"edge calibrate: no data from {', '.join(missing)} in {args.seconds:.0f} s; check they are on and "
+              f"configured", file=sys.stderr)
+        return 2
+    try:
+        cal = solve_calibration(np.array(heads), np.array(rots), {n: np.array(q) for n, q in trackers.items()})
+    except CalibrationError as e:
+        print(f"edge calibrate: {e}", file=sys.stderr)
+        return 2
+    cal.save(args.out)
+    print(f"wrote {args.out}: height scale {cal.height_scale:.3f}, trackers {', '.join(cal.mount) or '-'}",
+          file=sys.stderr)
+    return 0

@@ -1,0 +1,159 @@
+"""The board's configuration file (TOML or JSON): which sources, which outputs, runtime settings.
+
+    [headset]
+    url = "serial:///dev/ttyAMA0?baud=460800&role=headset"
+
+    [[trackers]]                      # one table per IMU source; names come from the URL
+    url = "i2c://1/0x28?tracker=waist&rate=100"
+
+    [[trackers]]
+    url = "can://socketcan/can0?nodes=1:l_foot,2:r_foot"
+
+    [output]
+    pose_stream = "headset"           # POSE_FRAME back over the headset link, or a serial:// URL, or ""
+    vmc = "127.0.0.1:39539"           # optional
+    vrchat = "127.0.0.1:9000"         # optional
+    bvh = "out/take.bvh"              # optional recording
+
+    [runtime]
+    samples = 16                      # latent samples N (1..128)
+    lookahead = 10                    # SSI look-ahead in frames
+    hz = 60
+    lost_after_ms = 250
+    calibration = "calibration.json"  # optional, from `edge calibrate`
+    models = "models"                 # optional, default: the shipped models
+
+Every mistake is reported at start-up with the file, the key and what to write instead.
+"""
+import json
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from firmware_bridge.transports.base import TransportError, parse_url
+
+
+class ConfigError(ValueError):
+    """A configuration file that cannot be used; the message says what to fix."""
+
+
+SECTIONS = {
+    "headset": {"url"},
+    "trackers": {"url"},
+    "output": {"pose_stream", "vmc", "vrchat", "bvh"},
+    "runtime": {"samples", "lookahead", "hz", "lost_after_ms", "calibration", "models"},
+}
+
+
+@dataclass
+class Config:
+    headset: str
+    trackers: list
+    pose_stream: str = "headset"
+    vmc: str = ""
+    vrchat: str = ""
+    bvh: str = ""
+    samples: int = 16
+    lookahead: int = 10
+    hz: float = 60.0
+    lost_after: float = 0.25
+    calibration: str = ""
+    models: str = ""
+    path: str = ""
+    tracker_names: list = field(default_factory=list)
+
+
+def _host_port(value, where):
+    host, sep, port = value.rpartition(":")
+    if not sep or not port.isdigit() or not host:
+        raise ConfigError(f"{where}: expected HOST:PORT such as 127.0.0.1:39539, got {value!r}")
+    return host, int(port)
+
+
+def id_map(text):
+    """'0:waist,1:l_foot' -> {0: 'waist', 1: 'l_foot'}."""
+    out = {}
+    for pair in text.split(","):
+        wire_id, sep, name = pair.partition(":")
+        if not sep or not wire_id.strip().isdigit() or not name.strip():
+            raise ConfigError(f"expected ID:NAME pairs such as 0:waist,1:l_foot, got {text!r}")
+        out[int(wire_id)] = name.strip()
+    return out
+
+
+def tracker_names_of(url):
+    """Tracker names a source URL declares: ?tracker=NAME (I2C), ?nodes=1:a,2:b (CAN), ?trackers=0:a,1:b
+    (serial hub). A serial hub without a map carries the waist as id 0."""
+    scheme, _, _, query = parse_url(url)
+    if "tracker" in query:
+        return [query["tracker"]]
+    if "nodes" in query:
+        return list(id_map(query["nodes"]).values())
+    if "trackers" in query:
+        return list(id_map(query["trackers"]).values())
+    return ["waist"] if scheme == "serial" else []
+
+
+def load(path):
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as e:
+        raise ConfigError(f"cannot read config {path}: {e.strerror}") from None
+    try:
+        raw = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
+    except (ValueError, tomllib.TOMLDecodeError) as e:
+        raise ConfigError(f"{path}: not valid {'JSON' if path.suffix == '.json' else 'TOML'}: {e}") from None
+    return from_dict(raw, str(path))
+
+
+def from_dict(raw, where="config"):
+    for key, value in raw.items():
+        if key not in SECTIONS:
+            raise ConfigError(f"{where}: unknown section [{key}]; sections are {', '.join(sorted(SECTIONS))}")
+        for table in (value if isinstance(value, list) else [value]):
+            if not isinstance(table, dict):
+                raise ConfigError(f"{where}: [{key}] must be a table")
+            unknown = set(table) - SECTIONS[key]
+            if unknown:
+                raise ConfigError(f"{where}: unknown key {sorted(unknown)[0]!r} in [{key}]; "
+                                  f"allowed: {', '.join(sorted(SECTIONS[key]))}")
+    if "headset" not in raw or "url" not in raw["headset"]:
+        raise ConfigError(f"{where}: [headset] url is required (e.g. serial:///dev/ttyAMA0?role=headset)")
+    out, rt = raw.get("output", {}), raw.get("runtime", {})
+    cfg = Config(headset=raw["headset"]["url"], trackers=[t.get("url") for t in raw.get("trackers", [])], path=where)
+    for url, what in [(cfg.headset, "[headset] url")] + [(u, "[[trackers]] url") for u in cfg.trackers]:
+        if not isinstance(url, str):
+            raise ConfigError(f"{where}: {what} is missing")
+        try:
+            parse_url(url)
+        except TransportError as e:
+            raise ConfigError(f"{where}: {what}: {e}") from None
+    try:
+        cfg.tracker_names = [n for u in cfg.trackers for n in tracker_names_of(u)]
+    except ConfigError as e:
+        raise ConfigError(f"{where}: [[trackers]] url: {e}") from None
+    if len(set(cfg.tracker_names)) != len(cfg.tracker_names):
+        raise ConfigError(f"{where}: tracker names repeat: {cfg.tracker_names}")
+    cfg.pose_stream = out.get("pose_stream", "headset")
+    if cfg.pose_stream not in ("headset", "") and not cfg.pose_stream.startswith("serial://"):
+        raise ConfigError(f"{where}: [output] pose_stream must be \"headset\", a serial:// URL or \"\"")
+    for key in ("vmc", "vrchat"):
+        if out.get(key):
+            _host_port(out[key], f"{where}: [output] {key}")
+            setattr(cfg, key, out[key])
+    cfg.bvh = out.get("bvh", "")
+    try:
+        cfg.samples = int(rt.get("samples", cfg.samples))
+        cfg.lookahead = int(rt.get("lookahead", cfg.lookahead))
+        cfg.hz = float(rt.get("hz", cfg.hz))
+        cfg.lost_after = float(rt.get("lost_after_ms", 250)) / 1000.0
+    except (TypeError, ValueError) as e:
+        raise ConfigError(f"{where}: [runtime] values must be numbers ({e})") from None
+    if not 1 <= cfg.samples <= 128:
+        raise ConfigError(f"{where}: [runtime] samples must be 1..128, got {cfg.samples}")
+    if not 0 <= cfg.lookahead <= 60 or not 10 <= cfg.hz <= 240 or not 0.02 <= cfg.lost_after <= 5:
+        raise ConfigError(f"{where}: [runtime] lookahead 0..60 frames, hz 10..240, lost_after_ms 20..5000")
+    cfg.calibration = rt.get("calibration", "")
+    cfg.models = rt.get("models", "")
+    return cfg

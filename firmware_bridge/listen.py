@@ -1,0 +1,95 @@
+"""`edge listen`: the host-side reader of the board's pose stream, as a command and as a library.
+
+    from firmware_bridge.listen import Listener
+    with Listener("/dev/ttyUSB0") as ear:            # or Listener(fd=...) on an open descriptor
+        for frame in ear.poll(timeout=0.1):          # protocol.PoseFrame objects
+            ...
+
+It reports the frame rate, the latency (frame time to arrival, meaningful when the board and the
+listener share a clock, as in the simulator; otherwise it includes the clock offset), and lost,
+dropped and corrupt frames.
+"""
+import os
+import select
+import sys
+import time
+from collections import deque
+
+import numpy as np
+
+from firmware_bridge import protocol
+
+
+class Listener:
+    def __init__(self, port=None, baud=460800, fd=None):
+        if (port is None) == (fd is None):
+            raise ValueError("give a serial port path or an open file descriptor")
+        self._serial = None
+        if port is not None:
+            import serial
+            try:
+                self._serial = serial.Serial(port, baud, timeout=0)
+            except (serial.SerialException, OSError) as e:
+                raise SystemExit(f"edge listen: cannot open {port}: {e}") from None
+            fd = self._serial.fileno()
+        self.fd = fd
+        self.reader = protocol.FrameReader(accept=(protocol.POSE_FRAME,))
+        self.stats = self.reader.stats
+        self.arrivals = deque(maxlen=240)
+        self.latency_ms = deque(maxlen=240)
+
+    def poll(self, timeout=0.0):
+        """Pose frames that arrived, waiting up to `timeout` seconds for the first bytes."""
+        ready, _, _ = select.select([self.fd], [], [], timeout)
+        if not ready:
+            return []
+        try:
+            chunk = os.read(self.fd, 65536)
+        except OSError:
+            return []
+        now = time.monotonic()
+        frames = self.reader.feed(chunk)
+        for f in frames:
+            f.received = now
+            self.arrivals.append(now)
+            self.latency_ms.append((now - f.t) * 1000)
+        return frames
+
+    def rate(self):
+        a = self.arrivals
+        return (len(a) - 1) / (a[-1] - a[0]) if len(a) > 1 and a[-1] > a[0] else 0.0
+
+    def status_line(self):
+        lat = np.array(self.latency_ms) if self.latency_ms else np.zeros(1)
+        s = self.stats
+        return (f"edge listen | {self.rate():5.1f} Hz | latency p50 {np.median(lat):.1f} ms p99 {np.percentile(lat, 99):.1f} ms "
+                f"| frames {s['frames']} | dropped {s.get('missed', 0)} | corrupt {s['corrupt']}")
+
+    def close(self):
+        if self._serial is not None:
+            self._serial.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def main(args):
+    with Listener(args.port, args.baud) as ear:
+        tty = sys.stderr.isatty()
+        last = time.monotonic()
+        start = last
+        try:
+            while args.seconds is None or time.monotonic() - start < args.seconds:
+                ear.poll(0.05)
+                if time.monotonic() - last > 0.25:
+                    last = time.monotonic()
+                    if tty:
+                        sys.stderr.write("\r" + ear.status_line() + "\x1b[K")
+                        sys.stderr.flush()
+        except KeyboardInterrupt:
+            pass
+        sys.stderr.write(("\n" if tty else "") + ear.status_line() + "\n")
+    return 0

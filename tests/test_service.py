@@ -1,0 +1,107 @@
+"""`edge run` end to end through real ptys: headset and tracker hub in, pose stream out to `edge listen`."""
+import os
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from edge import quat
+from edge.cli import main as edge_main
+from edge.skeleton import NUM_JOINTS
+from edge.takes import from_sample
+from firmware_bridge import config as config_mod
+from firmware_bridge import protocol
+from firmware_bridge.listen import Listener
+from firmware_bridge.samples import HeadsetSample, TrackerSample
+from firmware_bridge.service import Service
+from tests.conftest import SAMPLE
+
+
+def pty_pair():
+    master, slave = os.openpty()
+    return master, slave, os.ttyname(slave)
+
+
+def feed(take, headset_fd, hub_fd, stop, hz=60.0):
+    """Play the sample take as a headset and a tracker hub would, on their own clocks."""
+    sig = take.signals
+    t0 = time.monotonic()
+    k = 0
+    while not stop.is_set():
+        i = k % take.frames
+        now = time.monotonic()
+        hs = HeadsetSample(now + 100.0, sig.head_pos[i], sig.head_rot[i], sig.hand_pos[i], sig.hand_rot[i])
+        ts = TrackerSample("waist", now - 50.0, sig.waist_rot[i], sig.waist_acc[i])
+        os.write(headset_fd, protocol.encode_headset_pose(hs, k & 0xFFFF))
+        os.write(hub_fd, protocol.encode_tracker_samples([ts], k & 0xFFFF))
+        k += 1
+        time.sleep(max(0.0, t0 + k / hz - time.monotonic()))
+
+
+def test_run_streams_poses_that_listen_decodes(tmp_path):
+    take = from_sample(SAMPLE)
+    hm, hs, hpath = pty_pair()
+    tm, ts, tpath = pty_pair()
+    cfg = config_mod.from_dict({
+        "headset": {"url": f"serial://{hpath}?role=headset"},
+        "trackers": [{"url": f"serial://{tpath}?role=hub"}],
+        "output": {"pose_stream": "headset", "bvh": str(tmp_path / "take.bvh")},
+        "runtime": {"samples": 4, "lookahead": 3},
+    })
+    service = Service(cfg, status=None)
+    stop = threading.Event()
+    feeder = threading.Thread(target=feed, args=(take, hm, tm, stop), daemon=True)
+    runner = threading.Thread(target=lambda: service.run(stop=stop.is_set), daemon=True)
+    feeder.start()
+    runner.start()
+    frames = []
+    ear = Listener(fd=hm)
+    deadline = time.monotonic() + 2.5
+    while time.monotonic() < deadline:
+        frames += ear.poll(0.05)
+    stop.set()
+    runner.join(5)
+    feeder.join(5)
+    summary = service.summary()
+    assert len(frames) > 60 and ear.stats["corrupt"] == 0
+    assert summary["frames_out"] >= len(frames) and summary["frames_in"] - summary["frames_out"] <= 3
+    last = frames[-1]
+    assert last.rotations.shape == (NUM_JOINTS, 4)
+    assert np.allclose(np.linalg.norm(last.rotations, axis=-1), 1, atol=1e-3)
+    assert 0.6 < last.root_pos[1] < 1.3                     # the pelvis of a standing person
+    assert last.num_samples == 4 and last.trackers_lost == 0
+    assert 40 < ear.rate() < 80
+    # The BVH recorder got the same frames.
+    text = (tmp_path / "take.bvh").read_text()
+    assert f"Frames: {summary['frames_out']}" in " ".join(text.split())
+    for fd in (hm, hs, tm, ts):
+        os.close(fd)
+
+
+@pytest.mark.parametrize("raw, message", [
+    ({}, "headset"),
+    ({"headset": {"url": "usb://x"}}, "unknown transport"),
+    ({"headset": {"url": "serial:///dev/null"}, "runtime": {"samples": 0}}, "samples must be 1..128"),
+    ({"headset": {"url": "serial:///dev/null"}, "runtime": {"sample": 4}}, "unknown key 'sample'"),
+    ({"headset": {"url": "serial:///dev/null"}, "output": {"vmc": "localhost"}}, "HOST:PORT"),
+    ({"headset": {"url": "serial:///dev/null"}, "trackers": [{"url": "serial:///dev/x?trackers=waist"}]}, "ID:NAME"),
+])
+def test_bad_config_fails_at_start_with_what_to_fix(raw, message):
+    with pytest.raises(config_mod.ConfigError, match=message):
+        config_mod.from_dict(raw)
+
+
+def test_run_with_a_missing_device_says_which_and_why(tmp_path, capsys):
+    cfg = tmp_path / "board.toml"
+    cfg.write_text('[headset]\nurl = "serial:///dev/ttyNOPE?role=headset"\n')
+    assert edge_main(["run", "--config", str(cfg), "--seconds", "0.1"]) == 2
+    err = capsys.readouterr().err
+    assert "/dev/ttyNOPE" in err and "plugged in" in err
+
+
+def test_unreadable_config_is_a_clear_error(tmp_path, capsys):
+    cfg = tmp_path / "board.toml"
+    cfg.write_text("[headset\nurl=")
+    assert edge_main(["run", "--config", str(cfg)]) == 2
+    assert "not valid TOML" in capsys.readouterr().err
