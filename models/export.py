@@ -20,10 +20,10 @@ from models.nets import CVAE, HIDDEN, LATENT, DecoderStep, PoseAE
 
 def load_checkpoint(ckpt):
     ckpt = Path(ckpt)
-    cvae, ae = CVAE(), PoseAE()
+    meta = json.loads((ckpt / "meta.json").read_text())
+    cvae, ae = CVAE(posterior=meta.get("posterior_encoder", False)), PoseAE()
     cvae.load_state_dict(torch.load(ckpt / "cvae.pt", weights_only=True))
     ae.load_state_dict(torch.load(ckpt / "ae.pt", weights_only=True))
-    meta = json.loads((ckpt / "meta.json").read_text())
     return cvae.eval(), ae.eval(), meta
 
 

@@ -50,12 +50,20 @@ class Normalizer(nn.Module):
 
 
 class CVAE(nn.Module):
-    """Encoder: FC 24->128, GRU 128, mu/logvar 30. Decoder: FC 54->128, GRU 128, ReLU, rotation and contact heads."""
+    """Encoder: FC 24->128, GRU 128, mu/logvar 30. Decoder: FC 54->128, GRU 128, ReLU, rotation and contact heads.
 
-    def __init__(self):
+    posterior=True lets the encoder also see the target pose (63 head-relative joint coordinates):
+    the recognition network q(z | x, y) of a conditional VAE (Sohn et al. 2015). The paper's encoder
+    sees the trackers only, so z cannot carry pose information and the decoder learns to ignore it;
+    the decoder, which is all that ships, is the same either way.
+    """
+
+    def __init__(self, posterior=False):
         super().__init__()
+        self.posterior = posterior
         self.norm = Normalizer(NUM_FEATURES)
-        self.enc_fc = nn.Linear(NUM_FEATURES, HIDDEN)
+        self.target_norm = Normalizer(NUM_JOINTS * 3) if posterior else None
+        self.enc_fc = nn.Linear(NUM_FEATURES + (NUM_JOINTS * 3 if posterior else 0), HIDDEN)
         self.enc_gru = nn.GRU(HIDDEN, HIDDEN)
         self.mu = nn.Linear(HIDDEN, LATENT)
         self.logvar = nn.Linear(HIDDEN, LATENT)
@@ -64,8 +72,11 @@ class CVAE(nn.Module):
         self.rot_head = nn.Linear(HIDDEN, ROT_OUT)
         self.contact_head = nn.Linear(HIDDEN, 2)
 
-    def encode(self, x):
-        h, _ = self.enc_gru(torch.relu(self.enc_fc(self.norm(x))))
+    def encode(self, x, target=None):
+        inp = self.norm(x)
+        if self.posterior:
+            inp = torch.cat([inp, self.target_norm(target.flatten(-2))], dim=-1)
+        h, _ = self.enc_gru(torch.relu(self.enc_fc(inp)))
         return self.mu(h), self.logvar(h).clamp(-10, 5)
 
     def decode(self, x, z, h0=None):
@@ -74,9 +85,9 @@ class CVAE(nn.Module):
         h = torch.relu(h)
         return self.rot_head(h) + _IDENTITY_6D, torch.sigmoid(self.contact_head(h)), hn
 
-    def forward(self, x, sample=True):
+    def forward(self, x, sample=True, target=None):
         """x [W,B,24] time-major -> rot6d [W,B,120], contacts [W,B,2], mu, logvar."""
-        mu, logvar = self.encode(x)
+        mu, logvar = self.encode(x, target)
         z = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu) if sample else mu
         rot, con, _ = self.decode(x, z)
         return rot, con, mu, logvar

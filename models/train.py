@@ -18,7 +18,7 @@ from edge.progress import Progress
 from edge.signals import DeviceNoise
 from edge.skeleton import HEAD, LOWER_BODY, NUM_PREDICTED
 from models import dataset as ds
-from models.nets import CVAE, PoseAE, fk_positions, matrix_from_6d
+from models.nets import CVAE, LATENT, PoseAE, fk_positions, matrix_from_6d
 
 LOSS = {"w_pos": 1000.0, "lambda_kl": 5.0, "gamma_bce": 0.1, "w_rot": 0.1}
 
@@ -38,7 +38,12 @@ def to_t(b):
 
 
 def cvae_losses(model, b, sample=True):
-    rot6d, con, mu, logvar = model(b["features"], sample)
+    """Training uses the posterior sample; validation decodes at the prior mean (z = 0), as N=1 runs."""
+    if sample:
+        rot6d, con, mu, logvar = model(b["features"], True, b["gt_rel"])
+    else:
+        mu = logvar = torch.zeros(b["features"].shape[:-1] + (LATENT,))
+        rot6d, con, _ = model.decode(b["features"], mu)
     local = matrix_from_6d(rot6d.reshape(rot6d.shape[:-1] + (NUM_PREDICTED, 6)))
     pos = fk_positions(b["root_rot"], local)
     pos = pos - pos[..., HEAD:HEAD + 1, :]
@@ -97,6 +102,8 @@ def main():
     ap.add_argument("--window", type=int, default=60)
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--posterior", action="store_true", help="encoder also sees the target pose (q(z|x,y))")
+    ap.add_argument("--kl", type=float, default=LOSS["lambda_kl"], help="KL weight lambda")
     ap.add_argument("--out", default="models")
     ap.add_argument("--ckpt", default=".cache/train")
     a = ap.parse_args()
@@ -112,6 +119,7 @@ def main():
 
     torch.manual_seed(a.seed)
     torch.set_num_threads(2)
+    LOSS["lambda_kl"] = a.kl
     log(f"args: {vars(a)}  loss: {LOSS}")
     cs_train = ds.build(a.data, "train", a.sources)
     cs_val = ds.build(a.data, "val", a.sources)
@@ -134,8 +142,11 @@ def main():
     vstarts = ds.window_starts(cs_val, 240)
     val_batches = [to_t(ds.make_batch(cs_val, vrng.choice(vstarts, 128), 240, vrng, None)) for _ in range(4)]
 
-    model = CVAE()
-    model.norm.fit(torch.cat([to_t(q.get())["features"] for _ in range(8)]))
+    model = CVAE(posterior=a.posterior)
+    fit = [to_t(q.get()) for _ in range(8)]
+    model.norm.fit(torch.cat([b["features"] for b in fit]))
+    if a.posterior:
+        model.target_norm.fit(torch.cat([b["gt_rel"].flatten(-2) for b in fit]))
     opt = torch.optim.Adam(model.parameters(), lr=a.lr)
     budget = a.minutes * 60
     best, best_it, it = float("inf"), -1, 0
@@ -173,7 +184,7 @@ def main():
     log(f"cvae: {it} iterations in {time.time() - t1:.0f} s; best val {best:.2f} cm at it {best_it}")
     meta = {"plausibility_threshold_m": threshold, "iterations": it, "best_iteration": best_it,
             "val_mpjpe_cm_training": best, "minutes": a.minutes, "sources": a.sources or sorted(ds.SOURCE_FOLDERS),
-            "loss": LOSS, "batch": a.batch, "window": a.window, "lr": a.lr, "seed": a.seed,
+            "loss": LOSS, "posterior_encoder": a.posterior, "batch": a.batch, "window": a.window, "lr": a.lr, "seed": a.seed,
             "train_clips": len(cs_train.names), "train_minutes": len(cs_train.root) / 3600}
     (ckpt / "meta.json").write_text(json.dumps(meta, indent=2))
     from models.export import export_all
