@@ -1,5 +1,6 @@
 """`edge eval`: reconstruction quality on BVH clips or sample files, through the real per-frame pipeline."""
 import json
+from dataclasses import dataclass
 import sys
 import time
 from pathlib import Path
@@ -18,27 +19,37 @@ from edge import metrics
 WARMUP_S = 1.0
 
 
+@dataclass
+class TakeRun:
+    """What the pipeline produced for one take, frame-aligned with the input."""
+    pred: np.ndarray        # [T,J,3] world joint positions
+    pelvis: np.ndarray      # [T,3,3] pelvis rotations
+    contacts: np.ndarray    # [T,2] foot-contact probabilities of the output
+    sample: np.ndarray      # [T] the sample shown (the target sample during a transition)
+    transition: np.ndarray  # [T] frame was part of a sample transition
+    cost: np.ndarray        # [T,N] every sample's selection cost when the frame was judged (N>1)
+
+
 def run_take(pipe, take, max_frames=None):
-    """Feed a take frame by frame. Returns predicted positions [T,J,3], pelvis rotations [T,3,3] and
-    which frames were part of a sample transition [T]. Output frame o arrives tau frames after input o."""
+    """Feed a take frame by frame through the pipeline. Output frame o arrives tau frames after input o."""
     T = take.frames if max_frames is None else min(take.frames, max_frames)
-    pred = np.zeros((T, len(JOINT_NAMES), 3))
-    pelvis = np.zeros((T, 3, 3))
-    switching = np.zeros(T, bool)
+    run = TakeRun(np.zeros((T, len(JOINT_NAMES), 3)), np.zeros((T, 3, 3)), np.zeros((T, 2)),
+                  np.zeros(T, np.int16), np.zeros(T, bool), np.zeros((T, pipe.samples), np.float32))
 
     def keep(pose):
-        pred[pose.frame] = pose.positions
-        pelvis[pose.frame] = pose.rotations[0]
-        switching[pose.frame] = pose.transition
+        f = pose.frame
+        run.pred[f], run.pelvis[f], run.contacts[f] = pose.positions, pose.rotations[0], pose.contacts
+        run.sample[f], run.transition[f] = pose.sample, pose.transition
 
     pipe.reset()
     for t in range(T):
         pose = pipe.step(take.signals.slice(t, t + 1))
+        run.cost[t] = pipe.buffer.cost[pipe.buffer.slot(t)]
         if pose is not None:
             keep(pose)
     for pose in pipe.flush():
         keep(pose)
-    return pred, pelvis, switching
+    return run
 
 
 def evaluate(paths, split=None, samples=1, no_ssi=False, precision="fp32", max_frames=None, dump=None,
@@ -64,9 +75,10 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision="fp32", max_f
                 log(f"skipped: {e}")
                 bar.update()
                 continue
-            pred, pelvis, switching = run_take(pipe, take, max_frames)
+            run = run_take(pipe, take, max_frames)
+            pred, pelvis = run.pred, run.pelvis
             switches += len(pipe.switches)
-            switch_frames += int(switching.sum())
+            switch_frames += int(run.transition.sum())
             T = len(pred)
             w = int(round(WARMUP_S * take.fps))
             if T - w < 4:
@@ -88,7 +100,10 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision="fp32", max_f
             if dump:
                 np.savez_compressed(Path(dump) / (Path(f).stem + ".npz"), joint_names=np.array(JOINT_NAMES),
                                     parents=PARENTS, fps=take.fps, gt_pos=take.gt_pos[:T].astype(np.float32),
-                                    pred_pos=pred.astype(np.float32))
+                                    pred_pos=pred.astype(np.float32), contacts=run.contacts.astype(np.float32),
+                                    sample=run.sample, transition=run.transition, cost=run.cost,
+                                    switches=np.array([s[:2] for s in pipe.switches], np.int64).reshape(-1, 2),
+                                    threshold=pipe.threshold, warmup_frames=w)
             bar.update(postfix=f"mpjpe {metrics.summarize(parts)['mpjpe_cm']:.2f} cm")
     if not parts:
         raise SystemExit("edge eval: no clip could be evaluated: " + "; ".join(skipped))

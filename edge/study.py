@@ -88,7 +88,7 @@ def _one(take, task, n, seed, models):
         center, radius = obstacle_for(take)
         crit = CollisionAvoid([center], [radius], joints=LEFT_LEG, weight=10.0)
         pipe.criteria.criteria.append(crit)
-        pred, _, _ = run_take(pipe, take)
+        pred = run_take(pipe, take).pred
         return [float(np.mean(crit.penetration(pred) > 0))], [float(np.mean(crit.penetration(take.gt_pos) > 0))]
     events = kick_apexes(take.gt_pos, task)
     active = {}
@@ -98,7 +98,7 @@ def _one(take, task, n, seed, models):
     for joint in {j for _, j in events}:
         pipe.criteria.criteria.append(TargetHit(joint, lambda f, joint=joint: active[f][1] if f in active and active[f][0] == joint else None,
                                                 weight=10.0))
-    pred, _, _ = run_take(pipe, take)
+    pred = run_take(pipe, take).pred
     return [float(np.linalg.norm(pred[t, j] - take.gt_pos[t, j])) for t, j in events], []
 
 
