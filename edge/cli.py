@@ -48,6 +48,25 @@ def main(argv=None):
     li.add_argument("--baud", type=int, default=460800)
     li.add_argument("--seconds", type=float, default=None)
 
+    rp = sub.add_parser("replay", help="replay a session through simulated devices into the real service")
+    rp.add_argument("source", help="a session recording (.npz), a BVH clip or a sample take")
+    rp.add_argument("--json", required=True)
+    rp.add_argument("--transport", default="serial,i2c,can", help="which transports carry the IMUs")
+    rp.add_argument("--faults", default="clean", help="a profile (" + ", ".join(
+        ["noise", "loss", "corrupt", "disconnect", "hand-loss", "unplug", "i2c-errors", "can-busoff", "clock-jump"])
+        + "), several joined by '+', or a JSON object")
+    rp.add_argument("--speed", choices=("realtime", "max"), default="realtime")
+    rp.add_argument("--samples", default="16", help="N, or auto")
+    rp.add_argument("--lookahead", type=int, default=10)
+    rp.add_argument("--seconds", type=float, default=None)
+    rp.add_argument("--bvh", help="record the output as BVH here")
+    rp.add_argument("--models")
+
+    rec = sub.add_parser("record", help="capture live traffic from the configured transports into a session file")
+    rec.add_argument("--config", required=True)
+    rec.add_argument("--seconds", type=float, default=10.0)
+    rec.add_argument("--out", required=True)
+
     args = ap.parse_args(argv)
     try:
         if args.cmd == "eval":
@@ -56,6 +75,12 @@ def main(argv=None):
         if args.cmd in ("run", "calibrate"):
             from firmware_bridge import commands
             return commands.run(args) if args.cmd == "run" else commands.calibrate(args)
+        if args.cmd == "record":
+            from firmware_bridge.sim import record
+            return record.main(args)
+        if args.cmd == "replay":
+            from firmware_bridge.sim import replay
+            return replay.main(args)
         if args.cmd == "listen":
             from firmware_bridge import listen
             return listen.main(args)

@@ -22,7 +22,7 @@ from firmware_bridge.samples import HeadsetSample
 from firmware_bridge.sync import FrameSynchronizer
 from firmware_bridge.transports import TransportError, open_source, parse_url
 
-REOPEN_AFTER_S = 1.0
+REOPEN_AFTER_S = 0.25        # how often a failed device is retried
 
 
 def open_configured(url):
@@ -57,14 +57,17 @@ class Link:
         try:
             while (s := self.source.recv(timeout=0)) is not None:
                 out.append(s)
-        except TransportError:
+        except (TransportError, OSError):          # unplugged (EIO) or failed for good: retry later
             self.close()
             self.down_since = clock()
         return out
 
     def close(self):
         if self.source is not None:
-            self.source.close()
+            try:
+                self.source.close()
+            except OSError:
+                pass
             self.source = None
 
 
@@ -86,6 +89,8 @@ class Service:
         self.frame_ms = deque(maxlen=600)
         self.latency_ms = deque(maxlen=600)
         self._was_lost = {}
+        self._tick_times = np.zeros(256)                    # input tick time by pipeline frame index
+        self.health_log = deque(maxlen=100_000)             # (tick time, lost sources), for reports
         self._pose = protocol.PoseFrame(0.0, np.zeros(3), np.tile([1.0, 0, 0, 0], (21, 1)), np.zeros(2))
 
     def _open_outputs(self):
@@ -106,7 +111,7 @@ class Service:
 
     # ------------------------------------------------------------------ loop
     def run(self, seconds=None, stop=None):
-        """Run at the model rate until `seconds` pass or `stop()` says so."""
+        """Run at the model rate on this service's clock until `seconds` pass or `stop()` says so."""
         period = 1.0 / self.cfg.hz
         start = self.clock()
         next_tick = start + period
@@ -117,15 +122,12 @@ class Service:
                 now = self.clock()
                 if now >= next_tick:
                     self.tick(now)
-                    done = self.clock()
-                    if done - next_tick > period:
-                        self.stats["deadline_misses"] += 1
                     next_tick += period
-                    if next_tick < done:                 # fell behind: skip, do not burst
-                        next_tick = done + period
-                    if done - last_status >= 0.5:
+                    if next_tick < self.clock():          # fell behind: skip, do not burst
+                        next_tick = self.clock() + period
+                    if now - last_status >= 0.5:
                         self.show_status()
-                        last_status = done
+                        last_status = now
                 else:
                     time.sleep(min(0.001, next_tick - now))
         finally:
@@ -133,32 +135,45 @@ class Service:
             self.show_status(final=True)
         return self.summary()
 
+    def step(self, now):
+        """One model tick driven from outside (the simulator): read what arrived, then tick."""
+        self.poll()
+        self.tick(now)
+
     def poll(self):
         for link in self.links:
             for s in link.drain(self.clock):
                 self.stats["samples_in"] += 1
+                s.received = self.clock()          # one clock for the synchroniser, whatever the transport
                 if isinstance(s, HeadsetSample):
                     self.sync.add_headset(s)
                 else:
                     self.sync.add_tracker(s)
 
     def tick(self, now):
+        """Sync, pipeline and outputs for the model tick at `now`. Processing time is wall time
+        (perf_counter), so deadline misses are real even when `now` is simulated."""
         self.stats["ticks"] += 1
-        t0 = self.clock()
+        t0 = time.perf_counter()
         sig, health = self.sync.frame(now)
         if sig is None:
             self.stats["no_input"] += 1
             return
         self.stats["frames_in"] += 1
+        self._tick_times[self.pipeline.t + 1 & 255] = now
         for name, lost in health.lost.items():
             if lost and not self._was_lost.get(name, False):
                 self.stats["tracker_lost_events"] += 1
             self._was_lost[name] = lost
+        self.health_log.append((now, [name for name, lost in health.lost.items() if lost]))
         pose = self.pipeline.step(self._calibrated(sig))
         if pose is not None:
-            self._emit(pose, now, health)
-        self.frame_ms.append((self.clock() - t0) * 1000)
-        newest = max(self.sync.streams["head"].newest, -np.inf)
+            self._emit(pose, health)
+        elapsed = time.perf_counter() - t0
+        self.frame_ms.append(elapsed * 1000)
+        if elapsed > 1.0 / self.cfg.hz:
+            self.stats["deadline_misses"] += 1
+        newest = self.sync.streams["head"].newest
         if np.isfinite(newest):
             self.latency_ms.append((self.clock() - newest) * 1000)
 
@@ -169,10 +184,10 @@ class Service:
         return Signals(sig.head_pos * s, sig.head_rot, sig.hand_pos * s, sig.hand_rot,
                        cal.body_rotation("waist", sig.waist_rot), sig.waist_acc)
 
-    def _emit(self, pose, now, health):
+    def _emit(self, pose, health):
         self.stats["frames_out"] += 1
         p = self._pose
-        p.t = now
+        p.t = self._tick_times[pose.frame & 255]          # the time the pose is of (its input tick)
         p.root_pos = pose.positions[0] / self.calibration.height_scale
         p.rotations = quat.from_matrix(pose.rotations)
         p.contacts = pose.contacts
@@ -195,8 +210,10 @@ class Service:
     def summary(self):
         fm = np.array(self.frame_ms) if self.frame_ms else np.zeros(1)
         lat = np.array(self.latency_ms) if self.latency_ms else np.zeros(1)
-        corrupt = sum(l.source.stats.get("corrupt", 0) for l in self.links if l.source is not None)
-        return {**self.stats, "packets_corrupt": corrupt, "ssi_switches": len(self.pipeline.switches),
+        live = [l.source for l in self.links if l.source is not None]
+        corrupt = sum(s.stats.get("corrupt", 0) for s in live)
+        lost = sum(s.stats.get("missed", 0) + s.stats.get("lost", 0) for s in live)
+        return {**self.stats, "packets_corrupt": corrupt, "packets_lost": lost, "ssi_switches": len(self.pipeline.switches),
                 "samples": self.pipeline.samples, "lookahead_frames": self.pipeline.lookahead,
                 "frame_ms": {"p50": float(np.median(fm)), "p99": float(np.percentile(fm, 99))},
                 "input_age_ms": {"p50": float(np.median(lat)), "p99": float(np.percentile(lat, 99))},

@@ -123,6 +123,7 @@ class FrameSynchronizer:
         self._held = {}                              # source -> (value held when lost, time lost)
         self._recover = {}                           # source -> (value at recovery, time recovered)
         self._last = {}
+        self._held_extra = {}                        # what a held source remembers from when it was lost
 
     def add_headset(self, s, received=None):
         received = s.received if received is None else received
@@ -163,7 +164,7 @@ class FrameSynchronizer:
             if name == "waist":
                 if v is None:                        # never heard from: upright, facing where the headset faces
                     v = np.concatenate([np.zeros(3), quat.from_yaw(quat.yaw(head[3:7]))])
-                waist = self._guard(name, v, lost[name], t)
+                waist = self._guard(name, v, lost[name], t, lambda held, since, h=head: self._follow_head(held, h))
         if waist is None:
             waist = np.concatenate([np.zeros(3), quat.from_yaw(quat.yaw(head[3:7]))])
         sig = Signals(head[None, 0:3], quat.normalize(head[None, 3:7]),
@@ -172,6 +173,15 @@ class FrameSynchronizer:
                       quat.normalize(waist[None, 3:7]), np.zeros((1, 3)))
         streams = self.streams.values()
         return sig, Health(lost, sum(s.dropped for s in streams), sum(s.backwards for s in streams))
+
+    def _follow_head(self, held, head):
+        """A lost waist keeps its tilt but turns with the headset, from the heading offset it had when lost."""
+        if "waist_head_yaw" not in self._held_extra:
+            self._held_extra["waist_head_yaw"] = quat.yaw(head[3:7])
+        turn = quat.from_yaw(np.array(quat.yaw(head[3:7]) - self._held_extra["waist_head_yaw"]))
+        out = held.copy()
+        out[3:7] = quat.mul(turn, held[3:7])
+        return out
 
     def _neutral_hand(self, head, k):
         return head[0:3] + quat.rotate(quat.from_yaw(quat.yaw(head[3:7])), NEUTRAL_HANDS[k])
@@ -195,6 +205,7 @@ class FrameSynchronizer:
         if name in self._held:                        # just recovered
             self._recover[name] = (self._last[name].copy(), t)
             del self._held[name]
+            self._held_extra.pop(f"{name}_head_yaw", None)
         if name in self._recover:
             start, t0 = self._recover[name]
             a = (t - t0) / self.blend_s

@@ -11,7 +11,7 @@ def head_at(t):
 
 
 def waist_at(t):
-    return quat.from_axis_angle(np.array([0.0, 1.0, 0.0]), np.array(0.8 * np.sin(2 * t)))
+    return quat.from_axis_angle(np.array([1.0, 0.0, 0.0]), np.array(0.8 * np.sin(2 * t)))
 
 
 def headset(t_dev, t_true, hands_valid=(True, True)):
@@ -77,15 +77,19 @@ def test_out_of_order_samples_land_in_place():
     assert np.abs(pa - pb).max() < 0.01
 
 
-def test_silent_tracker_is_lost_held_and_blended_back_without_a_snap():
+def test_silent_waist_is_lost_turns_with_the_headset_and_blends_back_without_a_snap():
     sync = FrameSynchronizer(lost_after=0.25, blend_s=0.5)
     frames = run(sync, feed(sync, 5.0, waist_gap=(2.0, 3.0)), 5.0)
     lost = np.array([f[2].lost["waist"] for f in frames])
     ticks = np.array([f[0] for f in frames])
     assert not lost[ticks < 2.2].any() and lost[(ticks > 2.3) & (ticks < 2.95)].all() and not lost[ticks > 3.1].any()
     w = np.array([f[1].waist_rot[0] for f in frames])
-    held = w[(ticks > 2.3) & (ticks < 2.95)]
-    assert np.allclose(held, held[0])                      # held while lost
+    heads = np.array([f[1].head_rot[0] for f in frames])
+    gone = (ticks > 2.3) & (ticks < 2.95)
+    held = w[gone]
+    # Held while lost, but turning with the headset: the waist-to-head heading offset stays fixed.
+    offset = np.unwrap(quat.yaw(held) - quat.yaw(heads[gone]))
+    assert np.ptp(offset) < 1e-6 and np.ptp(quat.yaw(held)) > 0.1
     step = np.degrees(quat.angle(quat.mul(quat.inv(w[:-1]), w[1:])))
     after = (ticks[1:] > 3.0) & (ticks[1:] < 3.6)
     assert step[after].max() < 6.0                          # blended back, no snap to the live value

@@ -1,0 +1,446 @@
+"""`edge profile`: how many SSI samples fit a CPU budget, measured on the real pipeline.
+
+    edge profile [--cpu-quota Q] [--hz H] [--samples N|auto] [--frames K] [--precision fp32|int8] --json OUT
+
+A worker process runs the board's per-frame path on synthesised input (the bundled sample's tracker
+signals, looped): FrameSynchronizer.frame -> Pipeline.step -> POSE_FRAME encoding, with frames released
+at H Hz in real time (it sleeps until each frame's release time). Frame k is released at t0 + k/H and
+must be done by the next release; one that finishes later is a deadline miss. `frame_ms` is the
+response time, release to done (throttling waits and late starts included).
+
+CPU limit. Where the OS allows it (root, a writable cgroup v1 `cpu` hierarchy or cgroup v2 with the cpu
+controller), the worker runs in its own child cgroup with a CFS quota of Q x cfs_period and is pinned
+to one core, so it gets Q of one core; the group is removed afterwards. A CFS quota is enforced per
+period: with Q = 0.25 and the default 100 ms period the worker may run 25 ms and is then frozen for
+75 ms, which would make a 60 Hz loop (16.7 ms frames) miss whole runs of frames however cheap each frame
+is. We set cfs_period_us to 10 ms (--period-ms): the worker then runs 2.5 ms in every 10 ms, so a frame
+that needs c ms of CPU is done after about c/Q ms plus at most (1-Q) x 10 ms of waiting for the next
+period. (On a board, set the service's period the same way: systemd CPUQuotaPeriodSec=10ms.)
+Elsewhere the worker is only pinned to one core, quota_enforced is false, and the budget below is the
+modelled one (CPU time per frame against Q x 1000/H ms).
+
+--samples auto probes N = 1, 2, 4, 8, 16, 24, 32, 48, 64, 96, 128 in turn (--probe-frames real-time
+frames each, under the same limit) and chooses the largest N whose p99 frame time leaves 20 %
+headroom (--headroom): p99 <= 0.8 x 1000/H ms (quota enforced; the quota's effect is in the measured
+time) or p99 CPU time <= 0.8 x Q x 1000/H ms (not enforced). It then runs --frames frames at that N,
+the run whose numbers are reported; if that run misses deadlines it steps down one N and runs again
+(every attempt is kept in the JSON).
+
+Stage timings: `sync`, `pipeline_step` and `output_encoding` are measured in the paced loop (wall time,
+every frame). The stages inside Pipeline.step (features, decoder, FK, IK, autoencoder, selection,
+transition recompute) are micro-timed after the run on the pipeline's own objects and methods, in
+thread CPU time (so a throttled period does not count), with the same N: features via
+edge.features, `pipe.decoder.step()`, `pipe._forward`, the foot locks plus `pipe._post`,
+`pipe.scorer.lower_body_error` on the N samples, the SSI outlier test / best-other choice plus
+`pipe._emit`, and `pipe._recompute_transition` (the occasional batched re-run when SSI switches).
+"""
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+LADDER = (1, 2, 4, 8, 16, 24, 32, 48, 64, 96, 128)
+SAMPLE = Path(__file__).resolve().parent.parent / "samples" / "cmu_09_12_walk.npz"
+CGROUP_V1 = Path("/sys/fs/cgroup/cpu")
+CGROUP_V2 = Path("/sys/fs/cgroup")
+
+
+def add_arguments(p):
+    p.add_argument("--cpu-quota", type=float, default=None,
+                   help="fraction of one core the service may use, e.g. 0.25 (default: a whole core)")
+    p.add_argument("--hz", type=float, default=60.0, help="frame rate (default 60)")
+    p.add_argument("--samples", default="auto", help="N, or 'auto' to find the largest N that fits")
+    p.add_argument("--frames", type=int, default=3000, help="real-time frames in the measured run (default 3000)")
+    p.add_argument("--precision", choices=("fp32", "int8"), default="fp32")
+    p.add_argument("--models", help="model folder (default: the shipped models/)")
+    p.add_argument("--period-ms", type=float, default=10.0, help="CFS period for the quota (default 10 ms)")
+    p.add_argument("--probe-frames", type=int, default=600, help="real-time frames per N while searching (auto)")
+    p.add_argument("--headroom", type=float, default=0.2, help="budget headroom (default 0.2 = 20 %%)")
+    p.add_argument("--no-cgroup", action="store_true", help="do not try a cgroup quota (pin to one core only)")
+    p.add_argument("--json", required=True, help="write the profile here")
+
+
+# ---------------------------------------------------------------------------------------------- cgroup
+
+class CpuLimit:
+    """A child cgroup with a CFS quota, or nothing (then `enforced` is False and `why` says why)."""
+
+    def __init__(self, fraction, period_us, disabled=False):
+        self.fraction, self.period_us = fraction, int(period_us)
+        self.quota_us = max(1000, int(round(fraction * self.period_us))) if fraction < 1.0 else -1
+        self.path, self.version, self.enforced, self.why = None, None, False, ""
+        if fraction >= 1.0:
+            self.why = "no quota requested (a whole core)"
+            return
+        if disabled:
+            self.why = "--no-cgroup"
+            return
+        if os.geteuid() != 0:
+            self.why = "not root: cannot create a cgroup"
+            return
+        name = f"edgepose-profile-{os.getpid()}"
+        try:
+            if (CGROUP_V1 / "cpu.cfs_quota_us").exists():
+                self.path, self.version = CGROUP_V1 / name, 1
+                self.path.mkdir()
+                (self.path / "cpu.cfs_period_us").write_text(str(self.period_us))
+                (self.path / "cpu.cfs_quota_us").write_text(str(self.quota_us))
+            elif "cpu" in (CGROUP_V2 / "cgroup.controllers").read_text().split() if (CGROUP_V2 / "cgroup.controllers").exists() else False:
+                ctl = CGROUP_V2 / "cgroup.subtree_control"
+                if "cpu" not in ctl.read_text().split():
+                    ctl.write_text("+cpu")
+                self.path, self.version = CGROUP_V2 / name, 2
+                self.path.mkdir()
+                (self.path / "cpu.max").write_text(f"{self.quota_us} {self.period_us}")
+            else:
+                self.why = "no cgroup cpu controller found (v1 /sys/fs/cgroup/cpu or v2 cpu.max)"
+                return
+            self.enforced = True
+        except OSError as e:
+            self.why = f"cgroup not writable: {e}"
+            self.cleanup()
+
+    def join(self):
+        """Runs in the worker (preexec_fn, before exec): move this process into the group."""
+        if self.enforced:
+            (self.path / "cgroup.procs").write_text(str(os.getpid()))
+
+    def stats(self):
+        if not self.enforced:
+            return {}
+        try:
+            raw = dict(line.split() for line in (self.path / "cpu.stat").read_text().splitlines())
+        except OSError:
+            return {}
+        if self.version == 1:
+            return {"nr_periods": int(raw.get("nr_periods", 0)), "nr_throttled": int(raw.get("nr_throttled", 0)),
+                    "throttled_ms": int(raw.get("throttled_time", 0)) / 1e6}
+        return {"nr_periods": int(raw.get("nr_periods", 0)), "nr_throttled": int(raw.get("nr_throttled", 0)),
+                "throttled_ms": int(raw.get("throttled_usec", 0)) / 1e3}
+
+    def describe(self):
+        return {"fraction": self.fraction, "period_us": self.period_us,
+                "quota_us": self.quota_us if self.quota_us > 0 else None,
+                "cgroup": str(self.path) if self.enforced else None,
+                "cgroup_version": self.version if self.enforced else None,
+                "why_not_enforced": None if self.enforced else self.why}
+
+    def cleanup(self):
+        if self.path is not None and self.path.exists():
+            for _ in range(50):                      # the worker has exited; its removal may lag a moment
+                try:
+                    self.path.rmdir()
+                    return
+                except OSError:
+                    time.sleep(0.05)
+
+
+# ---------------------------------------------------------------------------------------------- worker
+
+class Feeder:
+    """The bundled sample's tracker signals, looped, as the sources would deliver them, through the
+    board's FrameSynchronizer (one headset report and one waist IMU sample per frame)."""
+
+    def __init__(self, hz):
+        import numpy as np
+        from edge.takes import from_sample
+        from firmware_bridge.samples import HeadsetSample, TrackerSample
+        from firmware_bridge.sync import FrameSynchronizer
+        take = from_sample(SAMPLE)
+        s = take.signals
+        self.T, self.hz = take.frames, hz
+        self.headset = [HeadsetSample(0.0, s.head_pos[i], s.head_rot[i], s.hand_pos[i], s.hand_rot[i],
+                                      np.ones(2, bool)) for i in range(self.T)]
+        self.waist = [TrackerSample("waist", 0.0, s.waist_rot[i]) for i in range(self.T)]
+        self.sync = FrameSynchronizer(trackers=("waist",))
+
+    def frame(self, k):
+        t = k / self.hz
+        h, w = self.headset[k % self.T], self.waist[k % self.T]
+        h.t = w.t = t
+        self.sync.add_headset(h, received=t)
+        self.sync.add_tracker(w, received=t)
+        sig, _ = self.sync.frame(t)
+        return sig
+
+
+def _pct(a):
+    import numpy as np
+    a = np.asarray(a, float)
+    return {"p50": round(float(np.median(a)), 4), "p99": round(float(np.percentile(a, 99)), 4),
+            "max": round(float(a.max()), 4)}
+
+
+class Encoder:
+    def __init__(self, samples):
+        import numpy as np
+        from firmware_bridge import protocol
+        self.protocol = protocol
+        self.frame = protocol.PoseFrame(0.0, np.zeros(3), np.tile([1.0, 0, 0, 0], (21, 1)), np.zeros(2),
+                                        num_samples=samples)
+        self.seq = 0
+
+    def __call__(self, pose, t):
+        from edge import quat
+        p = self.frame
+        p.t, p.root_pos, p.contacts = t, pose.positions[0], pose.contacts
+        p.rotations = quat.from_matrix(pose.rotations)
+        p.ssi_flags = self.protocol.SSI_IN_TRANSITION if pose.transition else 0
+        self.seq = (self.seq + 1) & 0xFFFF
+        return self.protocol.encode_pose_frame(p, self.seq)
+
+
+def paced_run(cfg, samples, frames, bar_desc):
+    """Real-time frames at cfg['hz'] through sync -> Pipeline.step -> encoding. Returns (stats, pipeline, feeder)."""
+    import numpy as np
+    from edge.pipeline import Pipeline
+    from edge.progress import Progress
+    hz = cfg["hz"]
+    period = 1.0 / hz
+    feeder = Feeder(hz)
+    pipe = Pipeline(cfg["models"], samples=samples, fps=hz, precision=cfg["precision"])
+    enc = Encoder(samples)
+    for k in range(60):                                   # warm-up, not paced, not counted
+        pose = pipe.step(feeder.frame(k))
+        if pose is not None:
+            enc(pose, k / hz)
+    resp, comp, cpu = np.empty(frames), np.empty(frames), np.empty(frames)
+    st = {"sync": np.empty(frames), "pipeline_step": np.empty(frames), "output_encoding": np.zeros(frames)}
+    misses = late_starts = 0
+    clock, cpu_clock = time.perf_counter, time.thread_time
+    t0 = clock() + 0.02
+    with Progress(frames, bar_desc) as bar:
+        for i in range(frames):
+            k = 60 + i
+            release = t0 + i * period
+            now = clock()
+            if now < release:
+                time.sleep(release - now)
+            else:
+                late_starts += 1 if now > release + 0.001 else 0
+            a, ca = clock(), cpu_clock()
+            sig = feeder.frame(k)
+            b = clock()
+            pose = pipe.step(sig)
+            c = clock()
+            if pose is not None:
+                enc(pose, k / hz)
+            d, cd = clock(), cpu_clock()
+            st["sync"][i], st["pipeline_step"][i], st["output_encoding"][i] = b - a, c - b, d - c
+            resp[i], comp[i], cpu[i] = d - release, d - a, cd - ca
+            if d > release + period:
+                misses += 1
+            if i % 30 == 29 or i == frames - 1:
+                bar.update(30 if i % 30 == 29 else (i % 30) + 1,
+                           postfix=f"N={samples} p50 {np.median(resp[:i + 1]) * 1e3:.2f} ms misses {misses}")
+    ms = lambda x: x * 1e3  # noqa: E731
+    stats = {"samples": samples, "frames": frames, "deadline_misses": misses, "late_starts": late_starts,
+             "frame_ms": _pct(ms(resp)), "compute_ms": _pct(ms(comp)), "cpu_ms": _pct(ms(cpu)),
+             "stages_in_loop_ms": {k: _pct(ms(v)) for k, v in st.items()}, "ssi_switches": len(pipe.switches)}
+    return stats, pipe, feeder
+
+
+def micro_stages(pipe, feeder, reps=300):
+    """CPU time (ms) of the stages inside Pipeline.step, on the pipeline's own objects after a run."""
+    import numpy as np
+    from edge.features import body_points, features, heading
+    from edge.pipeline import best_other, is_outlier
+    from edge.skeleton import ANKLES
+    N, b, dec = pipe.samples, pipe.buffer, pipe.decoder
+    sig = feeder.frame(10**6)
+    s = b.slot(pipe.t)
+
+    def timed(fn):
+        out = np.empty(reps)
+        for i in range(reps):
+            c0 = time.thread_time_ns()
+            fn()
+            out[i] = time.thread_time_ns() - c0
+        return _pct(out / 1e6)
+
+    def feat():
+        pts, wr = body_points(sig, pipe.body_scale)
+        features(pts[0], pts[0], heading(wr[0]), pipe.fps)
+
+    def ik():
+        if pipe.foot_ik:
+            lock, w = pipe.feet.update(dec.contacts[:N], pipe._pos[:N, ANKLES])
+        pipe._post(N, b.wrists[s], b.hand_m[s], b.head_m[s])
+
+    def selection():
+        cost = b.cost[s].copy() if N > 1 else np.zeros(1)
+        if N > 1 and is_outlier(cost, pipe.current):
+            best_other(cost, pipe.current)
+        pipe._emit(max(pipe.t - pipe.lookahead, 0))
+
+    out = {"features": timed(feat), "decoder": timed(dec.step),
+           "fk": timed(lambda: pipe._forward(dec.rot6d[:N], b.waist_m[s], b.anchor[s])), "ik": timed(ik)}
+    if N > 1:
+        out["autoencoder"] = timed(lambda: pipe.scorer.lower_body_error(pipe._pos[:N], pipe._world[:N, 0]))
+    else:
+        out["autoencoder"] = None      # N = 1 judges nothing: the autoencoder does not run per frame
+    out["selection"] = timed(selection)
+    if N > 1 and pipe.lookahead > 0:
+        t = pipe.t
+        s0 = max(t - pipe.lookahead, 0)
+        out["transition_recompute"] = timed(lambda: pipe._recompute_transition(0, 1, s0, pipe.transition, t))
+    return out
+
+
+def worker(cfg):
+    import numpy as np  # noqa: F401  (imported before the clock starts)
+    hz = cfg["hz"]
+    frame_budget_ms = 1000.0 / hz
+    q = cfg["quota"]
+    enforced = cfg["enforced"]
+    head = 1.0 - cfg["headroom"]
+    if enforced or q >= 1.0:
+        budget = {"metric": "frame_ms.p99 (release to done, quota in effect)", "ms": head * frame_budget_ms}
+    else:
+        budget = {"metric": "cpu_ms.p99 against the quota share (modelled, quota not enforced)",
+                  "ms": head * q * frame_budget_ms}
+
+    def fits(st):
+        v = st["frame_ms"]["p99"] if budget["metric"].startswith("frame") else st["cpu_ms"]["p99"]
+        return v <= budget["ms"] and st["deadline_misses"] == 0
+
+    probes = []
+    if cfg["samples"] == "auto":
+        best = None
+        for n in LADDER:
+            st, _, _ = paced_run(cfg, n, cfg["probe_frames"], f"probe N={n:<3d}")
+            st["fits"] = fits(st)
+            probes.append({k: st[k] for k in ("samples", "frames", "deadline_misses", "frame_ms", "cpu_ms", "fits")})
+            if not st["fits"]:
+                break
+            best = n
+        chosen = best or 1
+    else:
+        chosen = int(cfg["samples"])
+    attempts = []
+    while True:
+        st, pipe, feeder = paced_run(cfg, chosen, cfg["frames"], f"run N={chosen:<3d}")
+        attempts.append({k: st[k] for k in ("samples", "frames", "deadline_misses", "frame_ms", "cpu_ms")})
+        if st["deadline_misses"] == 0 or cfg["samples"] != "auto" or chosen == 1 or len(attempts) >= 3:
+            break
+        chosen = max(n for n in LADDER if n < chosen)
+    stages = {"sync": st["stages_in_loop_ms"]["sync"], "pipeline_step": st["stages_in_loop_ms"]["pipeline_step"],
+              "output_encoding": st["stages_in_loop_ms"]["output_encoding"]}
+    stages.update(micro_stages(pipe, feeder))
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    with open("/proc/self/statm") as f:
+        rss_now = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    return {"chosen_samples": chosen, "frames": st["frames"], "frame_ms": st["frame_ms"], "compute_ms": st["compute_ms"],
+            "cpu_ms": st["cpu_ms"], "deadline_misses": st["deadline_misses"], "late_starts": st["late_starts"],
+            "ssi_switches": st["ssi_switches"], "stages": stages, "rss_mb": round(rss_now, 1),
+            "rss_peak_mb": round(rss, 1), "budget": budget, "frame_budget_ms": frame_budget_ms,
+            "probes": probes, "runs": attempts, "core": sorted(os.sched_getaffinity(0))}
+
+
+STAGE_METHODS = {
+    "sync": "in the paced loop, wall time: FrameSynchronizer.add_headset/add_tracker + frame(t)",
+    "pipeline_step": "in the paced loop, wall time: Pipeline.step as a whole",
+    "output_encoding": "in the paced loop, wall time: quat.from_matrix + protocol.encode_pose_frame",
+    "features": "micro-timed after the run, thread CPU time: edge.features.body_points + features",
+    "decoder": "micro-timed, thread CPU time: pipe.decoder.step() (N+1 rows, IOBinding)",
+    "fk": "micro-timed, thread CPU time: pipe._forward (6D -> matrices, FK, hang from the head)",
+    "ik": "micro-timed, thread CPU time: pipe.feet.update + pipe._post (foot locks, batched leg+arm IK)",
+    "autoencoder": "micro-timed, thread CPU time: pipe.scorer.lower_body_error on pipe._pos[:N] (N>1 only)",
+    "selection": "micro-timed, thread CPU time: is_outlier + best_other + pipe._emit",
+    "transition_recompute": "micro-timed, thread CPU time: pipe._recompute_transition (only on an SSI switch)",
+}
+
+
+def _worker_main(cfg_path, out_path):
+    cfg = json.loads(Path(cfg_path).read_text())
+    try:
+        core = min(os.sched_getaffinity(0))
+        os.sched_setaffinity(0, {core})
+    except (AttributeError, OSError):
+        pass
+    Path(out_path).write_text(json.dumps(worker(cfg)))
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------- main
+
+def main(args):
+    if args.samples != "auto":
+        try:
+            n = int(args.samples)
+        except ValueError:
+            print(f"edge profile: --samples must be a number or 'auto', not {args.samples!r}", file=sys.stderr)
+            return 2
+        if not 1 <= n <= 128:
+            print("edge profile: --samples must be 1..128", file=sys.stderr)
+            return 2
+    quota = 1.0 if args.cpu_quota is None else args.cpu_quota
+    if not 0.01 <= quota <= 1.0:
+        print("edge profile: --cpu-quota is a fraction of one core, 0.01..1", file=sys.stderr)
+        return 2
+    if args.hz <= 0 or args.frames < 1:
+        print("edge profile: --hz and --frames must be positive", file=sys.stderr)
+        return 2
+    from edge.modelfiles import load_manifest, DEFAULT_DIR
+    suffix = "" if args.precision == "fp32" else f".{args.precision}"
+    load_manifest(Path(args.models) if args.models else DEFAULT_DIR,
+                  need=(f"decoder{suffix}.onnx", f"autoencoder{suffix}.onnx"))   # fail early, with the fix
+    limit = CpuLimit(quota, args.period_ms * 1000, disabled=args.no_cgroup)
+    cfg = {"hz": args.hz, "quota": quota, "enforced": limit.enforced, "samples": args.samples, "frames": args.frames,
+           "probe_frames": args.probe_frames, "headroom": args.headroom, "precision": args.precision,
+           "models": args.models}
+    print(f"edge profile: {args.hz:g} Hz, CPU {quota:g} of one core "
+          f"({'cgroup quota ' + str(limit.quota_us) + ' us per ' + str(limit.period_us) + ' us' if limit.enforced else 'quota NOT enforced: ' + limit.why}), "
+          f"samples {args.samples}, {args.frames} frames", file=sys.stderr)
+    root = Path(__file__).resolve().parent.parent
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1",
+               PYTHONPATH=os.pathsep.join([str(root)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
+    t0 = time.time()
+    try:
+        with tempfile.TemporaryDirectory(prefix="edge-profile-") as tmp:
+            cfg_path, out_path = Path(tmp) / "cfg.json", Path(tmp) / "out.json"
+            cfg_path.write_text(json.dumps(cfg))
+            before = limit.stats()
+            proc = subprocess.run([sys.executable, "-m", "edge.profile", "--worker", str(cfg_path), str(out_path)],
+                                  env=env, preexec_fn=limit.join if limit.enforced else None)
+            after = limit.stats()
+            if proc.returncode != 0 or not out_path.exists():
+                print(f"edge profile: the worker failed (exit {proc.returncode})", file=sys.stderr)
+                return 1
+            res = json.loads(out_path.read_text())
+    finally:
+        limit.cleanup()
+    throttled = {k: round(after[k] - before.get(k, 0), 3) for k in after} if after else None
+    result = {"hz": args.hz, "precision": args.precision, "samples_requested": args.samples,
+              "cpu_quota": {**limit.describe(), "throttling": throttled}, "quota_enforced": limit.enforced,
+              "chosen_samples": res["chosen_samples"], "frames": res["frames"],
+              "deadline_misses": res["deadline_misses"], "frame_ms": res["frame_ms"],
+              "compute_ms": res["compute_ms"], "cpu_ms": res["cpu_ms"], "late_starts": res["late_starts"],
+              "rss_mb": res["rss_mb"], "rss_peak_mb": res["rss_peak_mb"], "stages": res["stages"],
+              "stage_methods": {k: STAGE_METHODS[k] for k in res["stages"]},
+              "budget": {**res["budget"], "frame_period_ms": res["frame_budget_ms"], "headroom": args.headroom},
+              "probes": res["probes"], "runs": res["runs"], "ssi_switches": res["ssi_switches"],
+              "pinned_core": res["core"], "input": f"{SAMPLE.name} signals looped, through FrameSynchronizer",
+              "seconds": round(time.time() - t0, 1)}
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
+    fm = result["frame_ms"]
+    print(f"chosen_samples={result['chosen_samples']} frames={result['frames']} deadline_misses={result['deadline_misses']} "
+          f"frame_ms p50={fm['p50']:.2f} p99={fm['p99']:.2f} cpu_ms p99={result['cpu_ms']['p99']:.2f} "
+          f"rss_mb={result['rss_mb']} quota_enforced={str(limit.enforced).lower()}")
+    print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    if len(sys.argv) == 4 and sys.argv[1] == "--worker":
+        sys.exit(_worker_main(sys.argv[2], sys.argv[3]))
+    import argparse
+    _ap = argparse.ArgumentParser(prog="python -m edge.profile", description=__doc__,
+                                  formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_arguments(_ap)
+    sys.exit(main(_ap.parse_args()))

@@ -1,0 +1,289 @@
+"""A session: what every transport carried, timestamped, plus ground truth when it came from mocap.
+
+- serial links (`headset`, `hub`): the exact bytes of each frame and when it was sent;
+- `can`: each CAN frame (id, data) and when it was sent;
+- `i2c`: the BNO055's output registers over time (quaternion, linear acceleration), which the
+  register-level fake serves to the driver.
+
+`synthesize` builds one from a Take (mocap through the same signal code as training) with each device
+at its own rate, clock offset, drift and jitter, and with generation-time faults applied.
+`save`/`load` keep it in one .npz (a few hundred KB for 15 s).
+"""
+import json
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from edge import quat
+from edge.signals import DeviceNoise, Signals
+from edge.takes import Take
+from firmware_bridge import protocol
+from firmware_bridge.samples import HeadsetSample, TrackerSample
+from firmware_bridge.transports.can_bus import encode_node_frames
+
+# Who sits where when a session uses all three transports: the waist puck on I2C, the feet on CAN, the
+# chest on the serial hub. With fewer transports the waist moves to the hub, then to CAN node 3.
+CAN_NODES = {1: "l_foot", 2: "r_foot", 3: "waist"}
+HUB_IDS = {0: "chest", 1: "waist"}
+
+
+def placement(transports):
+    place = {"i2c": [], "hub": [], "can": []}
+    if "can" in transports:
+        place["can"] += ["l_foot", "r_foot"]
+    if "serial" in transports:
+        place["hub"].append("chest")
+    waist_on = "i2c" if "i2c" in transports else "hub" if "serial" in transports else "can"
+    place[waist_on].append("waist")
+    return place
+RATES = {"headset": 72.0, "hub": 100.0, "can": 100.0, "i2c": 100.0}
+
+
+@dataclass
+class SerialLog:
+    t: list = field(default_factory=list)        # send time (s, true session time)
+    frames: list = field(default_factory=list)   # bytes of each frame as sent
+
+    def add(self, t, data):
+        self.t.append(t)
+        self.frames.append(bytes(data))
+
+
+@dataclass
+class Session:
+    name: str
+    fps: float
+    duration: float
+    transports: tuple
+    headset: SerialLog
+    hub: SerialLog
+    can_t: np.ndarray
+    can_id: np.ndarray
+    can_data: np.ndarray                          # [K,8]
+    i2c_t: np.ndarray
+    i2c_quat: np.ndarray
+    i2c_accel: np.ndarray
+    gt_pos: np.ndarray = None                     # [T,J,3] at fps, when known
+    meta: dict = field(default_factory=dict)
+
+    def save(self, path):
+        def pack(log):
+            lengths = np.array([len(f) for f in log.frames], np.int64)
+            data = np.frombuffer(b"".join(log.frames), np.uint8) if log.frames else np.zeros(0, np.uint8)
+            return np.array(log.t, np.float64), lengths, data
+        ht, hl, hd = pack(self.headset)
+        bt, bl, bd = pack(self.hub)
+        extra = {} if self.gt_pos is None else {"gt_pos": self.gt_pos.astype(np.float32)}
+        np.savez_compressed(path, kind="edgepose-session", version=1, meta=json.dumps(
+            {"name": self.name, "fps": self.fps, "duration": self.duration, "transports": list(self.transports),
+             **self.meta}), headset_t=ht, headset_len=hl, headset_bytes=hd, hub_t=bt, hub_len=bl, hub_bytes=bd,
+            can_t=self.can_t, can_id=self.can_id, can_data=self.can_data, i2c_t=self.i2c_t,
+            i2c_quat=self.i2c_quat.astype(np.float32), i2c_accel=self.i2c_accel.astype(np.float32), **extra)
+
+    @classmethod
+    def load(cls, path):
+        d = np.load(path, allow_pickle=False)
+        if "kind" not in d.files or str(d["kind"]) != "edgepose-session":
+            raise ValueError(f"{path}: not an edgepose session recording")
+        meta = json.loads(str(d["meta"]))
+
+        def unpack(prefix):
+            ends = np.cumsum(d[f"{prefix}_len"])
+            data = d[f"{prefix}_bytes"].tobytes()
+            starts = ends - d[f"{prefix}_len"]
+            return SerialLog(list(d[f"{prefix}_t"]), [data[a:b] for a, b in zip(starts, ends)])
+        return cls(meta.pop("name"), meta.pop("fps"), meta.pop("duration"), tuple(meta.pop("transports")),
+                   unpack("headset"), unpack("hub"), d["can_t"], d["can_id"], d["can_data"], d["i2c_t"],
+                   d["i2c_quat"].astype(np.float64), d["i2c_accel"].astype(np.float64),
+                   d["gt_pos"].astype(np.float64) if "gt_pos" in d.files else None, meta)
+
+    def digest(self):
+        """sha256 over every byte each transport carried, in order."""
+        import hashlib
+        h = hashlib.sha256()
+        for log in (self.headset, self.hub):
+            for t, f in zip(log.t, log.frames):
+                h.update(np.float64(t).tobytes() + f)
+        for arr in (self.can_t, self.can_id, self.can_data, self.i2c_t, self.i2c_quat.astype(np.float32),
+                    self.i2c_accel.astype(np.float32)):
+            h.update(np.ascontiguousarray(arr).tobytes())
+        return h.hexdigest()
+
+
+# ----------------------------------------------------------------------------- device clocks
+
+@dataclass
+class DeviceClock:
+    """A device's own clock: t_device = t_true * (1 + drift) + offset; sends jitter around its rate."""
+    offset: float
+    drift: float
+    jitter: float
+
+    def stamp(self, t):
+        return t * (1.0 + self.drift) + self.offset
+
+
+def emission_times(rate, duration, jitter, rng):
+    t = np.arange(0.0, duration, 1.0 / rate)
+    return np.clip(t + rng.normal(0, jitter, len(t)), 0.0, duration)
+
+
+def signal_at(sig: Signals, fps, t):
+    """Signals interpolated at true time t (lerp positions, slerp rotations)."""
+    x = np.clip(t * fps, 0, sig.frames - 1)
+    i0 = int(np.floor(x))
+    i1 = min(i0 + 1, sig.frames - 1)
+    w = x - i0
+    lerp = lambda a: a[i0] * (1 - w) + a[i1] * w
+    return (lerp(sig.head_pos), quat.slerp(sig.head_rot[i0], sig.head_rot[i1], w), lerp(sig.hand_pos),
+            quat.slerp(sig.hand_rot[i0], sig.hand_rot[i1], np.full(2, w)), quat.slerp(sig.waist_rot[i0], sig.waist_rot[i1], w),
+            lerp(sig.waist_acc))
+
+
+def imu_at(take, name, t):
+    q = take.imu[name] if name != "waist" else take.signals.waist_rot
+    x = np.clip(t * take.fps, 0, len(q) - 1)
+    i0 = int(np.floor(x))
+    return quat.slerp(q[i0], q[min(i0 + 1, len(q) - 1)], x - i0)
+
+
+# ----------------------------------------------------------------------------- faults
+
+FAULTS = {
+    "noise": {"noise": True},
+    "loss": {"loss": 0.02},
+    "corrupt": {"ber": 1e-4},
+    "disconnect": {"disconnect": 0.01, "disconnect_frames": 100},   # DragPoser: 1% per frame, back after 100
+    "hand-loss": {"hand_loss": 0.025, "hand_gap_s": [0.5, 2.0]},    # RPM: 2.5% per frame per hand, 0.5-2 s
+    "unplug": {"unplug_at": 2.0, "unplug_s": 0.5},
+    "i2c-errors": {"i2c_error_rate": 0.05},
+    "can-busoff": {"busoff_at": 2.0, "busoff_s": 1.0},
+    "clock-jump": {"clock_jump_at": 2.0, "clock_jump_s": 0.75},
+}
+
+
+def fault_profile(spec):
+    """'clean', a profile name, several joined by '+', or a JSON object of fault parameters."""
+    if not spec or spec == "clean":
+        return {}
+    if spec.strip().startswith("{"):
+        try:
+            params = json.loads(spec)
+        except ValueError as e:
+            raise ValueError(f"--faults JSON is not valid: {e}") from None
+        known = {k for p in FAULTS.values() for k in p}
+        unknown = set(params) - known
+        if unknown:
+            raise ValueError(f"unknown fault parameter {sorted(unknown)[0]!r}; known: {', '.join(sorted(known))}")
+        return params
+    out = {}
+    for name in spec.split("+"):
+        if name not in FAULTS:
+            raise ValueError(f"unknown fault profile {name!r}; profiles: {', '.join(FAULTS)} (or a JSON object)")
+        out.update(FAULTS[name])
+    return out
+
+
+def gaps(rng, frames, start_p, length_frames):
+    """Boolean [frames] mask of outage windows: each frame starts one with probability start_p."""
+    out = np.zeros(frames, bool)
+    t = 0
+    while t < frames:
+        if rng.random() < start_p:
+            n = int(length_frames(rng))
+            out[t:t + n] = True
+            t += n
+        t += 1
+    return out
+
+
+def flip_bits(data, ber, rng):
+    """Flip each bit with probability ber (the 0x00 delimiters included: a real line hits those too)."""
+    if ber <= 0 or not data:
+        return data
+    bits = len(data) * 8
+    n = rng.binomial(bits, ber)
+    if n == 0:
+        return data
+    b = bytearray(data)
+    for pos in rng.choice(bits, n, replace=False):
+        b[pos // 8] ^= 1 << (pos % 8)
+    return bytes(b)
+
+
+# ----------------------------------------------------------------------------- synthesis
+
+def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, seed=0, seconds=None):
+    """Device traffic for a take. The headset always speaks serial; IMUs go where PLACEMENT puts them."""
+    faults = faults or {}
+    rng = np.random.default_rng(seed)
+    fps = take.fps
+    duration = take.frames / fps if seconds is None else min(seconds, take.frames / fps)
+    sig = take.signals
+    if faults.get("noise"):
+        sig = DeviceNoise().apply(sig, fps, rng)
+    clocks = {name: DeviceClock(rng.uniform(-50, 50), rng.normal(0, 50e-6), 0.0005) for name in RATES}
+    if "clock_jump_at" in faults:
+        clocks["headset"].jump = (faults["clock_jump_at"], faults["clock_jump_s"])
+    frames60 = int(np.ceil(duration * fps)) + 1
+    dropped = {}
+    for tracker in ("waist", "chest", "l_foot", "r_foot"):
+        dropped[tracker] = (gaps(rng, frames60, faults["disconnect"], lambda r: faults.get("disconnect_frames", 100))
+                            if "disconnect" in faults else np.zeros(frames60, bool))
+    hands_gone = [gaps(rng, frames60, faults["hand_loss"], lambda r: r.uniform(*faults.get("hand_gap_s", [0.5, 2.0])) * fps)
+                  if "hand_loss" in faults else np.zeros(frames60, bool) for _ in range(2)]
+    loss, ber = faults.get("loss", 0.0), faults.get("ber", 0.0)
+
+    def device_time(name, t):
+        c = clocks[name]
+        jump = getattr(c, "jump", None)
+        return c.stamp(t) + (jump[1] if jump and t >= jump[0] else 0.0)
+
+    headset = SerialLog()
+    for k, t in enumerate(emission_times(RATES["headset"], duration, clocks["headset"].jitter, rng)):
+        f = min(int(t * fps), frames60 - 1)
+        hp, hr, cp, cr, _, _ = signal_at(sig, fps, t)
+        valid = np.array([not hands_gone[0][f], not hands_gone[1][f]])
+        data = protocol.encode_headset_pose(HeadsetSample(device_time("headset", t), hp, hr, cp, cr, valid), k & 0xFFFF)
+        if rng.random() >= loss:
+            headset.add(t, flip_bits(data, ber, rng))
+
+    place = placement(transports)
+    has = lambda name: name == "waist" or bool(take.imu)          # sample takes may carry only the waist
+    hub = SerialLog()
+    if place["hub"]:
+        for k, t in enumerate(emission_times(RATES["hub"], duration, clocks["hub"].jitter, rng)):
+            f = min(int(t * fps), frames60 - 1)
+            samples = [TrackerSample(n, device_time("hub", t), imu_at(take, n, t)) for n in place["hub"]
+                       if has(n) and not dropped[n][f]]
+            if samples and rng.random() >= loss:
+                hub.add(t, flip_bits(protocol.encode_tracker_samples(samples, k & 0xFFFF, HUB_IDS), ber, rng))
+
+    can_t, can_id, can_data = [], [], []
+    if place["can"]:
+        busoff = (faults.get("busoff_at", np.inf), faults.get("busoff_at", np.inf) + faults.get("busoff_s", 0))
+        for k, t in enumerate(emission_times(RATES["can"], duration, clocks["can"].jitter, rng)):
+            f = min(int(t * fps), frames60 - 1)
+            if busoff[0] <= t < busoff[1]:
+                continue
+            for node, name in CAN_NODES.items():
+                if name not in place["can"] or not has(name) or dropped[name][f] or rng.random() < loss:
+                    continue
+                for m in encode_node_frames(node, imu_at(take, name, t), np.zeros(3), 0xFF, k & 0xFF):
+                    can_t.append(t)
+                    can_id.append(m.arbitration_id)
+                    can_data.append(np.frombuffer(flip_bits(bytes(m.data), ber, rng), np.uint8))
+
+    i2c_t = np.arange(0.0, duration, 1.0 / RATES["i2c"]) if "i2c" in transports else np.zeros(0)
+    i2c_q = np.array([imu_at(take, "waist", t) for t in i2c_t]).reshape(-1, 4)
+    i2c_a = np.array([signal_at(sig, fps, t)[5] for t in i2c_t]).reshape(-1, 3)
+    if "i2c" in transports:
+        i2c_q = quat.normalize(np.array([signal_at(sig, fps, t)[4] for t in i2c_t]))
+        gone = dropped["waist"][np.minimum((i2c_t * fps).astype(int), frames60 - 1)]
+        i2c_q[gone] = np.nan                                   # the puck stops answering (see replay)
+    gt = None if take.gt_pos is None else take.gt_pos[:int(round(duration * fps))]
+    meta = {"faults": faults, "seed": seed, "placement": place,
+            "clocks": {k: {"offset": c.offset, "drift": c.drift} for k, c in clocks.items()},
+            "source": take.name}
+    return Session(take.name, fps, duration, tuple(transports), headset, hub, np.array(can_t), np.array(can_id, np.int64),
+                   np.array(can_data, np.uint8).reshape(-1, 8), i2c_t, i2c_q, i2c_a, gt, meta)

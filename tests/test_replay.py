@@ -1,0 +1,105 @@
+"""Hardware-in-the-loop: sessions replayed through simulated devices into the real board service."""
+import time
+
+import numpy as np
+import pytest
+
+from edge.takes import from_sample
+from firmware_bridge.sim.record import CanTap, SerialTap
+from firmware_bridge.sim.replay import CanDevice, SerialDevice, SimClock, replay
+from firmware_bridge.sim.session import FAULTS, Session, fault_profile, synthesize
+from tests.conftest import SAMPLE
+
+SECONDS = 4.0
+LOOKAHEAD = 10
+
+
+@pytest.fixture(scope="module")
+def take():
+    return from_sample(SAMPLE)
+
+
+def run(take, transports=("serial", "i2c", "can"), faults="clean", seconds=SECONDS, seed=0):
+    f = fault_profile(faults)
+    return replay(synthesize(take, transports, f, seed), "max", samples=8, lookahead=LOOKAHEAD, seconds=seconds, faults=f)
+
+
+@pytest.fixture(scope="module")
+def clean(take):
+    return run(take)
+
+
+@pytest.mark.parametrize("transports", [("serial",), ("i2c",), ("can",), ("serial", "i2c", "can")])
+def test_every_frame_reaches_the_host_over_each_transport(take, transports):
+    r = run(take, transports)
+    assert r["errors"] == []
+    # The first tick can come before the pty has delivered the first headset frame.
+    assert r["frames_in"] >= int(SECONDS * 60) - 2 and r["frames_out"] == r["frames_in"] - LOOKAHEAD
+    assert r["poses_decoded"] == r["frames_out"] and r["missing_output_frames"] == 0
+    assert r["packets_corrupt"] == 0 and r["tracker_lost_events"] == 0
+    assert r["mpjpe_cm"] < 8.0
+    opened = " ".join(r["transports"]["opened"])
+    assert "serial://" in opened and ("i2c://" in opened) == ("i2c" in transports) and ("can://" in opened) == ("can" in transports)
+
+
+@pytest.mark.parametrize("profile", sorted(FAULTS))
+def test_every_fault_profile_keeps_the_output_going(take, clean, profile):
+    r = run(take, faults=profile)
+    assert r["errors"] == [], r["errors"]
+    assert r["frames_out"] == r["frames_in"] - LOOKAHEAD
+    assert r["poses_decoded"] > 0.8 * r["frames_out"]
+    if profile == "corrupt":
+        assert r["packets_corrupt"] > 0
+    if profile in ("loss",):
+        assert r["packets_lost"] > 0
+    if profile in ("disconnect", "can-busoff", "hand-loss"):
+        assert r["tracker_lost_events"] > 0
+    if profile in ("hand-loss", "clock-jump", "i2c-errors", "noise"):
+        assert r["missing_output_frames"] == 0 and r["poses_decoded"] == r["frames_out"]
+    if profile == "unplug":
+        assert r["reopens"] >= 1 and r["resume_after_replug_s"] is not None and r["resume_after_replug_s"] < 1.0
+    if profile != "unplug":       # with the headset gone for 0.5 s the body is held, so errors are large then
+        assert r["mpjpe_cm"] < 3 * clean["mpjpe_cm"]
+
+
+def test_faults_can_be_given_as_json_and_bad_ones_are_named():
+    assert fault_profile('{"ber": 0.001}') == {"ber": 0.001}
+    with pytest.raises(ValueError, match="unknown fault profile 'wobble'"):
+        fault_profile("wobble")
+    with pytest.raises(ValueError, match="unknown fault parameter"):
+        fault_profile('{"shake": 1}')
+
+
+def test_session_files_round_trip(take, tmp_path):
+    s = synthesize(take, seconds=2.0)
+    s.save(tmp_path / "s.npz")
+    back = Session.load(tmp_path / "s.npz")
+    assert back.digest() == s.digest() and np.allclose(back.gt_pos, s.gt_pos, atol=1e-6)
+    assert (tmp_path / "s.npz").stat().st_size < 1_000_000
+
+
+def test_recording_a_replay_reproduces_its_bytes_exactly(take, tmp_path):
+    s = synthesize(take, ("serial", "can"), seconds=1.5)
+    clock = SimClock(realtime=True)
+    dev = SerialDevice("headset", s.headset, tmp_path)
+    hub = SerialDevice("hub", s.hub, tmp_path)
+    can_dev = CanDevice(s, "edgepose-record-test", clock)
+    taps = [SerialTap(dev.path, 460800, clock), SerialTap(hub.path, 460800, clock),
+            CanTap("virtual", "edgepose-record-test", clock)]
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < s.duration + 0.3:
+        now = time.monotonic() - t0
+        for d in (dev, hub, can_dev):
+            d.emit_until(now)
+        for tap in taps:
+            tap.poll()
+        time.sleep(0.002)
+    for tap in taps:
+        tap.poll()
+    sent = b"".join(s.headset.frames), b"".join(s.hub.frames), np.asarray(s.can_data).tobytes()
+    got = b"".join(taps[0].log.frames), b"".join(taps[1].log.frames), np.array(taps[2].data, np.uint8).tobytes()
+    import hashlib
+    assert [hashlib.sha256(x).hexdigest() for x in got] == [hashlib.sha256(x).hexdigest() for x in sent]
+    assert list(taps[2].ids) == list(s.can_id)
+    for x in taps + [dev, hub, can_dev]:
+        x.close()
