@@ -105,7 +105,9 @@ class Service:
             host, _, port = cfg.vrchat.rpartition(":")
             outs.append(VrchatSender(host, int(port)))
         if cfg.bvh:
+            from pathlib import Path
             from firmware_bridge.outputs.bvh_writer import BvhWriter
+            Path(cfg.bvh).parent.mkdir(parents=True, exist_ok=True)
             outs.append(BvhWriter(cfg.bvh, fps=cfg.hz))
         return outs
 

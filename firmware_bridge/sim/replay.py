@@ -13,6 +13,7 @@ import json
 import os
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -158,16 +159,39 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
             return open_source(url, bus=chip, clock=clock, sleep=clock.sleep)
         return open_configured(url)
 
-    cfg = board_config(session, devices, can_channel, samples, lookahead, bvh)
-    if models:
-        cfg.models = models
-    service = Service(cfg, clock=clock, status=status, opener=opener)
+    try:
+        cfg = board_config(session, devices, can_channel, samples, lookahead, bvh)
+        if models:
+            cfg.models = models
+        service = Service(cfg, clock=clock, status=status, opener=opener)
+    except BaseException:
+        for dev in list(devices.values()) + ([can_dev] if can_dev else []):
+            dev.close()
+        raise
     ear = Listener(fd=devices["headset"].master)
     hz, duration = cfg.hz, session.duration if seconds is None else min(seconds, session.duration)
-    decoded, latency = [], []
-    tick_wall = {}
+    arrivals, tick_wall = [], {}
+    plugged = threading.Event()
+    plugged.set()
+    done = threading.Event()
+
+    def host_reader():
+        """The host side reads continuously, as a separate program would."""
+        while not done.is_set():
+            if not plugged.is_set():
+                time.sleep(0.001)
+                continue
+            try:
+                frames = ear.poll(0.002)
+            except (OSError, ValueError):           # the pty went away under us (unplug)
+                continue
+            now = time.perf_counter()
+            arrivals.extend((f, now) for f in frames)
+
+    reader = threading.Thread(target=host_reader, daemon=True)
+    reader.start()
     unplug = (faults.get("unplug_at", np.inf), faults.get("unplug_at", np.inf) + faults.get("unplug_s", 0))
-    plugged, replug_t, resumed_t = True, None, None
+    replug_t = None
     ticks = int(duration * hz)
     last_status = 0.0
     try:
@@ -179,13 +203,15 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
                     time.sleep(delay)
             else:
                 clock.advance_to(now)
-            if plugged and unplug[0] <= now < unplug[1]:
+            if plugged.is_set() and unplug[0] <= now < unplug[1]:
+                plugged.clear()
+                time.sleep(0.005)                   # let the reader leave the fd before it closes
                 devices["headset"].unplug()
-                plugged = False
-            elif not plugged and now >= unplug[1]:
+            elif not plugged.is_set() and now >= unplug[1]:
                 devices["headset"].plug()
                 ear.fd = devices["headset"].master
-                plugged, replug_t = True, now
+                plugged.set()
+                replug_t = now
             for dev in devices.values():
                 dev.emit_until(now)
             if can_dev:
@@ -195,19 +221,15 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
                 service.step(clock())
             except Exception as e:          # the run goes on; the report says what broke
                 errors.append(f"tick {k}: {type(e).__name__}: {e}")
-            if plugged:
-                for f in ear.poll(0.0):
-                    decoded.append(f)
-                    o = int(round(f.t * hz)) - 1
-                    produced = tick_wall.get(o + service.pipeline.lookahead)
-                    if produced is not None:
-                        latency.append((time.perf_counter() - produced) * 1000)
-                    if replug_t is not None and resumed_t is None and f.t >= replug_t - 1e-9:
-                        resumed_t = now
+            if not clock.realtime:
+                time.sleep(0.0002)          # give the host reader a moment, as real time would
             if status is not None and now - last_status >= 0.5:
                 service.show_status()
                 last_status = now
+        time.sleep(0.05)
     finally:
+        done.set()
+        reader.join(1.0)
         summary = service.summary()
         service.close()
         if can_dev:
@@ -218,6 +240,14 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
             os.rmdir(folder)
         except OSError:
             pass
+    decoded, latency, resumed_t = [], [], None
+    for f, at in arrivals:
+        decoded.append(f)
+        produced = tick_wall.get(int(round(f.t * hz)) - 1 + service.pipeline.lookahead)
+        if produced is not None:
+            latency.append((at - produced) * 1000)
+        if replug_t is not None and resumed_t is None and f.t >= replug_t - 1e-9:
+            resumed_t = f.t
     return report(session, summary, decoded, latency, service, ear, opened, errors, faults, speed, duration,
                   (resumed_t - replug_t) if resumed_t is not None else None)
 
