@@ -90,7 +90,7 @@ class Service:
         self.latency_ms = deque(maxlen=600)
         self._was_lost = {}
         self._tick_times = np.zeros(256)                    # input tick time by pipeline frame index
-        self.health_log = deque(maxlen=100_000)             # (tick time, lost sources), for reports
+        self.health_changes = deque(maxlen=10_000)          # (tick time, source, lost?) when it changes
         self._pose = protocol.PoseFrame(0.0, np.zeros(3), np.tile([1.0, 0, 0, 0], (21, 1)), np.zeros(2))
 
     def _open_outputs(self):
@@ -164,10 +164,11 @@ class Service:
         self.stats["frames_in"] += 1
         self._tick_times[self.pipeline.t + 1 & 255] = now
         for name, lost in health.lost.items():
-            if lost and not self._was_lost.get(name, False):
-                self.stats["tracker_lost_events"] += 1
+            if lost != self._was_lost.get(name, False):
+                self.health_changes.append((now, name, lost))
+                if lost:
+                    self.stats["tracker_lost_events"] += 1
             self._was_lost[name] = lost
-        self.health_log.append((now, [name for name, lost in health.lost.items() if lost]))
         pose = self.pipeline.step(self._calibrated(sig))
         if pose is not None:
             self._emit(pose, health)
@@ -209,6 +210,10 @@ class Service:
                 self.stats["output_errors"] += 1
 
     # ------------------------------------------------------------------ reporting
+    def health_timeline(self):
+        """Lost / recovered events per source: {"events": [{"t": .., "source": .., "lost": ..}, ...]}."""
+        return {"events": [{"t": round(t, 4), "source": n, "lost": bool(l)} for t, n, l in self.health_changes]}
+
     def summary(self):
         fm = np.array(self.frame_ms) if self.frame_ms else np.zeros(1)
         lat = np.array(self.latency_ms) if self.latency_ms else np.zeros(1)

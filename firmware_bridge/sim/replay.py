@@ -122,6 +122,43 @@ def bno055_for(session, clock, faults):
     return chip
 
 
+class StreamMetrics:
+    """Decoded-pose metrics kept in preallocated arrays, so a long soak measures the runtime's memory,
+    not the harness's: per-frame arrival, latency and error, and a 3-frame window for jerk."""
+
+    def __init__(self, ticks, hz, gt_pos, lookahead):
+        self.hz, self.gt, self.lookahead = hz, gt_pos, lookahead
+        self.seen = np.zeros(ticks + 2, bool)
+        self.latency = np.full(ticks + 2, np.nan)
+        self.error = np.full(ticks + 2, np.nan)
+        self.t = np.full(ticks + 2, np.nan)
+        self.jerk_sum, self.jerk_n, self.decoded = 0.0, 0, 0
+        self.window = np.zeros((4, 21, 3))
+        self.window_frames = np.full(4, -10)
+        self._rot = np.zeros((21, 3, 3))
+
+    def add(self, f, arrived, tick_wall):
+        o = int(round(f.t * self.hz)) - 1
+        if not 0 <= o < len(self.seen):
+            return
+        self.decoded += 1
+        self.seen[o] = True
+        self.t[o] = f.t
+        produced = tick_wall.get(o + self.lookahead)
+        if produced is not None:
+            self.latency[o] = (arrived - produced) * 1000
+        _, pos = fk(quat.to_matrix(f.rotations), f.root_pos)
+        if self.gt is not None and self.hz <= o < len(self.gt):      # skip the first second, like eval
+            self.error[o] = np.linalg.norm(pos - self.gt[o], axis=-1).mean()
+        self.window = np.roll(self.window, -1, axis=0)
+        self.window_frames = np.roll(self.window_frames, -1)
+        self.window[-1], self.window_frames[-1] = pos, o
+        if o >= self.hz and np.all(np.diff(self.window_frames) == 1):
+            jerk = (self.window[3] - 3 * self.window[2] + 3 * self.window[1] - self.window[0]) * self.hz ** 3
+            self.jerk_sum += np.linalg.norm(jerk, axis=-1).mean()
+            self.jerk_n += 1
+
+
 def board_config(session, devices, can_channel, samples, lookahead, bvh):
     place = session.meta.get("placement") or placement(session.transports)
     pairs = lambda ids, names: ",".join(f"{k}:{v}" for k, v in ids.items() if v in names)
@@ -170,10 +207,13 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
         raise
     ear = Listener(fd=devices["headset"].master)
     hz, duration = cfg.hz, session.duration if seconds is None else min(seconds, session.duration)
-    arrivals, tick_wall = [], {}
+    ticks = int(duration * hz)
+    metrics = StreamMetrics(ticks, hz, session.gt_pos, service.pipeline.lookahead)
+    tick_wall = {}
     plugged = threading.Event()
     plugged.set()
     done = threading.Event()
+    replug = [None, None]                           # replug time, first frame of input after it
 
     def host_reader():
         """The host side reads continuously, as a separate program would."""
@@ -186,14 +226,16 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
             except (OSError, ValueError):           # the pty went away under us (unplug)
                 continue
             now = time.perf_counter()
-            arrivals.extend((f, now) for f in frames)
+            for f in frames:
+                metrics.add(f, now, tick_wall)
+                if replug[0] is not None and replug[1] is None and f.t >= replug[0] - 1e-9:
+                    replug[1] = f.t
 
     reader = threading.Thread(target=host_reader, daemon=True)
     reader.start()
     unplug = (faults.get("unplug_at", np.inf), faults.get("unplug_at", np.inf) + faults.get("unplug_s", 0))
-    replug_t = None
-    ticks = int(duration * hz)
     last_status = 0.0
+    rss = [rss_mb()]
     try:
         for k in range(1, ticks + 1):
             now = k / hz
@@ -211,21 +253,24 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
                 devices["headset"].plug()
                 ear.fd = devices["headset"].master
                 plugged.set()
-                replug_t = now
+                replug[0] = now
             for dev in devices.values():
                 dev.emit_until(now)
             if can_dev:
                 can_dev.emit_until(now)
             tick_wall[service.pipeline.t + 1] = time.perf_counter()
+            tick_wall.pop(service.pipeline.t - 4 * service.pipeline.lookahead - 240, None)   # bounded
             try:
                 service.step(clock())
             except Exception as e:          # the run goes on; the report says what broke
                 errors.append(f"tick {k}: {type(e).__name__}: {e}")
             if not clock.realtime:
                 time.sleep(0.0002)          # give the host reader a moment, as real time would
-            if status is not None and now - last_status >= 0.5:
-                service.show_status()
+            if now - last_status >= 0.5:
+                if status is not None:
+                    service.show_status()
                 last_status = now
+                rss.append(rss_mb())
         time.sleep(0.05)
     finally:
         done.set()
@@ -240,65 +285,75 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
             os.rmdir(folder)
         except OSError:
             pass
-    decoded, latency, resumed_t = [], [], None
-    for f, at in arrivals:
-        decoded.append(f)
-        produced = tick_wall.get(int(round(f.t * hz)) - 1 + service.pipeline.lookahead)
-        if produced is not None:
-            latency.append((at - produced) * 1000)
-        if replug_t is not None and resumed_t is None and f.t >= replug_t - 1e-9:
-            resumed_t = f.t
-    return report(session, summary, decoded, latency, service, ear, opened, errors, faults, speed, duration,
-                  (resumed_t - replug_t) if resumed_t is not None else None)
+    out = report(session, summary, metrics, service, ear, opened, errors, faults, speed, duration,
+                 (replug[1] - replug[0]) if replug[1] is not None else None)
+    # RSS after the first 10% (imports, pools warmed) against the end: a leak shows as growth.
+    warm = rss[max(1, len(rss) // 10)] if len(rss) > 2 else rss[0]
+    out["rss_mb"] = {"start": rss[0], "after_warmup": warm, "end": rss[-1], "growth_after_warmup": rss[-1] - warm}
+    return out
 
 
-def decoded_positions(frames):
-    rot = quat.to_matrix(np.array([f.rotations for f in frames]))
-    _, pos = fk(rot, np.array([f.root_pos for f in frames]))
-    return pos
-
-
-def report(session, summary, decoded, latency, service, ear, opened, errors, faults, speed, duration, resume_s):
+def report(session, summary, m, service, ear, opened, errors, faults, speed, duration, resume_s):
     hz = service.cfg.hz
-    lat = np.array(latency) if latency else np.zeros(1)
-    corrupt = summary["packets_corrupt"] + ear.stats["corrupt"]
-    lost = summary["packets_lost"] + ear.stats.get("missed", 0)
+    lat = m.latency[np.isfinite(m.latency)]
+    lat = lat if len(lat) else np.zeros(1)
+    seen = np.flatnonzero(m.seen)
     out = {
         "source": session.name, "speed": speed, "seconds": duration, "faults": faults,
-        "frames_in": summary["frames_in"], "frames_out": summary["frames_out"], "poses_decoded": len(decoded),
-        "packets_corrupt": int(corrupt), "packets_lost": int(lost),
+        "frames_in": summary["frames_in"], "frames_out": summary["frames_out"], "poses_decoded": m.decoded,
+        "packets_corrupt": int(summary["packets_corrupt"] + ear.stats["corrupt"]),
+        "packets_lost": int(summary["packets_lost"] + ear.stats.get("missed", 0)),
         "tracker_lost_events": summary["tracker_lost_events"], "deadline_misses": summary["deadline_misses"],
         "latency_ms": {"p50": float(np.median(lat)), "p99": float(np.percentile(lat, 99)), "max": float(lat.max())},
         "latency_note": "wall time from the start of the tick that produced a pose to its decoding by the host "
                         "reader (processing, serial transfer, decoding); the look-ahead is reported apart",
         "lookahead_ms": 1000.0 * service.pipeline.lookahead / hz, "ssi_switches": len(service.pipeline.switches),
         "samples": service.pipeline.samples, "frame_ms": summary["frame_ms"], "reopens": summary["reopens"],
-        "output_errors": summary["output_errors"],
-        "resume_after_replug_s": resume_s,
+        "output_errors": summary["output_errors"], "resume_after_replug_s": resume_s,
+        "missing_output_frames": int(len(seen) and (seen[-1] - seen[0] + 1 - len(seen))),
         "transports": {"opened": sorted(set(opened))}, "errors": errors,
-        "latency_ms_samples": [round(x, 3) for x in latency[:20000]],
+        "latency_ms_samples": [round(float(x), 3) for x in lat[:20000]],
+        "health_timeline": service.health_timeline(),
     }
-    if session.gt_pos is not None and len(decoded) > 4:
-        idx = np.array([int(round(f.t * hz)) - 1 for f in decoded])
-        keep = (idx >= hz) & (idx < len(session.gt_pos))               # skip the first second, like eval
-        pred = decoded_positions([f for f, k in zip(decoded, keep) if k])
-        gt = session.gt_pos[idx[keep]]
-        out["mpjpe_cm"] = float(np.linalg.norm(pred - gt, axis=-1).mean() * 100)
-        jerk = np.diff(pred, n=3, axis=0) * hz ** 3
-        out["jitter_m_s3"] = float(np.linalg.norm(jerk, axis=-1).mean())
-        out["missing_output_frames"] = int(len(np.setdiff1d(np.arange(idx.min(), idx.max() + 1), idx)))
+    err = m.error[np.isfinite(m.error)]
+    if len(err):
+        out["mpjpe_cm"] = float(err.mean() * 100)
+    if m.jerk_n:
+        out["jitter_m_s3"] = m.jerk_sum / m.jerk_n
     return out
 
 
-def load_source(source, transports, faults, seed=0):
-    """A recording (.npz session), or a BVH clip / sample take synthesised through the device models."""
+def tile_take(take, seconds):
+    """Repeat a take until it lasts `seconds` (for soaks); the body jumps back at each seam."""
+    from edge.signals import Signals
+    reps = int(np.ceil(seconds * take.fps / take.frames))
+    if reps <= 1:
+        return take
+    sig = take.signals
+    tiled = Signals(*(np.concatenate([getattr(sig, f)] * reps) for f in
+                      ("head_pos", "head_rot", "hand_pos", "hand_rot", "waist_rot", "waist_acc")))
+    imu = {k: np.concatenate([v] * reps) for k, v in (take.imu or {}).items()}
+    return type(take)(take.name, tiled, np.concatenate([take.gt_pos] * reps), take.fps, imu)
+
+
+def load_source(source, transports, faults, seed=0, seconds=None):
+    """A recording (.npz session), or a BVH clip / sample take synthesised through the device models
+    (repeated to last `seconds` when that is longer than the take)."""
     path = str(source)
     if path.endswith(".npz"):
         d = np.load(path, allow_pickle=False)
         if "kind" in d.files:
             return Session.load(path)
     from edge.takes import load_take
-    return synthesize(load_take(path), transports, faults, seed)
+    take = load_take(path)
+    if seconds:
+        take = tile_take(take, seconds)
+    return synthesize(take, transports, faults, seed)
+
+
+def rss_mb():
+    with open(f"/proc/{os.getpid()}/status") as f:
+        return next(int(line.split()[1]) for line in f if line.startswith("VmRSS")) / 1024.0
 
 
 def main(args):
@@ -312,7 +367,11 @@ def main(args):
     if bad:
         print(f"edge replay: unknown transport {sorted(bad)[0]!r}; use serial, i2c, can", file=sys.stderr)
         return 2
-    session = load_source(args.source, transports, faults)
+    try:
+        session = load_source(args.source, transports, faults, seconds=args.seconds)
+    except (OSError, ValueError) as e:
+        print(f"edge replay: cannot use {args.source}: {e}", file=sys.stderr)
+        return 2
     samples = 16 if args.samples == "auto" else int(args.samples)
     result = replay(session, args.speed, samples, args.lookahead, args.seconds, faults, args.bvh, sys.stderr,
                     args.models)
