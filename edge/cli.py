@@ -1,6 +1,7 @@
 """The `edge` command."""
 import argparse
 import sys
+from pathlib import Path
 
 from edge.modelfiles import ModelError
 
@@ -22,6 +23,17 @@ def main(argv=None):
     ev.add_argument("--seed", type=int, default=0)
     ev.add_argument("--no-ik", action="store_true", help="skip foot-contact and arm IK (the bare network)")
     ev.add_argument("--lookahead", type=int, default=None, help="SSI look-ahead tau in frames (default 10 for N>1, 0 for N=1)")
+    ev.add_argument("--report", help="also draw the report (PNGs, GIF, index.html) into this folder (needs the [viz] extra; "
+                                     "dumps into REPORT/dump unless --dump is given)")
+
+    rpt = sub.add_parser("report", help="pictures of a run: skeletons, animation, per-joint errors, SSI, latency, tracker health")
+    rpt.add_argument("run", help="the JSON `edge eval --json` wrote")
+    rpt.add_argument("--dump", help="the folder `edge eval --dump` wrote (skeletons, animation and SSI timeline need it)")
+    rpt.add_argument("--out", required=True, help="write the PNGs, the GIF and index.html here")
+    rpt.add_argument("--clip", help="clip to draw, by file name (default: the one with the largest MPJPE)")
+    rpt.add_argument("--every", type=int, default=20, help="frames between skeleton-strip columns")
+    rpt.add_argument("--strip-frames", type=int, default=6, help="columns in the skeleton strip")
+    rpt.add_argument("--gif-seconds", type=float, default=5.0, help="length of the animation in seconds")
 
     st = sub.add_parser("ssi-study", help="SSI target hitting / collision avoidance against N (SSI Table 3)")
     st.add_argument("--data", nargs="+", required=True)
@@ -47,6 +59,7 @@ def main(argv=None):
     li.add_argument("port")
     li.add_argument("--baud", type=int, default=460800)
     li.add_argument("--seconds", type=float, default=None)
+    li.add_argument("--plot", action="store_true", help="show a live 3D stick figure in a window (needs a display and the [viz] extra)")
 
     rp = sub.add_parser("replay", help="replay a session through simulated devices into the real service")
     rp.add_argument("source", help="a session recording (.npz), a BVH clip or a sample take")
@@ -61,6 +74,7 @@ def main(argv=None):
     rp.add_argument("--seconds", type=float, default=None)
     rp.add_argument("--bvh", help="record the output as BVH here")
     rp.add_argument("--models")
+    rp.add_argument("--report", help="also draw the report (latency, tracker health) into this folder ([viz] extra)")
 
     rec = sub.add_parser("record", help="capture live traffic from the configured transports into a session file")
     rec.add_argument("--config", required=True)
@@ -71,7 +85,18 @@ def main(argv=None):
     try:
         if args.cmd == "eval":
             from edge import eval as ev_mod
-            return ev_mod.main(args)
+            if args.report:
+                from viz.canvas import require_plotting
+                require_plotting()                   # say what to install before evaluating, not after
+                args.dump = args.dump or str(Path(args.report) / "dump")
+            code = ev_mod.main(args)
+            if code == 0 and args.report:
+                from viz.report import build_report
+                print(f"wrote {build_report(args.json, args.report, args.dump)}")
+            return code
+        if args.cmd == "report":
+            from viz import report
+            return report.main(args)
         if args.cmd in ("run", "calibrate"):
             from firmware_bridge import commands
             return commands.run(args) if args.cmd == "run" else commands.calibrate(args)
@@ -80,8 +105,15 @@ def main(argv=None):
             return record.main(args)
         if args.cmd == "replay":
             from firmware_bridge.sim import replay
-            return replay.main(args)
+            code = replay.main(args)
+            if code == 0 and args.report:
+                from viz.report import build_report
+                print(f"wrote {build_report(args.json, args.report)}")
+            return code
         if args.cmd == "listen":
+            if args.plot:
+                from viz import live
+                return live.main(args)
             from firmware_bridge import listen
             return listen.main(args)
         if args.cmd == "ssi-study":

@@ -313,7 +313,7 @@ def report(session, summary, m, service, ear, opened, errors, faults, speed, dur
         "missing_output_frames": int(len(seen) and (seen[-1] - seen[0] + 1 - len(seen))),
         "transports": {"opened": sorted(set(opened))}, "errors": errors,
         "latency_ms_samples": [round(float(x), 3) for x in lat[:20000]],
-        "health_timeline": service.health_timeline(),
+        "health_timeline": health_timeline(service.health_changes, duration, faults),
     }
     err = m.error[np.isfinite(m.error)]
     if len(err):
@@ -321,6 +321,18 @@ def report(session, summary, m, service, ear, opened, errors, faults, speed, dur
     if m.jerk_n:
         out["jitter_m_s3"] = m.jerk_sum / m.jerk_n
     return out
+
+
+def health_timeline(changes, duration, faults, step=0.1):
+    """Lost flags per source on a 10 Hz grid, and the injected faults, in the format viz draws."""
+    t = np.arange(0.0, duration, step)
+    lost = {}
+    for when, name, is_lost in changes:
+        flags = lost.setdefault(name, np.zeros(len(t), np.int8))
+        flags[t >= when] = 1 if is_lost else 0
+    marks = [(k, faults.get(f"{k}_at")) for k in ("unplug", "busoff", "clock_jump")]
+    return {"t": [round(x, 3) for x in t], "lost": {k: v.tolist() for k, v in lost.items()},
+            "faults": [{"t": at, "kind": k.replace("_", "-")} for k, at in marks if at is not None]}
 
 
 def tile_take(take, seconds):
