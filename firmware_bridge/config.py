@@ -20,6 +20,7 @@
     lookahead = 10                    # SSI look-ahead in frames
     hz = 60
     lost_after_ms = 250
+    sync_latency_ms = 20              # interpolate this far in the past (>= one headset period)
     calibration = "calibration.json"  # optional, from `edge calibrate`
     models = "models"                 # optional, default: the shipped models
 
@@ -41,7 +42,7 @@ SECTIONS = {
     "headset": {"url"},
     "trackers": {"url"},
     "output": {"pose_stream", "vmc", "vrchat", "bvh"},
-    "runtime": {"samples", "lookahead", "hz", "lost_after_ms", "calibration", "models"},
+    "runtime": {"samples", "lookahead", "hz", "lost_after_ms", "sync_latency_ms", "calibration", "models"},
 }
 
 
@@ -57,6 +58,7 @@ class Config:
     lookahead: int = 10
     hz: float = 60.0
     lost_after: float = 0.25
+    sync_latency: float = 0.02
     calibration: str = ""
     models: str = ""
     path: str = ""
@@ -148,6 +150,7 @@ def from_dict(raw, where="config"):
         cfg.lookahead = int(rt.get("lookahead", cfg.lookahead))
         cfg.hz = float(rt.get("hz", cfg.hz))
         cfg.lost_after = float(rt.get("lost_after_ms", 250)) / 1000.0
+        cfg.sync_latency = float(rt.get("sync_latency_ms", 20)) / 1000.0
     except (TypeError, ValueError) as e:
         raise ConfigError(f"{where}: [runtime] values must be numbers ({e})") from None
     if not 1 <= cfg.samples <= 128:

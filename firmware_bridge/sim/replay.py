@@ -14,6 +14,7 @@ import os
 import sys
 import tempfile
 import threading
+from collections import deque
 import time
 from pathlib import Path
 
@@ -135,28 +136,42 @@ class StreamMetrics:
         self.jerk_sum, self.jerk_n, self.decoded = 0.0, 0, 0
         self.window = np.zeros((4, 21, 3))
         self.window_frames = np.full(4, -10)
-        self._rot = np.zeros((21, 3, 3))
+        self.wall = {}                                   # pipeline frame index -> wall time its tick began
 
-    def add(self, f, arrived, tick_wall):
-        o = int(round(f.t * self.hz)) - 1
+    def add(self, f, arrived, ticks):
+        """f: a decoded PoseFrame; ticks: microsecond tick time -> (pipeline frame index, wall time of its tick)."""
+        entry = ticks.get(int(round(f.t * 1e6)))
+        if entry is None:
+            return
+        o = entry[0]
         if not 0 <= o < len(self.seen):
             return
         self.decoded += 1
         self.seen[o] = True
         self.t[o] = f.t
-        produced = tick_wall.get(o + self.lookahead)
+        produced = self.wall.get(o + self.lookahead)
         if produced is not None:
             self.latency[o] = (arrived - produced) * 1000
         _, pos = fk(quat.to_matrix(f.rotations), f.root_pos)
-        if self.gt is not None and self.hz <= o < len(self.gt):      # skip the first second, like eval
-            self.error[o] = np.linalg.norm(pos - self.gt[o], axis=-1).mean()
+        g = int(round(f.t * self.hz))                                   # ground truth is on the session clock
+        if self.gt is not None and self.hz <= g < len(self.gt):         # skip the first second, like eval
+            self.error[o] = np.linalg.norm(pos - self.gt[g], axis=-1).mean()
         self.window = np.roll(self.window, -1, axis=0)
         self.window_frames = np.roll(self.window_frames, -1)
         self.window[-1], self.window_frames[-1] = pos, o
-        if o >= self.hz and np.all(np.diff(self.window_frames) == 1):
+        if g >= self.hz and np.all(np.diff(self.window_frames) == 1):
             jerk = (self.window[3] - 3 * self.window[2] + 3 * self.window[1] - self.window[0]) * self.hz ** 3
             self.jerk_sum += np.linalg.norm(jerk, axis=-1).mean()
             self.jerk_n += 1
+
+
+def score(inbox, metrics, ticks_by_us, replug):
+    """Fold decoded frames into the metrics (and note the first frame after a re-plug)."""
+    while inbox:
+        f, arrived = inbox.popleft()
+        metrics.add(f, arrived, ticks_by_us)
+        if replug[0] is not None and replug[1] is None and f.t >= replug[0] - 1e-9:
+            replug[1] = f.t
 
 
 def board_config(session, devices, can_channel, samples, lookahead, bvh):
@@ -209,7 +224,8 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
     hz, duration = cfg.hz, session.duration if seconds is None else min(seconds, session.duration)
     ticks = int(duration * hz)
     metrics = StreamMetrics(ticks, hz, session.gt_pos, service.pipeline.lookahead)
-    tick_wall = {}
+    ticks_by_us = {}
+    inbox = deque()
     plugged = threading.Event()
     plugged.set()
     done = threading.Event()
@@ -226,10 +242,7 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
             except (OSError, ValueError):           # the pty went away under us (unplug)
                 continue
             now = time.perf_counter()
-            for f in frames:
-                metrics.add(f, now, tick_wall)
-                if replug[0] is not None and replug[1] is None and f.t >= replug[0] - 1e-9:
-                    replug[1] = f.t
+            inbox.extend((f, now) for f in frames)       # scored by the main loop, off the latency path
 
     reader = threading.Thread(target=host_reader, daemon=True)
     reader.start()
@@ -258,20 +271,26 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
                 dev.emit_until(now)
             if can_dev:
                 can_dev.emit_until(now)
-            tick_wall[service.pipeline.t + 1] = time.perf_counter()
-            tick_wall.pop(service.pipeline.t - 4 * service.pipeline.lookahead - 240, None)   # bounded
+            step_now, index, wall = clock(), service.pipeline.t + 1, time.perf_counter()
+            ticks_by_us[int(round(step_now * 1e6))] = (index, wall)
+            metrics.wall[index] = wall
+            metrics.wall.pop(index - 300, None)                 # both maps stay bounded
+            if len(ticks_by_us) > 600:
+                ticks_by_us.pop(next(iter(ticks_by_us)))
             try:
-                service.step(clock())
+                service.step(step_now)
             except Exception as e:          # the run goes on; the report says what broke
                 errors.append(f"tick {k}: {type(e).__name__}: {e}")
             if not clock.realtime:
                 time.sleep(0.0002)          # give the host reader a moment, as real time would
+            score(inbox, metrics, ticks_by_us, replug)
             if now - last_status >= 0.5:
                 if status is not None:
                     service.show_status()
                 last_status = now
                 rss.append(rss_mb())
         time.sleep(0.05)
+        score(inbox, metrics, ticks_by_us, replug)
     finally:
         done.set()
         reader.join(1.0)
@@ -306,8 +325,10 @@ def report(session, summary, m, service, ear, opened, errors, faults, speed, dur
         "tracker_lost_events": summary["tracker_lost_events"], "deadline_misses": summary["deadline_misses"],
         "latency_ms": {"p50": float(np.median(lat)), "p99": float(np.percentile(lat, 99)), "max": float(lat.max())},
         "latency_note": "wall time from the start of the tick that produced a pose to its decoding by the host "
-                        "reader (processing, serial transfer, decoding); the look-ahead is reported apart",
-        "lookahead_ms": 1000.0 * service.pipeline.lookahead / hz, "ssi_switches": len(service.pipeline.switches),
+                        "reader (processing, serial transfer, decoding); the deliberate delays (SSI look-ahead, and the "
+                        "synchroniser interpolating one headset period back) are reported apart",
+        "lookahead_ms": 1000.0 * service.pipeline.lookahead / hz,
+        "sync_delay_ms": 1000.0 * service.cfg.sync_latency, "ssi_switches": len(service.pipeline.switches),
         "samples": service.pipeline.samples, "frame_ms": summary["frame_ms"], "reopens": summary["reopens"],
         "output_errors": summary["output_errors"], "resume_after_replug_s": resume_s,
         "missing_output_frames": int(len(seen) and (seen[-1] - seen[0] + 1 - len(seen))),
