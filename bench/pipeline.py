@@ -9,7 +9,6 @@ import argparse
 import json
 import sys
 import os
-import time
 from pathlib import Path
 
 import numpy as np
@@ -18,17 +17,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from edge.pipeline import Pipeline
 from edge.takes import from_sample
+from edge.timing import time_calls
 
 SAMPLE = Path(__file__).resolve().parent.parent / "samples" / "cmu_09_12_walk.npz"
-
-
-def timed(fn, n):
-    out = np.empty(n)
-    for i in range(n):
-        t0 = time.perf_counter_ns()
-        fn(i)
-        out[i] = time.perf_counter_ns() - t0
-    return out / 1000.0
 
 
 def main():
@@ -50,8 +41,8 @@ def main():
         pipe = Pipeline(samples=n, precision=a.precision)
         for t in range(120):
             pipe.step(frames[t % len(frames)])
-        whole = timed(lambda i: pipe.step(frames[(i + 120) % len(frames)]), a.frames)
-        bare = timed(lambda i: pipe.decoder.step(), a.frames)
+        whole = time_calls(lambda i: pipe.step(frames[(i + 120) % len(frames)]), a.frames)
+        bare = time_calls(lambda i: pipe.decoder.step(), a.frames)
         r = {"samples": n, "pipeline_us": {"p50": float(np.median(whole)), "p99": float(np.percentile(whole, 99))},
              "decoder_us": {"p50": float(np.median(bare)), "p99": float(np.percentile(bare, 99))}}
         r["ratio_p50"] = r["pipeline_us"]["p50"] / r["decoder_us"]["p50"]

@@ -81,6 +81,10 @@ def main(argv=None):
     rec.add_argument("--seconds", type=float, default=10.0)
     rec.add_argument("--out", required=True)
 
+    pf = sub.add_parser("profile", help="how many SSI samples fit a CPU budget (real pipeline, real time, cgroup quota)")
+    from edge import profile as profile_mod      # light import: no numpy or onnxruntime at module level
+    profile_mod.add_arguments(pf)
+
     args = ap.parse_args(argv)
     try:
         if args.cmd == "eval":
@@ -100,6 +104,9 @@ def main(argv=None):
         if args.cmd in ("run", "calibrate"):
             from firmware_bridge import commands
             return commands.run(args) if args.cmd == "run" else commands.calibrate(args)
+        if args.cmd == "profile":
+            from edge import profile
+            return profile.main(args)
         if args.cmd == "record":
             from firmware_bridge.sim import record
             return record.main(args)

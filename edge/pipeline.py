@@ -286,7 +286,7 @@ class Pipeline:
 
     def _recompute_transition(self, c, n, s0, T, t):
         """Re-run the buffered frames s0..t along the transition (one batched decoder call)."""
-        b, N = self.buffer, self.samples
+        b = self.buffer
         frames = np.arange(s0, min(t, s0 + T - 1) + 1)
         K = len(frames)
         sl = b.slot(frames)

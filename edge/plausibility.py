@@ -6,7 +6,6 @@ those rotations reconstructs the pose, and the mean lower-body joint distance is
 import numpy as np
 
 from edge import quat
-from edge.features import to_local
 from edge.skeleton import LEGS, NUM_JOINTS, NUM_PREDICTED, fk_legs
 
 # Rows of the autoencoder's rotation output (joint index - 1) for hip, knee and ankle of each leg.

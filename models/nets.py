@@ -3,7 +3,7 @@ import torch
 from torch import nn
 
 from edge.features import NUM_FEATURES
-from edge.skeleton import LEVELS, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, HEAD
+from edge.skeleton import LEVELS, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS
 
 LATENT = 30
 HIDDEN = 128

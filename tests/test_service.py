@@ -6,7 +6,6 @@ import time
 import numpy as np
 import pytest
 
-from edge import quat
 from edge.cli import main as edge_main
 from edge.skeleton import NUM_JOINTS
 from edge.takes import from_sample

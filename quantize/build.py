@@ -1,0 +1,239 @@
+"""int8 builds of the shipped fp32 models, the choice between quantization methods, and the manifest.
+
+Candidates for each model:
+- `dynamic`: onnxruntime.quantization.quantize_dynamic, per-channel symmetric QInt8 weights,
+  reduce_range=False; activations quantized per call (u8) -> MatMulInteger. Needs no data.
+- `static`: quantize_static, QDQ format, per-channel QInt8 weights and u8 activations calibrated
+  (MinMax) on real `train` inputs: the decoder's features, latents as SSI draws them and the GRU states
+  a closed-loop fp32 rollout produces; the autoencoder's ground-truth poses. Only Gemm/MatMul are
+  quantized (the gates' Sigmoid/Tanh and the adds stay fp32).
+
+Each candidate is measured against fp32 on held-out `val` windows (closed-loop decoder rollouts,
+FK joint positions; autoencoder plausibility scores) and the most accurate is kept; the decoder also
+has to be no slower than fp32 at N=100. Without the mocap data only `dynamic` can be built.
+"""
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from edge.inference import make_session
+from edge.modelfiles import MANIFEST, ModelError, sha256
+from quantize.common import (MODELS, decoder_call_us, fp32_name, head_anchored_positions, int8_name, latents_for,
+                             mocap_windows, rollout)
+
+CALIB_WINDOWS, CALIB_FRAMES, CALIB_LATENTS = 48, 120, 2
+VAL_WINDOWS, VAL_FRAMES, VAL_LATENTS = 48, 240, 2
+
+
+def _quiet_quantizer_logs():
+    import logging
+    logging.getLogger().setLevel(logging.ERROR)   # "please run pre-processing" goes through the root logger
+
+
+def quantize_dynamic_model(src, dst):
+    from onnxruntime.quantization import QuantType, quantize_dynamic
+    _quiet_quantizer_logs()
+    quantize_dynamic(str(src), str(dst), weight_type=QuantType.QInt8, per_channel=True, reduce_range=False)
+
+
+class _Reader:
+    """CalibrationDataReader over a list of input dicts."""
+
+    def __init__(self, batches):
+        self._it = iter(batches)
+
+    def get_next(self):
+        return next(self._it, None)
+
+    def rewind(self):  # some onnxruntime versions call it
+        pass
+
+
+def quantize_static_model(src, dst, batches):
+    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
+    _quiet_quantizer_logs()
+    with tempfile.TemporaryDirectory() as tmp:   # the calibrator writes an augmented model next to its cwd
+        cwd = os.getcwd()
+        os.chdir(tmp)
+        try:
+            quantize_static(str(Path(cwd, src)), str(Path(cwd, dst)), _Reader(batches), quant_format=QuantFormat.QDQ,
+                            op_types_to_quantize=["Gemm", "MatMul"], per_channel=True, reduce_range=False,
+                            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
+                            calibrate_method=CalibrationMethod.MinMax)
+        finally:
+            os.chdir(cwd)
+
+
+# ---------------------------------------------------------------------------------------------- data
+
+def _rows(win, latents):
+    """Repeat each window's features for every latent: [T,Wn,F] -> [T,Wn*K,F]; latents tiled to match."""
+    K = len(latents)
+    feats = np.repeat(win["features"], K, axis=1)
+    z = np.tile(latents, (win["features"].shape[1], 1))
+    return feats, z
+
+
+def decoder_calibration(fp32_path, train):
+    """Decoder inputs as the runtime sees them: one dict per frame of a closed-loop fp32 rollout."""
+    feats, z = _rows(train, latents_for(CALIB_LATENTS, seed=1))
+    _, _, hidden = rollout(make_session(fp32_path), feats, z)
+    return [{"features": feats[t], "latent": z, "hidden": hidden[t]} for t in range(len(feats))]
+
+
+def autoencoder_calibration(train):
+    pos = train["poses"]["positions"]
+    return [{"positions": pos[i:i + 256]} for i in range(0, len(pos), 256)]
+
+
+# ---------------------------------------------------------------------------------------------- measures
+
+def measure_decoder(path, ref_path, val, ref=None):
+    """Closed-loop rollouts on val windows against fp32: FK joint positions and rot6d, and MPJPE against
+    ground truth at the prior mean (the training metric: head-anchored, no IK)."""
+    feats, z = _rows(val, latents_for(VAL_LATENTS, seed=2))
+    K = VAL_LATENTS
+    root = np.repeat(val["root_rot"], K, axis=1)
+    if ref is None:
+        r6, _, _ = rollout(make_session(ref_path), feats, z)
+        ref = {"rot6d": r6, "pos": head_anchored_positions(r6, root)}
+    r6, _, _ = rollout(make_session(path), feats, z)
+    pos = head_anchored_positions(r6, root)
+    d = np.linalg.norm(pos - ref["pos"], axis=-1)                     # [T,B,J] metres
+    gt = np.repeat(val["gt_rel"], K, axis=1)
+    mean_rows = np.arange(0, feats.shape[1], K)                       # the z = 0 rows
+    mpjpe = np.linalg.norm(pos[:, mean_rows] - gt[:, mean_rows], axis=-1).mean()
+    return ref, {"fk_pos_dev_mean_cm": float(d.mean() * 100), "fk_pos_dev_max_cm": float(d.max() * 100),
+                 "rot6d_dev_max": float(np.abs(r6 - ref["rot6d"]).max()),
+                 "val_mpjpe_no_ik_cm": float(mpjpe * 100)}
+
+
+def measure_autoencoder(path, ref_path, val, threshold):
+    from edge.inference import Autoencoder
+    from edge.plausibility import PlausibilityScorer
+    from edge.skeleton import NUM_JOINTS
+    poses = val["poses"]
+    # The scorer takes world positions and the pelvis rotation; the pose batch is already in the
+    # character frame with the pelvis at the origin's XZ, so it passes through local_pose unchanged.
+    pos = poses["positions"].reshape(-1, NUM_JOINTS, 3).astype(np.float64)
+    rot = poses["root_rot"].astype(np.float64)
+    s_ref = PlausibilityScorer(Autoencoder(make_session(ref_path)), threshold).lower_body_error(pos, rot)
+    s = PlausibilityScorer(Autoencoder(make_session(path)), threshold).lower_body_error(pos, rot)
+    d = np.abs(s - s_ref)
+    return {"score_dev_mean_cm": float(d.mean() * 100), "score_dev_max_cm": float(d.max() * 100),
+            "flag_agreement": float(np.mean((s > threshold) == (s_ref > threshold))),
+            "implausible_rate_fp32": float(np.mean(s_ref > threshold)), "implausible_rate": float(np.mean(s > threshold))}
+
+
+# ---------------------------------------------------------------------------------------------- manifest
+
+def read_manifest(folder):
+    path = Path(folder) / MANIFEST
+    if not path.exists():
+        raise ModelError(f"no {MANIFEST} in {folder}: export the fp32 models first (python -m models.export)")
+    return json.loads(path.read_text())
+
+
+def add_to_manifest(folder, entries):
+    """Add or replace `entries` ({file name: extra fields}) in the manifest, keeping every other file entry
+    and all metadata as they are. sha256 and bytes are computed here. Written atomically."""
+    folder = Path(folder)
+    manifest = read_manifest(folder)
+    for name, extra in entries.items():
+        p = folder / name
+        manifest["files"][name] = {"sha256": sha256(p), "bytes": p.stat().st_size, **extra}
+    tmp = folder / (MANIFEST + ".tmp")
+    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
+    os.replace(tmp, folder / MANIFEST)
+    return manifest
+
+
+def check_sources(folder):
+    """The fp32 files must match the manifest (the int8 builds record which fp32 file they came from)."""
+    manifest = read_manifest(folder)
+    out = {}
+    for m in MODELS:
+        name = fp32_name(m)
+        entry = manifest["files"].get(name)
+        if entry is None or not (Path(folder) / name).exists():
+            raise ModelError(f"{folder}/{name} is missing or not in the manifest: export the fp32 models first")
+        digest = sha256(Path(folder) / name)
+        if digest != entry["sha256"]:
+            raise ModelError(f"{folder}/{name} does not match manifest.json (sha256 {digest[:12]}...): "
+                             f"re-export (python -m models.export) or restore it before quantizing")
+        out[name] = digest
+    return manifest, out
+
+
+# ---------------------------------------------------------------------------------------------- build
+
+def build(folder, data=None, methods=("dynamic", "static"), log=print):
+    """Build models/{decoder,autoencoder}.int8.onnx and add them to the manifest. Returns a report dict."""
+    folder = Path(folder)
+    manifest, digests = check_sources(folder)
+    have_data = data is not None and (Path(data) / "MANIFEST.tsv").exists()
+    if not have_data and "static" in methods:
+        log(f"no mocap data at {data}: static calibration skipped, building dynamic int8 only")
+        methods = tuple(m for m in methods if m != "static")
+    if not methods:
+        raise SystemExit("quantize: nothing to build")
+    train = val = None
+    if have_data:
+        log("calibration and validation windows from the mocap data (train / val) ...")
+        train = mocap_windows(data, "train", CALIB_WINDOWS, CALIB_FRAMES, seed=11)
+        val = mocap_windows(data, "val", VAL_WINDOWS, VAL_FRAMES, seed=12)
+    report = {"methods_tried": list(methods), "selection": {}, "candidates": {}}
+    entries = {}
+    with tempfile.TemporaryDirectory(prefix="quantize-") as tmp:
+        tmp = Path(tmp)
+        for model in MODELS:
+            src = folder / fp32_name(model)
+            cands = {}
+            for method in methods:
+                dst = tmp / f"{model}.{method}.onnx"
+                if method == "dynamic":
+                    quantize_dynamic_model(src, dst)
+                else:
+                    calib = decoder_calibration(src, train) if model == "decoder" else autoencoder_calibration(train)
+                    quantize_static_model(src, dst, calib)
+                cands[method] = {"bytes": dst.stat().st_size, "size_vs_fp32": dst.stat().st_size / src.stat().st_size}
+                log(f"  {model} {method}: {cands[method]['bytes']:,} bytes ({cands[method]['size_vs_fp32']:.1%} of fp32)")
+            if have_data:
+                ref = None
+                for method in methods:
+                    p = tmp / f"{model}.{method}.onnx"
+                    if model == "decoder":
+                        ref, m = measure_decoder(p, src, val, ref)
+                        m["call_us_n100"] = decoder_call_us(p, 100)["p50"]
+                    else:
+                        m = measure_autoencoder(p, src, val, manifest["plausibility_threshold_m"])
+                    cands[method].update(m)
+                    log(f"  {model} {method}: " + ", ".join(f"{k} {v:.4g}" for k, v in m.items()))
+                if model == "decoder":
+                    fp32_us = decoder_call_us(src, 100)["p50"]
+                    report["decoder_fp32_call_us_n100"] = fp32_us
+                    report["decoder_fp32_val_mpjpe_no_ik_cm"] = measure_decoder(src, src, val, ref)[1]["val_mpjpe_no_ik_cm"]
+                    ok = [k for k in methods if cands[k]["call_us_n100"] <= 1.1 * fp32_us] or list(methods)
+                    chosen = min(ok, key=lambda k: cands[k]["fk_pos_dev_mean_cm"])
+                    why = "smallest closed-loop FK deviation from fp32 on val among candidates no slower than fp32 at N=100"
+                else:
+                    chosen = min(methods, key=lambda k: cands[k]["score_dev_mean_cm"])
+                    why = "smallest plausibility-score deviation from fp32 on val poses"
+            else:
+                chosen, why = "dynamic", "no calibration data: dynamic is the only candidate"
+            report["candidates"][model] = cands
+            report["selection"][model] = {"method": chosen, "why": why}
+            log(f"  {model}: keeping {chosen} ({why})")
+            out = folder / int8_name(model)
+            part = out.with_name(out.name + ".tmp")
+            shutil.copyfile(tmp / f"{model}.{chosen}.onnx", part)
+            os.replace(part, out)
+            entries[int8_name(model)] = {"precision": "int8", "method": chosen, "source": fp32_name(model),
+                                         "source_sha256": digests[fp32_name(model)]}
+    add_to_manifest(folder, entries)
+    report["files"] = {k: read_manifest(folder)["files"][k] for k in entries}
+    return report

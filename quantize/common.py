@@ -1,0 +1,110 @@
+"""Shared by the int8 build and its report: model names, closed-loop decoder rollouts, FK, timing, data.
+
+numpy + onnxruntime only (the mocap windows come from models.dataset, which needs no torch).
+"""
+import time
+
+import numpy as np
+
+from edge import quat
+from edge.inference import Decoder, make_session
+from edge.skeleton import HEAD, NUM_JOINTS, NUM_PREDICTED, fk
+
+MODELS = ("decoder", "autoencoder")
+
+
+def fp32_name(model):
+    return f"{model}.onnx"
+
+
+def int8_name(model):
+    return f"{model}.int8.onnx"
+
+
+def rollout(session, features, latent, hidden=None):
+    """Closed-loop decoder rollout: features [T,B,F] (one stream per row), latent [B,Z].
+
+    Each step feeds the GRU state the model itself wrote (as the runtime does). Returns rot6d
+    [T,B,120], contacts [T,B,2] and the hidden state fed at each step [T,B,H] (the calibration input).
+    """
+    T, B, _ = features.shape
+    H = session.get_inputs()[2].shape[1] if isinstance(session.get_inputs()[2].shape[1], int) else 128
+    h = np.zeros((B, H), np.float32) if hidden is None else hidden.astype(np.float32)
+    latent = np.ascontiguousarray(latent, np.float32)
+    rot6d = np.zeros((T, B, 6 * NUM_PREDICTED), np.float32)
+    contacts = np.zeros((T, B, 2), np.float32)
+    hidden_in = np.zeros((T, B, H), np.float32)
+    for t in range(T):
+        hidden_in[t] = h
+        r, c, h = session.run(None, {"features": np.ascontiguousarray(features[t], np.float32), "latent": latent,
+                                     "hidden": h})
+        rot6d[t], contacts[t] = r, c
+    return rot6d, contacts, hidden_in
+
+
+def local_rotations(rot6d, root_rot):
+    """rot6d [...,120] and the root (waist) rotation [...,3,3] -> local rotations [...,J,3,3] (float64)."""
+    lead = rot6d.shape[:-1]
+    loc = np.zeros(lead + (NUM_JOINTS, 3, 3))
+    loc[..., 0, :, :] = root_rot
+    loc[..., 1:, :, :] = quat.matrix_from_6d(rot6d.reshape(lead + (NUM_PREDICTED, 6)).astype(np.float64))
+    return loc
+
+
+def head_anchored_positions(rot6d, root_rot):
+    """FK of the network's rotations with the head joint at the origin (the training metric's frame)."""
+    loc = local_rotations(rot6d, root_rot)
+    _, pos = fk(loc, np.zeros(loc.shape[:-3] + (3,)))
+    return pos - pos[..., HEAD:HEAD + 1, :]
+
+
+def decoder_call_us(path, rows, frames=400, warmup=50):
+    """Median and p99 (microseconds) of one bare decoder step on `rows` rows, through the runtime's
+    IOBinding path (edge.inference.Decoder), on whatever CPU the caller is pinned to."""
+    dec = Decoder(make_session(path), rows, 30, 128, 24)
+    rng = np.random.default_rng(0)
+    dec.features[:] = rng.standard_normal(dec.features.shape) * 0.3
+    dec.latent[:] = rng.standard_normal(dec.latent.shape)
+    for _ in range(warmup):
+        dec.step()
+    out = np.empty(frames)
+    for i in range(frames):
+        t0 = time.perf_counter_ns()
+        dec.step()
+        out[i] = time.perf_counter_ns() - t0
+    out /= 1000.0
+    return {"p50": float(np.median(out)), "p99": float(np.percentile(out, 99))}
+
+
+def pin_one_core():
+    """Pin this process to one core (the board's budget); returns the core or None where not possible."""
+    import os
+    try:
+        core = min(os.sched_getaffinity(0))
+        os.sched_setaffinity(0, {core})
+        return core
+    except (AttributeError, OSError):
+        return None
+
+
+def mocap_windows(data, split, windows, window, seed, noise=True):
+    """`windows` random training-style windows of one split: the decoder's features [W,B,24] (time-major),
+    the head-anchored ground truth [W,B,J,3], the puck rotation in the character frame [W,B,3,3] and the
+    ground-truth local poses for the autoencoder. Uses models.dataset (cached in .cache/)."""
+    from edge.signals import DeviceNoise
+    from models.dataset import build, make_batch, pose_batch, window_starts
+    cs = build(data, split)
+    rng = np.random.default_rng(seed)
+    starts = window_starts(cs, window)
+    pick = np.sort(rng.choice(starts, size=min(windows, len(starts)), replace=False))
+    b = make_batch(cs, pick, window, rng, DeviceNoise() if noise else None)
+    frames = rng.choice(len(cs.root), size=min(4096, len(cs.root)), replace=False)
+    poses = pose_batch(cs, frames)
+    return {"features": b["features"], "gt_rel": b["gt_rel"], "root_rot": b["root_rot"], "poses": poses}
+
+
+def latents_for(rows, latent_dim=30, seed=0):
+    """Row 0 at the prior mean (what N=1 runs), the rest drawn like SSI's N samples."""
+    z = np.random.default_rng(seed).standard_normal((rows, latent_dim)).astype(np.float32)
+    z[0] = 0.0
+    return z

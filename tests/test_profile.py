@@ -1,0 +1,79 @@
+"""`edge profile` on tiny configurations: the JSON it writes, and an honest quota_enforced."""
+import argparse
+import json
+import os
+from pathlib import Path
+
+import pytest
+
+from edge import profile
+
+KEYS = ("stages", "frame_ms", "deadline_misses", "rss_mb", "cpu_quota", "quota_enforced", "chosen_samples",
+        "stage_methods", "budget")
+STAGES = ("sync", "features", "decoder", "fk", "ik", "autoencoder", "selection", "output_encoding")
+
+
+def run(tmp_path, *argv):
+    ap = argparse.ArgumentParser()
+    profile.add_arguments(ap)
+    out = tmp_path / "profile.json"
+    args = ap.parse_args([*argv, "--json", str(out)])
+    assert profile.main(args) == 0
+    return json.loads(out.read_text())
+
+
+def cgroup_possible():
+    return os.geteuid() == 0 and os.access(profile.CGROUP_V1, os.W_OK) and (profile.CGROUP_V1 / "cpu.cfs_quota_us").exists()
+
+
+def leftover_groups():
+    return sorted(p.name for p in profile.CGROUP_V1.glob("edgepose-profile-*")) if profile.CGROUP_V1.exists() else []
+
+
+def test_fixed_n_without_cgroup_writes_every_key_and_says_the_quota_was_not_enforced(tmp_path):
+    r = run(tmp_path, "--cpu-quota", "0.5", "--samples", "2", "--frames", "20", "--no-cgroup")
+    for k in KEYS:
+        assert k in r
+    assert r["quota_enforced"] is False and r["cpu_quota"]["why_not_enforced"] == "--no-cgroup"
+    assert r["chosen_samples"] == 2 and r["frames"] == 20
+    for s in STAGES:
+        assert r["stages"][s]["p50"] >= 0 and r["stages"][s]["p99"] >= r["stages"][s]["p50"]
+        assert s in r["stage_methods"]
+    assert r["frame_ms"]["p99"] >= r["frame_ms"]["p50"] > 0
+    assert 20 < r["rss_mb"] < 2000
+    assert "modelled" in r["budget"]["metric"]
+
+
+@pytest.mark.skipif(not cgroup_possible(), reason="needs root and a writable cgroup v1 cpu hierarchy")
+def test_quota_runs_in_a_cgroup_that_is_removed_afterwards(tmp_path):
+    before = leftover_groups()
+    r = run(tmp_path, "--cpu-quota", "0.5", "--samples", "1", "--frames", "30", "--period-ms", "10")
+    assert r["quota_enforced"] is True
+    assert r["cpu_quota"]["quota_us"] == 5000 and r["cpu_quota"]["period_us"] == 10000
+    assert r["cpu_quota"]["throttling"]["nr_periods"] > 0       # the kernel accounted the group's periods
+    assert leftover_groups() == before
+
+
+def test_auto_probes_the_ladder_and_chooses_a_probed_n(tmp_path):
+    r = run(tmp_path, "--samples", "auto", "--max-samples", "4", "--frames", "15", "--probe-frames", "8", "--hz", "120",
+            "--no-cgroup")
+    probed = [p["samples"] for p in r["probes"]]
+    assert probed == sorted(probed) and set(probed) <= {1, 2, 4}
+    assert r["chosen_samples"] in probed
+    fitting = [p["samples"] for p in r["probes"] if p["fits"]]
+    if fitting:
+        assert r["chosen_samples"] <= max(fitting)
+
+
+def test_not_root_is_reported_honestly(monkeypatch):
+    monkeypatch.setattr(os, "geteuid", lambda: 1000)
+    lim = profile.CpuLimit(0.25, 10000)
+    assert not lim.enforced and "not root" in lim.why
+
+
+def test_bad_arguments_are_refused(tmp_path, capsys):
+    ap = argparse.ArgumentParser()
+    profile.add_arguments(ap)
+    assert profile.main(ap.parse_args(["--samples", "0", "--json", str(tmp_path / "x.json")])) == 2
+    assert profile.main(ap.parse_args(["--cpu-quota", "2", "--json", str(tmp_path / "x.json")])) == 2
+    assert not Path(tmp_path / "x.json").exists()

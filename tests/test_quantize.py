@@ -1,0 +1,131 @@
+"""int8 models: they load, stay close to fp32 on the bundled sample, and the manifest keeps the fp32 entries."""
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from edge import quat
+from edge.eval import evaluate
+from edge.features import sequence_features
+from edge.inference import Autoencoder, make_session
+from edge.modelfiles import DEFAULT_DIR, ModelError, load_manifest, sha256, write_manifest
+from edge.pipeline import Pipeline
+from edge.plausibility import PlausibilityScorer
+from edge.takes import from_sample
+from quantize.common import head_anchored_positions, rollout
+from tests.conftest import SAMPLE
+
+FP32 = ("decoder.onnx", "autoencoder.onnx")
+INT8 = ("decoder.int8.onnx", "autoencoder.int8.onnx")
+
+
+@pytest.fixture(scope="module")
+def manifest():
+    m = json.loads((DEFAULT_DIR / "manifest.json").read_text())
+    if not all(n in m["files"] for n in INT8):
+        pytest.fail("models/manifest.json does not list the int8 models: run python -m quantize")
+    return m
+
+
+@pytest.fixture(scope="module")
+def take():
+    return from_sample(SAMPLE)
+
+
+def test_manifest_lists_fp32_and_int8_and_the_int8_record_their_fp32_source(manifest):
+    for name in FP32 + INT8:
+        assert manifest["files"][name]["sha256"] == sha256(DEFAULT_DIR / name)
+    for src, q in zip(FP32, INT8):
+        entry = manifest["files"][q]
+        assert entry["source"] == src and entry["source_sha256"] == manifest["files"][src]["sha256"]
+        assert entry["precision"] == "int8" and entry["method"] in ("dynamic", "static")
+    for key in ("fps", "latent", "hidden", "features", "joint_names", "parents", "plausibility_threshold_m", "training"):
+        assert key in manifest
+
+
+def test_int8_decoder_is_at_most_40_percent_of_fp32():
+    assert (DEFAULT_DIR / INT8[0]).stat().st_size <= 0.40 * (DEFAULT_DIR / FP32[0]).stat().st_size
+
+
+def test_pipeline_loads_int8_models(take, manifest):
+    pipe = Pipeline(samples=4, precision="int8")
+    assert set(pipe.manifest["paths"]) == set(INT8)
+    for t in range(12):
+        pipe.step(take.signals.slice(t, t + 1))
+    assert np.all(np.isfinite(pipe.buffer.positions))
+
+
+def test_int8_decoder_tracks_fp32_in_closed_loop_on_the_sample(take, manifest):
+    """Both decoders fed their own GRU state for the whole take (959 frames) at the prior mean.
+
+    Tolerances: rot6d within 0.05 and FK joint positions within 0.5 cm on average and 3 cm at worst
+    (measured: 0.020, 0.19 cm and 1.0 cm)."""
+    f, _, yaw = sequence_features(take.signals, take.fps)
+    root = quat.to_matrix(quat.mul(quat.inv(yaw), take.signals.waist_rot))[:, None]
+    feats, z = f[:, None].astype(np.float32), np.zeros((1, 30), np.float32)
+    a = rollout(make_session(DEFAULT_DIR / FP32[0]), feats, z)[0]
+    b = rollout(make_session(DEFAULT_DIR / INT8[0]), feats, z)[0]
+    d = np.linalg.norm(head_anchored_positions(a, root) - head_anchored_positions(b, root), axis=-1)
+    assert np.abs(a - b).max() < 0.05
+    assert d.mean() < 0.005 and d.max() < 0.03
+
+
+def test_int8_autoencoder_scores_the_sample_like_fp32(take, manifest):
+    """Plausibility scores of the sample's ground-truth poses within 1 cm (mean) and the same verdicts."""
+    th = manifest["plausibility_threshold_m"]
+    pos = take.gt_pos[::4]
+    pelvis = quat.to_matrix(take.signals.waist_rot[::4])
+    s32 = PlausibilityScorer(Autoencoder(make_session(DEFAULT_DIR / FP32[1])), th).lower_body_error(pos, pelvis)
+    s8 = PlausibilityScorer(Autoencoder(make_session(DEFAULT_DIR / INT8[1])), th).lower_body_error(pos, pelvis)
+    assert np.abs(s8 - s32).mean() < 0.01
+    assert np.array_equal(s8 > th, s32 > th)
+
+
+def test_int8_eval_on_the_sample_is_within_2_percent_of_fp32(manifest):
+    r = {p: evaluate([SAMPLE], precision=p, log=lambda *_: None) for p in ("fp32", "int8")}
+    assert r["int8"]["mpjpe_cm"] <= 1.02 * r["fp32"]["mpjpe_cm"]
+
+
+# ---------------------------------------------------------------------------------------------- the tool
+
+@pytest.fixture
+def model_copy(tmp_path):
+    pytest.importorskip("onnx", reason="quantizing needs the onnx package")
+    for name in FP32 + ("manifest.json",):
+        shutil.copyfile(DEFAULT_DIR / name, tmp_path / name)
+    return tmp_path
+
+
+def test_quantize_adds_int8_entries_keeps_everything_else_and_reruns_identically(model_copy):
+    from quantize.build import build
+    before = json.loads((model_copy / "manifest.json").read_text())
+    build(model_copy, data=None, methods=("dynamic",), log=lambda *_: None)
+    after = json.loads((model_copy / "manifest.json").read_text())
+    for name in FP32:
+        assert after["files"][name] == before["files"][name]
+    assert {k: v for k, v in after.items() if k != "files"} == {k: v for k, v in before.items() if k != "files"}
+    assert all(n in after["files"] for n in INT8)
+    load_manifest(model_copy, need=INT8)                       # verifies the sha256 of the new files
+    build(model_copy, data=None, methods=("dynamic",), log=lambda *_: None)
+    again = json.loads((model_copy / "manifest.json").read_text())
+    assert again == after                                      # deterministic: re-running changes nothing
+
+
+def test_after_an_fp32_reexport_int8_is_refused_until_quantize_runs_again(model_copy):
+    from quantize.build import build
+    build(model_copy, data=None, methods=("dynamic",), log=lambda *_: None)
+    info = {k: v for k, v in json.loads((model_copy / "manifest.json").read_text()).items() if k != "files"}
+    write_manifest(model_copy, list(FP32), info)               # what models.export does
+    with pytest.raises(ModelError, match="quantize"):
+        load_manifest(model_copy, need=INT8)
+    build(model_copy, data=None, methods=("dynamic",), log=lambda *_: None)
+    load_manifest(model_copy, need=FP32 + INT8)
+
+
+def test_quantize_refuses_an_fp32_file_that_does_not_match_the_manifest(model_copy):
+    from quantize.build import build
+    with open(model_copy / "decoder.onnx", "ab") as f:
+        f.write(b"\0")
+    with pytest.raises(ModelError, match="does not match"):
+        build(model_copy, data=None, methods=("dynamic",), log=lambda *_: None)
