@@ -71,6 +71,10 @@ class Stream:
     def newest(self):
         return float(self.t.max())
 
+    def age(self, t):
+        """Seconds since the newest sample at board time t (inf if none)."""
+        return t - self.newest if self.newest > -np.inf else np.inf
+
     def sample(self, t):
         """Interpolated value at board time t: (value, age of the newest sample used) or (None, inf)."""
         valid = np.isfinite(self.t)
@@ -90,11 +94,17 @@ class Stream:
 
 
 def interpolate(a, b, w):
-    """Linear for positions, slerp for the quaternions of a packed [pos3, quat4]* vector."""
+    """Linear for positions, slerp for the quaternion of a packed [pos3, quat4] vector. Samples a few
+    milliseconds apart differ by a few degrees, where normalised lerp equals slerp to ~1e-6 rad."""
+    q0, q1 = a[3:7], b[3:7]
+    if np.dot(q0, q1) < 0:
+        q1 = -q1
     out = a + w * (b - a)
-    for k in range(len(a) // 7):
-        q = slice(7 * k + 3, 7 * k + 7)
-        out[q] = quat.slerp(a[q], b[q], w)
+    if np.dot(q0, q1) > 0.995:                      # closer than ~11 degrees
+        q = q0 + w * (q1 - q0)
+        out[3:7] = q / np.sqrt(np.dot(q, q))
+    else:
+        out[3:7] = quat.slerp(q0, q1, w)
     return out
 
 
@@ -159,6 +169,9 @@ class FrameSynchronizer:
             hands.append(self._guard(name, v, lost[name], t, lambda held, since, k=k: self._decay_hand(held, since, head, k)))
         waist = None
         for name in self.trackers:
+            if name != "waist":                      # only the waist feeds the model: just its age here
+                lost[name] = self.streams[name].age(t) > self.lost_after
+                continue
             v, age = self.streams[name].sample(t)
             lost[name] = v is None or age > self.lost_after
             if name == "waist":
