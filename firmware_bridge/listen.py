@@ -76,20 +76,24 @@ class Listener:
         self.close()
 
 
+def status_loop(listener, seconds=None, every=0.25):
+    """Read until `seconds` pass (or Ctrl-C), redrawing the status line in place on a terminal; the
+    final line is always printed."""
+    tty = sys.stderr.isatty()
+    start = last = time.monotonic()
+    try:
+        while seconds is None or time.monotonic() - start < seconds:
+            listener.poll(0.05)
+            if tty and time.monotonic() - last > every:
+                last = time.monotonic()
+                sys.stderr.write("\r" + listener.status_line() + "\x1b[K")
+                sys.stderr.flush()
+    except KeyboardInterrupt:
+        pass
+    sys.stderr.write(("\n" if tty else "") + listener.status_line() + "\n")
+    return 0
+
+
 def main(args):
     with Listener(args.port, args.baud) as ear:
-        tty = sys.stderr.isatty()
-        last = time.monotonic()
-        start = last
-        try:
-            while args.seconds is None or time.monotonic() - start < args.seconds:
-                ear.poll(0.05)
-                if time.monotonic() - last > 0.25:
-                    last = time.monotonic()
-                    if tty:
-                        sys.stderr.write("\r" + ear.status_line() + "\x1b[K")
-                        sys.stderr.flush()
-        except KeyboardInterrupt:
-            pass
-        sys.stderr.write(("\n" if tty else "") + ear.status_line() + "\n")
-    return 0
+        return status_loop(ear, args.seconds)

@@ -121,20 +121,9 @@ class LiveView:
 
 
 def status_loop(listener, seconds=None):
-    """What `edge listen` shows without --plot: a status line, redrawn in place on a terminal."""
-    tty = sys.stderr.isatty()
-    start = last = time.monotonic()
-    try:
-        while seconds is None or time.monotonic() - start < seconds:
-            listener.poll(0.05)
-            if tty and time.monotonic() - last > 1.0 / STATUS_HZ:
-                last = time.monotonic()
-                sys.stderr.write("\r" + listener.status_line() + "\x1b[K")
-                sys.stderr.flush()
-    except KeyboardInterrupt:
-        pass
-    sys.stderr.write(("\n" if tty else "") + listener.status_line() + "\n")
-    return 0
+    """What `edge listen` shows without --plot (firmware_bridge.listen's own loop)."""
+    from firmware_bridge.listen import status_loop as listen_loop
+    return listen_loop(listener, seconds, every=1.0 / STATUS_HZ)
 
 
 def main(args):
