@@ -69,7 +69,9 @@ def main(argv=None):
         ["noise", "loss", "corrupt", "disconnect", "hand-loss", "unplug", "i2c-errors", "can-busoff", "clock-jump"])
         + "), several joined by '+', or a JSON object")
     rp.add_argument("--speed", choices=("realtime", "max"), default="realtime")
-    rp.add_argument("--samples", default="16", help="N, or auto")
+    rp.add_argument("--samples", default="16", help="N, or auto (adaptive N up to 32)")
+    rp.add_argument("--adaptive", action="store_true",
+                    help="let the deadline watchdog lower and raise N, as edge run does (--samples is the most)")
     rp.add_argument("--lookahead", type=int, default=10)
     rp.add_argument("--seconds", type=float, default=None)
     rp.add_argument("--bvh", help="record the output as BVH here")

@@ -121,17 +121,27 @@ class FootLock:
         self.weight[:] = 0
 
     def update(self, contacts, ankle_pos):
-        """contacts [B,2] probabilities, ankle_pos [B,2,3] -> IK targets [B,2,3] and weights [B,2]."""
+        """contacts [B,2] probabilities, ankle_pos [B,2,3] -> IK targets [B,2,3] and weights [B,2].
+
+        B may be fewer than the samples allocated (adaptive N): the first B rows are updated."""
+        B = len(contacts)
+        lock_pos, locked, was_raw = self.lock_pos[:B], self.locked[:B], self.raw[:B]
+        since, weight = self.since_release[:B], self.weight[:B]
         raw = contacts > 0.5
-        slipped = self.locked & (np.linalg.norm(ankle_pos - self.lock_pos, axis=-1) > self.max_slip)
+        slipped = locked & (np.linalg.norm(ankle_pos - lock_pos, axis=-1) > self.max_slip)
         # Lock on a new contact, or on a continuing one once an earlier release has fully eased out;
         # a lock taken mid-release starts where the foot is drawn, so the foot does not jump.
-        start = raw & ~self.locked & (~self.raw | (self.weight == 0))
-        drawn = ankle_pos + self.weight[..., None] * (self.lock_pos - ankle_pos)
-        self.lock_pos[start] = drawn[start]
-        self.locked[:] = (self.locked & raw & ~slipped) | start
-        self.raw[:] = raw
-        self.since_release[self.locked] = 0
-        self.since_release[~self.locked] += 1
-        self.weight[:] = np.where(self.locked, 1.0, 1.0 - smoothstep(self.since_release / self.release_frames))
-        return self.lock_pos, self.weight
+        start = raw & ~locked & (~was_raw | (weight == 0))
+        drawn = ankle_pos + weight[..., None] * (lock_pos - ankle_pos)
+        lock_pos[start] = drawn[start]
+        locked[:] = (locked & raw & ~slipped) | start
+        was_raw[:] = raw
+        since[locked] = 0
+        since[~locked] += 1
+        weight[:] = np.where(locked, 1.0, 1.0 - smoothstep(since / self.release_frames))
+        return lock_pos, weight
+
+    def copy_rows(self, src, dst):
+        """Give rows `dst` the lock state of row `src` (a revived sample starts from the shown one)."""
+        for a in (self.lock_pos, self.locked, self.raw, self.since_release, self.weight):
+            a[dst] = a[src]

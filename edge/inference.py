@@ -32,31 +32,40 @@ class Decoder:
 
     recurrent=True keeps the GRU state here, ping-ponged between two buffers so input and output never
     alias (`state` is what the next step reads). recurrent=False is a one-shot batch: fill `hidden`.
+    Buffers hold `rows` rows for good; `resize` runs the first k of them (adaptive N) by rebinding
+    views, so rows keep their contents and nothing is reallocated.
     """
 
     def __init__(self, session, rows, latent_dim, hidden_dim, n_features, recurrent=True):
         names = {i.name for i in session.get_inputs()}
         if names != {"features", "latent", "hidden"}:
             raise ModelError(f"decoder model: expected inputs features/latent/hidden, found {sorted(names)}")
-        self.session, self.rows = session, rows
+        self.session, self.capacity = session, rows
         self.features = np.zeros((rows, n_features), np.float32)
         self.latent = np.zeros((rows, latent_dim), np.float32)
         self.hidden = [np.zeros((rows, hidden_dim), np.float32), np.zeros((rows, hidden_dim), np.float32)]
         out_dims = {o.name: o.shape[1] for o in session.get_outputs()}
         self.rot6d = np.zeros((rows, out_dims["rot6d"]), np.float32)
         self.contacts = np.zeros((rows, 2), np.float32)
-        self._io = []
-        for k in range(2 if recurrent else 1):
-            io = session.io_binding()
-            _bind(io, "features", self.features)
-            _bind(io, "latent", self.latent)
-            _bind(io, "hidden", self.hidden[k])
-            _bind(io, "rot6d", self.rot6d, output=True)
-            _bind(io, "contacts", self.contacts, output=True)
-            _bind(io, "hidden_out", self.hidden[1 - k], output=True)
-            self._io.append(io)
         self._cur = 0
         self.recurrent = recurrent
+        self.resize(rows)
+
+    def resize(self, rows):
+        """Run the first `rows` rows from now on (1 <= rows <= capacity)."""
+        if not 1 <= rows <= self.capacity:
+            raise ValueError(f"decoder rows must be 1..{self.capacity}, got {rows}")
+        self.rows = rows
+        self._io = []
+        for k in range(2 if self.recurrent else 1):
+            io = self.session.io_binding()
+            _bind(io, "features", self.features[:rows])
+            _bind(io, "latent", self.latent[:rows])
+            _bind(io, "hidden", self.hidden[k][:rows])
+            _bind(io, "rot6d", self.rot6d[:rows], output=True)
+            _bind(io, "contacts", self.contacts[:rows], output=True)
+            _bind(io, "hidden_out", self.hidden[1 - k][:rows], output=True)
+            self._io.append(io)
 
     @property
     def state(self):
@@ -78,24 +87,32 @@ class Decoder:
 class Autoencoder:
     """The plausibility autoencoder: local positions [B,J*3] -> rotations [B,(J-1)*6].
 
-    Calls with the batch size given at construction go through preallocated, bound buffers.
+    Calls with the batch size given at construction (or by `resize`) go through preallocated, bound buffers.
     """
 
     def __init__(self, session, rows=None):
         self.session = session
-        self.rows = rows
+        self.rows = self.capacity = rows
         if rows:
             self.inp = np.zeros((rows, session.get_inputs()[0].shape[1]), np.float32)
             self.out = np.zeros((rows, session.get_outputs()[0].shape[1]), np.float32)
-            self._io = session.io_binding()
-            _bind(self._io, "positions", self.inp)
-            _bind(self._io, "rot6d", self.out, output=True)
+            self.resize(rows)
+
+    def resize(self, rows):
+        """Bind the first `rows` rows of the buffers (adaptive N)."""
+        if not self.capacity or not 1 <= rows <= self.capacity:
+            raise ValueError(f"autoencoder rows must be 1..{self.capacity}, got {rows}")
+        self.rows = rows
+        self._io = self.session.io_binding()
+        _bind(self._io, "positions", self.inp[:rows])
+        _bind(self._io, "rot6d", self.out[:rows], output=True)
 
     def __call__(self, positions):
         if self.rows and len(positions) == self.rows:
-            self.inp[:] = positions
+            inp, out = self.inp[:self.rows], self.out[:self.rows]
+            inp[:] = positions
             self.session.run_with_iobinding(self._io)
-            return self.out
+            return out
         return self.session.run(None, {"positions": np.ascontiguousarray(positions, dtype=np.float32)})[0]
 
 

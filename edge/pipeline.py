@@ -12,6 +12,10 @@ SSI (section 3.2): every sample keeps its latent for the whole run; when the cur
 is an outlier at the look-ahead frame, the best other sample is chosen and the output moves to it
 over T frames by interpolating both the latent and the decoder's GRU state (3.2.3), starting at the
 oldest frame not yet output (3.2.4).
+
+Adaptive N: buffers are sized for `max_samples` once; `set_samples(n)` runs the first n of them
+from then on (edge.governor decides n from the frame times). Dropping the shown sample reuses the
+SSI transition; a revived sample starts from the shown sample's GRU state, so nothing pops.
 """
 from dataclasses import dataclass, field
 
@@ -111,6 +115,7 @@ class Pipeline:
         if lookahead < 0 or transition < 1:
             raise ValueError("lookahead must be >= 0 and transition >= 1 frames")
         N = samples
+        self.max_samples = N    # allocated for; `samples` is how many run now (adaptive N: set_samples)
         self.samples, self.fps, self.body_scale = N, fps, body_scale
         self.lookahead, self.transition = lookahead, transition
         self.ssi = ssi and N > 1
@@ -151,6 +156,7 @@ class Pipeline:
     def reset(self):
         self.decoder.reset()
         self.feet.reset()
+        self._pending = None        # a change of N waiting for a transition to be sent
         self.buffer.frame[:] = -1
         self.buffer.override[:] = False
         self.t = -1
@@ -182,8 +188,8 @@ class Pipeline:
         b.head_m[s] = quat.to_matrix(sig.head_rot[0])
         dec = self.decoder
         dec.features[:] = feat
-        b.hidden_in[s] = dec.state[:N]
-        b.latent[s] = dec.latent[:N]
+        b.hidden_in[s, :N] = dec.state[:N]
+        b.latent[s, :N] = dec.latent[:N]
         live = self.trans is not None and t <= self.trans_end
         if live:
             c, n, s0, T = self.trans
@@ -205,15 +211,15 @@ class Pipeline:
             goal *= w[..., None]
             goal += ankle
             self._weights[:N] = 1.0
-            b.ik_weight[s] = w
+            b.ik_weight[s, :N] = w
             if live:
                 self._targets[N] = (1 - a) * goal[c] + a * goal[n]
                 self._weights[N] = (1 - a) * w[c] + a * w[n]
         self._post(rows, b.wrists[s], b.hand_m[s], b.head_m[s])
-        b.contacts[s] = dec.contacts[:N]
-        b.positions[s] = self._pos[:N]
-        b.local_rot[s] = self._local[:N]
-        b.ik_target[s] = self._targets[:N]
+        b.contacts[s, :N] = dec.contacts[:N]
+        b.positions[s, :N] = self._pos[:N]
+        b.local_rot[s, :N] = self._local[:N]
+        b.ik_target[s, :N] = self._targets[:N]
         if live:
             b.override[s] = True
             b.out_positions[s] = self._pos[N]
@@ -223,11 +229,24 @@ class Pipeline:
         # Judge frame t, the newest, and decide (3.2.4: detection at t + tau relative to the output).
         if N > 1:
             ctx = FrameContext(t, self._pos[:N], self._world[:N], self._world[:N, 0])
-            b.cost[s] = self.criteria.cost(ctx)
-            # A new switch waits until the last transition has been sent, so transitions never overlap.
-            if self.ssi and t - self.lookahead > self.trans_end:
-                self._maybe_switch(t, s)
+            b.cost[s, :N] = self.criteria.cost(ctx)
+        if self._pending is not None:
+            self._apply_samples(t, s)
+        # A new switch waits until the last transition has been sent, so transitions never overlap.
+        elif self.ssi and N > 1 and t - self.lookahead > self.trans_end:
+            self._maybe_switch(t, s)
         return self._emit(t - self.lookahead)
+
+    def set_samples(self, n):
+        """Adaptive N: run the first n (1..max_samples) samples, each keeping its own latent.
+
+        Takes effect after this frame, unless a running transition still reads a sample that would
+        go (then when it no longer does). If the shown sample is not among the first n, the output
+        first moves to the best of them with the SSI transition (once any running one has been sent)
+        and the smaller N applies when that transition no longer reads it. Returns the N asked for."""
+        n = int(min(max(n, 1), self.max_samples))
+        self._pending = None if n == self.samples else n
+        return n
 
     def flush(self):
         """Poses for the frames still in the look-ahead buffer (end of a take)."""
@@ -273,10 +292,36 @@ class Pipeline:
             loc[:, HEAD] = np.swapaxes(W[:, NECK], -1, -2) @ head_m
 
     def _maybe_switch(self, t, s):
-        cost, c = self.buffer.cost[s], self.current
-        if not is_outlier(cost, c):
+        cost, c = self.buffer.cost[s, :self.samples], self.current
+        if is_outlier(cost, c):
+            self._start_transition(c, best_other(cost, c), t)
+
+    def _apply_samples(self, t, s):
+        n, N, c = self._pending, self.samples, self.current
+        if n < N and c >= n:        # the shown sample would go: move to the best kept one first
+            if t - self.lookahead > self.trans_end:
+                self._start_transition(c, int(np.argmin(self.buffer.cost[s, :n])), t)
             return
-        n = best_other(cost, c)
+        if n < N and self.trans is not None and t < self.trans_end and self.trans[0] >= n:
+            return                  # the live transition row still interpolates from that sample
+        if n > N:
+            self._revive(N, n)
+        self.samples, self._pending = n, None
+        self.decoder.resize(n + 1)
+        self.autoencoder.resize(n)
+
+    def _revive(self, lo, hi):
+        """Samples lo..hi-1 come back with their own latents, from the shown sample's GRU state and
+        foot locks (their old state is stale); their buffered frames copy the shown sample's, so a
+        transition to one of them can be recomputed over the look-ahead like any other."""
+        c, b, dec = self.current, self.buffer, self.decoder
+        dec.latent[lo:hi] = self.latents[lo:hi]
+        dec.state[lo:hi] = dec.state[c]
+        self.feet.copy_rows(c, slice(lo, hi))
+        for a in (b.hidden_in, b.ik_target, b.ik_weight):
+            a[:, lo:hi] = a[:, c:c + 1]
+
+    def _start_transition(self, c, n, t):
         s0 = max(t - self.lookahead, 0)
         T = self.transition
         self.trans, self.trans_end = (c, n, s0, T), s0 + T - 1

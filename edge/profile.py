@@ -1,6 +1,7 @@
 """`edge profile`: how many SSI samples fit a CPU budget, measured on the real pipeline.
 
     edge profile [--cpu-quota Q] [--hz H] [--samples N|auto] [--frames K] [--precision fp32|int8] --json OUT
+    edge profile --samples 128 --adaptive --frames 2400 --hog-at 10 --hog-seconds 20 --hog-procs 3 --json OUT
 
 A worker process runs the board's per-frame path on synthesised input (the bundled sample's tracker
 signals, looped): FrameSynchronizer.frame -> Pipeline.step -> POSE_FRAME encoding, with frames released
@@ -25,6 +26,14 @@ headroom (--headroom): p99 <= 0.8 x 1000/H ms (quota enforced; the quota's effec
 time) or p99 CPU time <= 0.8 x Q x 1000/H ms (not enforced). It then runs --frames frames at that N,
 the run whose numbers are reported; if that run misses deadlines it steps down one N and runs again
 (every attempt is kept in the JSON).
+
+Contention (--hog-at S [--hog-seconds D] [--hog-procs K]): K busy processes start S seconds into the
+measured run, on the worker's core but outside its cgroup, and stop D seconds later. With
+--adaptive the deadline watchdog (edge.governor, the same one `edge run` uses) lowers N while
+frames run late and raises it again when there is slack; `contention` in the JSON has deadline
+misses and N before, during and after the hog and every change of N. Without --adaptive the same
+run shows what a fixed N does. A frame whose deadline passed before it could start is skipped and
+counted as a miss, as `edge run` does (it resynchronises instead of bursting).
 
 Stage timings: `sync`, `pipeline_step` and `output_encoding` are measured in the paced loop (wall time,
 every frame). The stages inside Pipeline.step (features, decoder, FK, IK, autoencoder, selection,
@@ -62,6 +71,14 @@ def add_arguments(p):
     p.add_argument("--max-samples", type=int, default=128, help="largest N the auto search tries (default 128)")
     p.add_argument("--headroom", type=float, default=0.2, help="budget headroom (default 0.2 = 20 %%)")
     p.add_argument("--no-cgroup", action="store_true", help="do not try a cgroup quota (pin to one core only)")
+    p.add_argument("--adaptive", action="store_true",
+                   help="let the deadline watchdog (edge.governor) lower and raise N during the run; "
+                        "--samples (or the auto choice) is the largest N")
+    p.add_argument("--hog-at", type=float, default=None, metavar="SECONDS",
+                   help="start a CPU hog this far into the measured run: busy processes on the pipeline's "
+                        "core, outside its cgroup (a contended board)")
+    p.add_argument("--hog-seconds", type=float, default=30.0, help="how long the hog runs (default 30 s)")
+    p.add_argument("--hog-procs", type=int, default=4, help="busy processes in the hog (default 4)")
     p.add_argument("--json", required=True, help="write the profile here")
 
 
@@ -177,6 +194,9 @@ class Feeder:
 def _pct(a):
     import numpy as np
     a = np.asarray(a, float)
+    a = a[np.isfinite(a)]          # frames skipped for lateness have no compute time
+    if not len(a):
+        return {"p50": None, "p99": None, "max": None}
     return {"p50": round(float(np.median(a)), 4), "p99": round(float(np.percentile(a, 99)), 4),
             "max": round(float(a.max()), 4)}
 
@@ -200,9 +220,45 @@ class Encoder:
         return self.protocol.encode_pose_frame(p, self.seq)
 
 
-def paced_run(cfg, samples, frames, bar_desc):
-    """Real-time frames at cfg['hz'] through sync -> Pipeline.step -> encoding. Returns (stats, pipeline, feeder)."""
+class Hog:
+    """Busy-looping processes started on cue: other software on the board wanting the same core.
+
+    Spawned before the clock starts (blocked on a pipe) so no fork lands in a measured frame. They
+    share the worker's core but not its cgroup (each moves itself to the root group before exec), so
+    they take CPU from it the way another service would: CFS splits the core between the worker's
+    group and each hog by weight, and the worker keeps whichever is smaller, that or its quota."""
+
+    def __init__(self, procs, cgroup_root=None):
+        def leave_group():
+            if cgroup_root:
+                Path(cgroup_root, "cgroup.procs").write_text(str(os.getpid()))
+        # Spins until the worker goes away, even if it is killed before it can stop them.
+        code = "import os, sys; p = os.getppid(); sys.stdin.read(1)\nwhile os.getppid() == p:\n    sum(range(10000))"
+        self.procs = [subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, preexec_fn=leave_group)
+                      for _ in range(procs)]
+
+    def start(self):
+        for p in self.procs:
+            p.stdin.write(b"x")
+            p.stdin.flush()
+
+    def stop(self):
+        for p in self.procs:
+            p.kill()
+
+    def reap(self):
+        for p in self.procs:
+            p.kill()
+            p.wait()
+
+
+def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None):
+    """Real-time frames at cfg['hz'] through sync -> Pipeline.step -> encoding. Returns (stats, pipeline, feeder).
+
+    adaptive: edge.governor picks N after every frame (samples is the largest). hog: (first frame,
+    frames, processes) of a CPU hog during the measured frames."""
     import numpy as np
+    from edge.governor import SampleGovernor
     from edge.pipeline import Pipeline
     from edge.progress import Progress
     hz = cfg["hz"]
@@ -210,50 +266,112 @@ def paced_run(cfg, samples, frames, bar_desc):
     feeder = Feeder(hz)
     pipe = Pipeline(cfg["models"], samples=samples, fps=hz, precision=cfg["precision"])
     enc = Encoder(samples)
-    clock, cpu_clock = time.perf_counter, time.thread_time
-    warm = 60                                             # one second, paced like the run, not counted
-    t0 = clock() + 0.01
-    for k in range(warm):
-        now = clock()
-        if now < t0 + k * period:
-            time.sleep(t0 + k * period - now)
-        pose = pipe.step(feeder.frame(k))
-        if pose is not None:
-            enc(pose, k / hz)
-    resp, comp, cpu = np.empty(frames), np.empty(frames), np.empty(frames)
-    st = {"sync": np.empty(frames), "pipeline_step": np.empty(frames), "output_encoding": np.zeros(frames)}
-    misses = late_starts = 0
-    t0 += warm * period
-    with Progress(frames, bar_desc) as bar:
-        for i in range(frames):
-            k = warm + i
-            release = t0 + i * period
+    hog_proc = Hog(hog[2], cfg.get("cgroup_root")) if hog else None
+    try:
+        clock, cpu_clock = time.perf_counter, time.thread_time
+        warm = 60                                             # one second, paced like the run, not counted
+        t0 = clock() + 0.01
+        for k in range(warm):
             now = clock()
-            if now < release:
-                time.sleep(release - now)
-            else:
-                late_starts += 1 if now > release + 0.001 else 0
-            a, ca = clock(), cpu_clock()
-            sig = feeder.frame(k)
-            b = clock()
-            pose = pipe.step(sig)
-            c = clock()
+            if now < t0 + k * period:
+                time.sleep(t0 + k * period - now)
+            pose = pipe.step(feeder.frame(k))
             if pose is not None:
                 enc(pose, k / hz)
-            d, cd = clock(), cpu_clock()
-            st["sync"][i], st["pipeline_step"][i], st["output_encoding"][i] = b - a, c - b, d - c
-            resp[i], comp[i], cpu[i] = d - release, d - a, cd - ca
-            if d > release + period:
-                misses += 1
-            if i % 30 == 29 or i == frames - 1:
-                # cheap on purpose: this runs inside the measured process between frames
-                bar.update(30 if i % 30 == 29 else (i % 30) + 1,
-                           postfix=f"N={samples} last {resp[i] * 1e3:.2f} ms misses {misses}")
+        resp, comp, cpu = np.empty(frames), np.empty(frames), np.empty(frames)
+        st = {"sync": np.empty(frames), "pipeline_step": np.empty(frames), "output_encoding": np.zeros(frames)}
+        live_n = np.empty(frames, np.int32)
+        governor = SampleGovernor(1000.0 * period, samples) if adaptive else None
+        governor_n = samples
+        misses = late_starts = skipped = 0
+        t0 += warm * period
+        with Progress(frames, bar_desc) as bar:
+            for i in range(frames):
+                if hog_proc and i == hog[0]:
+                    hog_proc.start()
+                elif hog_proc and i == hog[0] + hog[1]:
+                    hog_proc.stop()
+                k = warm + i
+                release = t0 + i * period
+                now = clock()
+                if now < release:
+                    time.sleep(release - now)
+                elif now >= release + period:
+                    # Its deadline passed before it could start: skipped and missed, as `edge run` does
+                    # (a late service resynchronises to the next tick instead of bursting).
+                    misses += 1
+                    skipped += 1
+                    resp[i], comp[i], cpu[i] = now - release, np.nan, np.nan
+                    for v in st.values():
+                        v[i] = np.nan
+                    live_n[i] = pipe.samples
+                    if governor is not None:
+                        governor_n = _govern(governor, pipe, resp[i], governor_n)
+                    continue
+                else:
+                    late_starts += 1 if now > release + 0.001 else 0
+                a, ca = clock(), cpu_clock()
+                sig = feeder.frame(k)
+                b = clock()
+                pose = pipe.step(sig)
+                c = clock()
+                if pose is not None:
+                    enc(pose, k / hz)
+                d, cd = clock(), cpu_clock()
+                st["sync"][i], st["pipeline_step"][i], st["output_encoding"][i] = b - a, c - b, d - c
+                resp[i], comp[i], cpu[i] = d - release, d - a, cd - ca
+                if d > release + period:
+                    misses += 1
+                live_n[i] = pipe.samples
+                if governor is not None:
+                    governor_n = _govern(governor, pipe, resp[i], governor_n)
+                if i % 30 == 29 or i == frames - 1:
+                    # cheap on purpose: this runs inside the measured process between frames
+                    bar.update(30 if i % 30 == 29 else (i % 30) + 1,
+                               postfix=f"N={pipe.samples} last {resp[i] * 1e3:.2f} ms misses {misses}")
+    finally:                 # never leave busy processes behind, whatever happened
+        if hog_proc:
+            hog_proc.reap()
     ms = lambda x: x * 1e3  # noqa: E731
     stats = {"samples": samples, "frames": frames, "deadline_misses": misses, "late_starts": late_starts,
+             "skipped_frames": skipped,
              "frame_ms": _pct(ms(resp)), "compute_ms": _pct(ms(comp)), "cpu_ms": _pct(ms(cpu)),
              "stages_in_loop_ms": {k: _pct(ms(v)) for k, v in st.items()}, "ssi_switches": len(pipe.switches)}
+    if adaptive or hog:
+        stats["contention"] = contention_report(resp, live_n, period, hog, governor)
     return stats, pipe, feeder
+
+
+def _govern(governor, pipe, resp_s, asked):
+    """Tell the watchdog how the frame went; pass a new N on to the pipeline. Returns the N asked for."""
+    n = governor.observe(resp_s * 1e3, pipe.samples)
+    return pipe.set_samples(n) if n != asked else asked
+
+
+def contention_report(resp, live_n, period, hog, governor):
+    """Deadline misses and N before, during and after the hog, and when N changed."""
+    import numpy as np
+    late = resp > period
+    phases = {"whole": slice(0, len(resp))}
+    if hog:
+        a, b = hog[0], min(hog[0] + hog[1], len(resp))
+        phases.update(before=slice(0, a), during=slice(a, b), after=slice(b, len(resp)))
+    out = {"phases": {}}
+    for name, sl in phases.items():
+        n, m = live_n[sl], late[sl]
+        if len(n):
+            out["phases"][name] = {"frames": int(len(n)), "deadline_misses": int(m.sum()),
+                                   "miss_rate": round(float(m.mean()), 5), "samples_mean": round(float(n.mean()), 2),
+                                   "samples_min": int(n.min()), "samples_max": int(n.max()),
+                                   "samples_last": int(n[-1]), "frame_ms": _pct(resp[sl] * 1e3)}
+    steps = np.flatnonzero(np.diff(live_n)) + 1
+    out["samples_timeline"] = [[0, int(live_n[0])]] + [[int(i), int(live_n[i])] for i in steps]
+    if hog:
+        out["hog"] = {"start_frame": hog[0], "frames": hog[1], "processes": hog[2]}
+    if governor is not None:
+        out["governor"] = {"changes": [list(c) for c in governor.changes], "final_hold_frames": governor.hold,
+                           "high_ms": governor.high_ms, "low_ms": governor.low_ms}
+    return out
 
 
 def micro_stages(pipe, feeder, reps=300):
@@ -337,10 +455,16 @@ def worker(cfg):
     else:
         chosen = int(cfg["samples"])
     attempts = []
+    hog = None
+    if cfg.get("hog_at") is not None:
+        hog = (int(round(cfg["hog_at"] * hz)), int(round(cfg["hog_seconds"] * hz)), cfg["hog_procs"])
+    adaptive = bool(cfg.get("adaptive"))
     while True:
-        st, pipe, feeder = paced_run(cfg, chosen, cfg["frames"], f"run N={chosen:<3d}")
+        st, pipe, feeder = paced_run(cfg, chosen, cfg["frames"], f"run N={chosen:<3d}", adaptive, hog)
         attempts.append({k: st[k] for k in ("samples", "frames", "deadline_misses", "frame_ms", "cpu_ms")})
-        if st["deadline_misses"] == 0 or cfg["samples"] != "auto" or chosen == 1 or len(attempts) >= 3:
+        # Adaptive or contended runs are reported as they went: stepping down would hide the verdict.
+        if (st["deadline_misses"] == 0 or cfg["samples"] != "auto" or chosen == 1 or len(attempts) >= 3
+                or adaptive or hog):
             break
         chosen = max(n for n in LADDER if n < chosen)
     stages = {"sync": st["stages_in_loop_ms"]["sync"], "pipeline_step": st["stages_in_loop_ms"]["pipeline_step"],
@@ -351,9 +475,11 @@ def worker(cfg):
         rss_now = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
     return {"chosen_samples": chosen, "frames": st["frames"], "frame_ms": st["frame_ms"], "compute_ms": st["compute_ms"],
             "cpu_ms": st["cpu_ms"], "deadline_misses": st["deadline_misses"], "late_starts": st["late_starts"],
+            "skipped_frames": st["skipped_frames"],
             "ssi_switches": st["ssi_switches"], "stages": stages, "rss_mb": round(rss_now, 1),
             "rss_peak_mb": round(rss, 1), "budget": budget, "frame_budget_ms": frame_budget_ms,
-            "probes": probes, "runs": attempts, "core": sorted(os.sched_getaffinity(0))}
+            "probes": probes, "runs": attempts, "core": sorted(os.sched_getaffinity(0)),
+            "contention": st.get("contention")}
 
 
 STAGE_METHODS = {
@@ -411,7 +537,8 @@ def main(args):
     limit = CpuLimit(quota, args.period_ms * 1000, disabled=args.no_cgroup)
     cfg = {"hz": args.hz, "quota": quota, "enforced": limit.enforced, "samples": args.samples, "frames": args.frames,
            "probe_frames": args.probe_frames, "max_samples": args.max_samples, "headroom": args.headroom, "precision": args.precision,
-           "models": args.models}
+           "models": args.models, "adaptive": args.adaptive, "hog_at": args.hog_at, "hog_seconds": args.hog_seconds,
+           "hog_procs": args.hog_procs, "cgroup_root": str(limit.path.parent) if limit.enforced else None}
     print(f"edge profile: {args.hz:g} Hz, CPU {quota:g} of one core "
           f"({'cgroup quota ' + str(limit.quota_us) + ' us per ' + str(limit.period_us) + ' us' if limit.enforced else 'quota NOT enforced: ' + limit.why}), "
           f"samples {args.samples}, {args.frames} frames", file=sys.stderr)
@@ -439,18 +566,26 @@ def main(args):
               "chosen_samples": res["chosen_samples"], "frames": res["frames"],
               "deadline_misses": res["deadline_misses"], "frame_ms": res["frame_ms"],
               "compute_ms": res["compute_ms"], "cpu_ms": res["cpu_ms"], "late_starts": res["late_starts"],
+              "skipped_frames": res["skipped_frames"],
               "rss_mb": res["rss_mb"], "rss_peak_mb": res["rss_peak_mb"], "stages": res["stages"],
               "stage_methods": {k: STAGE_METHODS[k] for k in res["stages"]},
               "budget": {**res["budget"], "frame_period_ms": res["frame_budget_ms"], "headroom": args.headroom},
               "probes": res["probes"], "runs": res["runs"], "ssi_switches": res["ssi_switches"],
               "pinned_core": res["core"], "input": f"{SAMPLE.name} signals looped, through FrameSynchronizer",
               "seconds": round(time.time() - t0, 1)}
+    if res.get("contention"):
+        result["adaptive"] = args.adaptive
+        result["contention"] = res["contention"]
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
     fm = result["frame_ms"]
     print(f"chosen_samples={result['chosen_samples']} frames={result['frames']} deadline_misses={result['deadline_misses']} "
           f"frame_ms p50={fm['p50']:.2f} p99={fm['p99']:.2f} cpu_ms p99={result['cpu_ms']['p99']:.2f} "
           f"rss_mb={result['rss_mb']} quota_enforced={str(limit.enforced).lower()}")
+    for name, ph in (result.get("contention") or {}).get("phases", {}).items():
+        print(f"  {name:>6}: {ph['frames']} frames, deadline misses {ph['deadline_misses']} ({100 * ph['miss_rate']:.2f} %), "
+              f"N mean {ph['samples_mean']:g} (min {ph['samples_min']}, last {ph['samples_last']}), "
+              f"frame p99 {ph['frame_ms']['p99']:.2f} ms")
     print(f"wrote {args.json}")
     return 0
 

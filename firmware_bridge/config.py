@@ -16,7 +16,9 @@
     bvh = "out/take.bvh"              # optional recording
 
     [runtime]
-    samples = 16                      # latent samples N (1..128)
+    samples = 16                      # latent samples N (1..128); with adaptive N, the most it runs
+    adaptive = true                   # lower N when frames run late, raise it again when there is slack
+    precision = "fp32"                # or "int8" (models/*.int8.onnx)
     lookahead = 10                    # SSI look-ahead in frames
     hz = 60
     lost_after_ms = 250
@@ -42,7 +44,8 @@ SECTIONS = {
     "headset": {"url"},
     "trackers": {"url"},
     "output": {"pose_stream", "vmc", "vrchat", "bvh"},
-    "runtime": {"samples", "lookahead", "hz", "lost_after_ms", "sync_latency_ms", "calibration", "models"},
+    "runtime": {"samples", "adaptive", "precision", "lookahead", "hz", "lost_after_ms", "sync_latency_ms",
+                "calibration", "models"},
 }
 
 
@@ -55,6 +58,8 @@ class Config:
     vrchat: str = ""
     bvh: str = ""
     samples: int = 16
+    adaptive: bool = True
+    precision: str = "fp32"
     lookahead: int = 10
     hz: float = 60.0
     lost_after: float = 0.25
@@ -157,6 +162,12 @@ def from_dict(raw, where="config"):
         raise ConfigError(f"{where}: [runtime] samples must be 1..128, got {cfg.samples}")
     if not 0 <= cfg.lookahead <= 60 or not 10 <= cfg.hz <= 240 or not 0.02 <= cfg.lost_after <= 5:
         raise ConfigError(f"{where}: [runtime] lookahead 0..60 frames, hz 10..240, lost_after_ms 20..5000")
+    cfg.adaptive = rt.get("adaptive", True)
+    if not isinstance(cfg.adaptive, bool):
+        raise ConfigError(f"{where}: [runtime] adaptive must be true or false, got {cfg.adaptive!r}")
+    cfg.precision = rt.get("precision", "fp32")
+    if cfg.precision not in ("fp32", "int8"):
+        raise ConfigError(f"{where}: [runtime] precision must be \"fp32\" or \"int8\", got {cfg.precision!r}")
     cfg.calibration = rt.get("calibration", "")
     cfg.models = rt.get("models", "")
     return cfg

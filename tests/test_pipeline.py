@@ -110,3 +110,71 @@ def test_ring_buffer_memory_is_fixed_over_20000_frames(take):
     assert after_py - before_py < 100_000
     assert after_rss - before_rss < 2048
     assert pipe.buffer.nbytes() < 16 * 1024 * 1024
+
+
+# ------------------------------------------------------------------ adaptive N
+
+def test_changing_n_leaves_the_shown_sample_untouched(take):
+    """Without SSI the shown sample is sample 0: lowering and raising N around it must not move it."""
+    fixed, adaptive = Pipeline(samples=16, ssi=False), Pipeline(samples=16, ssi=False)
+    plan = {50: 4, 120: 16, 180: 1}
+    live = []
+    for t in range(240):
+        if t in plan:
+            adaptive.set_samples(plan[t])
+        sig = take.signals.slice(t, t + 1)
+        a, b = fixed.step(sig), adaptive.step(sig)
+        live.append(adaptive.samples)
+        if a is not None:
+            assert a.frame == b.frame and a.sample == b.sample == 0
+            assert np.allclose(a.positions, b.positions, atol=1e-5)
+    assert (live[49], live[50], live[119], live[120], live[-1]) == (16, 4, 4, 16, 1)
+    assert adaptive.decoder.rows == 2 and adaptive.autoencoder.rows == 1
+
+
+def test_dropping_the_shown_sample_moves_to_a_kept_one_with_the_ssi_transition(take):
+    pipe = Pipeline(samples=6, lookahead=10, criteria=[])
+    pipe.criteria.criteria.append(ForcedSwitch(pipe, at=40))      # shows sample 3 from frame 40 on
+    out = {}
+    for t in range(120):
+        if t == 70:
+            pipe.set_samples(2)                                    # sample 3 is not among the first 2
+        pose = pipe.step(take.signals.slice(t, t + 1))
+        if pose is not None:
+            out[pose.frame] = (pose.sample, pose.transition, pipe.samples)
+    assert pipe.switches == [(40, 30, 0, 3), (70, 60, 3, 0)]
+    assert [f for f in out if out[f][1]] == list(range(30, 40)) + list(range(60, 70))
+    # The smaller N applies once no transition frame still has to be computed from sample 3: here the
+    # whole transition (60..69) was recomputed inside the look-ahead at frame 70, so from frame 71 on
+    # (output frame 61); never while sample 3 is still read.
+    assert {out[f][2] for f in out if f < 61} == {6} and {out[f][2] for f in out if f >= 61} == {2}
+    assert sorted(out) == list(range(110))
+
+
+def test_with_ssi_on_a_smaller_n_only_ever_shows_kept_samples(take):
+    pipe = Pipeline(samples=12, lookahead=10)
+    shown_after = []
+    for t in range(400):
+        if t == 100:
+            pipe.set_samples(3)
+        if t == 250:
+            pipe.set_samples(12)
+        pose = pipe.step(take.signals.slice(t, t + 1))
+        if pose is not None and pipe.samples == 3 and t < 250:
+            shown_after.append(pose.sample)
+    assert shown_after and set(shown_after) <= {0, 1, 2}
+    assert pipe.samples == 12
+
+
+def test_a_live_transition_keeps_its_source_sample_running_until_its_last_frame(take):
+    """tau=3 < T=10: the transition from sample 3 runs live to frame 76, so N drops after that step."""
+    pipe = Pipeline(samples=6, lookahead=3, criteria=[])
+    pipe.criteria.criteria.append(ForcedSwitch(pipe, at=40))
+    live = {}
+    for t in range(90):
+        if t == 70:
+            pipe.set_samples(2)
+        pipe.step(take.signals.slice(t, t + 1))
+        live[t] = pipe.samples
+    assert pipe.switches[-1] == (70, 67, 3, 0) and pipe.trans_end == 76
+    assert {live[t] for t in range(70, 76)} == {6} and {live[t] for t in range(76, 90)} == {2}

@@ -77,3 +77,25 @@ def test_bad_arguments_are_refused(tmp_path, capsys):
     assert profile.main(ap.parse_args(["--samples", "0", "--json", str(tmp_path / "x.json")])) == 2
     assert profile.main(ap.parse_args(["--cpu-quota", "2", "--json", str(tmp_path / "x.json")])) == 2
     assert not Path(tmp_path / "x.json").exists()
+
+
+def hog_processes():
+    out = []
+    for p in Path("/proc").glob("[0-9]*"):
+        try:
+            if b"sum(range(10000))" in (p / "cmdline").read_bytes():
+                out.append(p.name)
+        except OSError:
+            pass
+    return out
+
+
+def test_a_hog_run_reports_each_phase_and_leaves_no_busy_process_behind(tmp_path):
+    r = run(tmp_path, "--samples", "8", "--adaptive", "--frames", "90", "--hog-at", "0.5", "--hog-seconds", "0.5",
+            "--hog-procs", "2", "--no-cgroup")
+    c = r["contention"]
+    assert r["adaptive"] is True and c["hog"] == {"start_frame": 30, "frames": 30, "processes": 2}
+    assert [c["phases"][p]["frames"] for p in ("before", "during", "after")] == [30, 30, 30]
+    assert sum(c["phases"][p]["deadline_misses"] for p in ("before", "during", "after")) == r["deadline_misses"]
+    assert c["samples_timeline"][0] == [0, 8] and "governor" in c
+    assert hog_processes() == []

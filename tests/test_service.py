@@ -46,7 +46,7 @@ def test_run_streams_poses_that_listen_decodes(tmp_path):
         "headset": {"url": f"serial://{hpath}?role=headset"},
         "trackers": [{"url": f"serial://{tpath}?role=hub"}],
         "output": {"pose_stream": "headset", "bvh": str(tmp_path / "take.bvh")},
-        "runtime": {"samples": 4, "lookahead": 3},
+        "runtime": {"samples": 4, "lookahead": 3, "adaptive": False},
     })
     service = Service(cfg, status=None)
     stop = threading.Event()
@@ -82,6 +82,8 @@ def test_run_streams_poses_that_listen_decodes(tmp_path):
     ({}, "headset"),
     ({"headset": {"url": "usb://x"}}, "unknown transport"),
     ({"headset": {"url": "serial:///dev/null"}, "runtime": {"samples": 0}}, "samples must be 1..128"),
+    ({"headset": {"url": "serial:///dev/null"}, "runtime": {"adaptive": "yes"}}, "adaptive must be true or false"),
+    ({"headset": {"url": "serial:///dev/null"}, "runtime": {"precision": "fp16"}}, "precision must be"),
     ({"headset": {"url": "serial:///dev/null"}, "runtime": {"sample": 4}}, "unknown key 'sample'"),
     ({"headset": {"url": "serial:///dev/null"}, "output": {"vmc": "localhost"}}, "HOST:PORT"),
     ({"headset": {"url": "serial:///dev/null"}, "trackers": [{"url": "serial:///dev/x?trackers=waist"}]}, "ID:NAME"),
@@ -104,3 +106,41 @@ def test_unreadable_config_is_a_clear_error(tmp_path, capsys):
     cfg.write_text("[headset\nurl=")
     assert edge_main(["run", "--config", str(cfg)]) == 2
     assert "not valid TOML" in capsys.readouterr().err
+
+
+def test_a_service_that_runs_late_lowers_n_and_keeps_streaming():
+    """Adaptive N in the service: every tick is late against a 1 us period, so the watchdog must cut
+    N to 1 while poses keep flowing (the real budget is the frame period; see edge profile --hog-at)."""
+    from edge.governor import SampleGovernor
+    take = from_sample(SAMPLE)
+    hm, hs, hpath = pty_pair()
+    tm, ts, tpath = pty_pair()
+    cfg = config_mod.from_dict({
+        "headset": {"url": f"serial://{hpath}?role=headset"},
+        "trackers": [{"url": f"serial://{tpath}?role=hub"}],
+        "runtime": {"samples": 16, "lookahead": 3},
+    })
+    service = Service(cfg, status=None)
+    assert service.governor is not None and service.pipeline.samples == 16
+    service.governor = SampleGovernor(0.001, 16)
+    stop = threading.Event()
+    feeder = threading.Thread(target=feed, args=(take, hm, tm, stop), daemon=True)
+    runner = threading.Thread(target=lambda: service.run(stop=stop.is_set), daemon=True)
+    feeder.start()
+    runner.start()
+    frames = []
+    ear = Listener(fd=hm)
+    deadline = time.monotonic() + 2.0
+    while time.monotonic() < deadline:
+        frames += ear.poll(0.05)
+    stop.set()
+    runner.join(5)
+    feeder.join(5)
+    summary = service.summary()
+    assert summary["samples"] == 1 and summary["samples_max"] == 16
+    # One cut, in proportion to how late the tick was (thousands of periods: straight to 1).
+    assert [c[1:] for c in summary["samples_changes"]] == [[16, 1, "late"]]
+    assert frames[-1].num_samples == 1 and len(frames) > 60
+    assert ear.stats["corrupt"] == 0
+    for fd in (hm, hs, tm, ts):
+        os.close(fd)

@@ -174,7 +174,7 @@ def score(inbox, metrics, ticks_by_us, replug):
             replug[1] = f.t
 
 
-def board_config(session, devices, can_channel, samples, lookahead, bvh):
+def board_config(session, devices, can_channel, samples, lookahead, bvh, adaptive=False):
     place = session.meta.get("placement") or placement(session.transports)
     pairs = lambda ids, names: ",".join(f"{k}:{v}" for k, v in ids.items() if v in names)
     trackers = []
@@ -188,12 +188,12 @@ def board_config(session, devices, can_channel, samples, lookahead, bvh):
         "headset": {"url": f"serial://{devices['headset'].path}?role=headset"},
         "trackers": trackers,
         "output": {"pose_stream": "headset", **({"bvh": bvh} if bvh else {})},
-        "runtime": {"samples": samples, "lookahead": lookahead},
+        "runtime": {"samples": samples, "lookahead": lookahead, "adaptive": adaptive},
     }, "replay")
 
 
 def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=None, bvh=None, status=None,
-           models=None):
+           models=None, adaptive=False):
     faults = faults or {}
     clock = SimClock(realtime=(speed == "realtime"))
     folder = tempfile.mkdtemp(prefix="edgepose-sim-")
@@ -212,7 +212,7 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
         return open_configured(url)
 
     try:
-        cfg = board_config(session, devices, can_channel, samples, lookahead, bvh)
+        cfg = board_config(session, devices, can_channel, samples, lookahead, bvh, adaptive)
         if models:
             cfg.models = models
         service = Service(cfg, clock=clock, status=status, opener=opener)
@@ -329,7 +329,8 @@ def report(session, summary, m, service, ear, opened, errors, faults, speed, dur
                         "synchroniser interpolating one headset period back) are reported apart",
         "lookahead_ms": 1000.0 * service.pipeline.lookahead / hz,
         "sync_delay_ms": 1000.0 * service.cfg.sync_latency, "ssi_switches": len(service.pipeline.switches),
-        "samples": service.pipeline.samples, "frame_ms": summary["frame_ms"], "reopens": summary["reopens"],
+        "samples": service.pipeline.samples, "samples_max": summary["samples_max"],
+        "samples_changes": summary["samples_changes"], "frame_ms": summary["frame_ms"], "reopens": summary["reopens"],
         "output_errors": summary["output_errors"], "resume_after_replug_s": resume_s,
         "missing_output_frames": int(len(seen) and (seen[-1] - seen[0] + 1 - len(seen))),
         "transports": {"opened": sorted(set(opened))}, "errors": errors,
@@ -405,9 +406,9 @@ def main(args):
     except (OSError, ValueError) as e:
         print(f"edge replay: cannot use {args.source}: {e}", file=sys.stderr)
         return 2
-    samples = 16 if args.samples == "auto" else int(args.samples)
+    samples = 32 if args.samples == "auto" else int(args.samples)
     result = replay(session, args.speed, samples, args.lookahead, args.seconds, faults, args.bvh, sys.stderr,
-                    args.models)
+                    args.models, adaptive=args.adaptive or args.samples == "auto")
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
     keys = ("frames_in", "frames_out", "poses_decoded", "packets_corrupt", "packets_lost", "tracker_lost_events",
