@@ -1,56 +1,189 @@
-"""Per-frame cost of the whole SSI pipeline against the bare decoder call, at several N, in one run.
+"""Per-frame cost of the whole SSI pipeline on one core, at several N, in one run.
 
     python bench/pipeline.py [--samples 1,10,32,100] [--frames 600] [--precision fp32] [--json OUT]
+    python bench/pipeline.py --compare [--samples 1,10,32,100] [--frames 600] [--blocks 10] [--json OUT]
 
-Pins itself to one core (like the board's budget) and reports medians and p99 in microseconds, and
-the pipeline / decoder ratio. A benchmark, not a test: it prints figures and asserts nothing.
+Plain run: the pipeline with --precision models, then its bare decoder call; medians and p99 in
+microseconds and the pipeline / decoder ratio.
+
+--compare (needs torch) times, per N, in one process:
+  pipeline_fp32, pipeline_int8   the pipeline with fp32 and with int8 models (speed-up = fp32 / int8)
+  decoder_ort, decoder_torch     one bare decoder step on the pipeline's rows in ONNX Runtime, and in
+                                 PyTorch eager run per frame as research code runs it (bench/reference.py)
+  pipeline_reference             the fp32 pipeline with its decoders swapped for that PyTorch eager step
+Each is warmed, then all take turns in --blocks blocks of --frames / --blocks calls (the order
+rotating block by block), so machine noise hits every side alike. Ratios are p50 / p50 over all timed
+calls, with the range of the per-block ratios; the fp32 pipeline / ORT decoder ratio of the plain run
+is reported too. Before timing, the PyTorch and ONNX decoders are run on the same inputs and must agree (max abs
+difference < 1e-4).
+
+Pins itself to one core (like the board's budget). A benchmark, not a test: it prints figures and,
+besides that agreement check, asserts nothing.
 """
 import argparse
 import json
-import sys
 import os
+import platform
+import sys
 from pathlib import Path
 
 import numpy as np
+import onnxruntime
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
+from edge.inference import Decoder, open_models
 from edge.pipeline import Pipeline
 from edge.takes import from_sample
 from edge.timing import time_calls
 
 SAMPLE = Path(__file__).resolve().parent.parent / "samples" / "cmu_09_12_walk.npz"
+WARMUP = 120
+PARITY_TOL = 1e-4
+# name: (numerator, denominator) of each --compare ratio
+RATIOS = {
+    "int8_speedup": ("pipeline_fp32", "pipeline_int8"),
+    "decoder_torch_over_ort": ("decoder_torch", "decoder_ort"),
+    "pipeline_reference_over_ours": ("pipeline_reference", "pipeline_fp32"),
+    "pipeline_over_decoder": ("pipeline_fp32", "decoder_ort"),
+}
+
+
+def machine(**versions):
+    cpu = platform.processor()
+    try:
+        cpu = next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                   if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return {"platform": platform.platform(), "cpu": cpu, "python": platform.python_version(),
+            "numpy": np.__version__, "onnxruntime": onnxruntime.__version__, **versions}
+
+
+def summary(us):
+    return {"p50": float(np.median(us)), "p99": float(np.percentile(us, 99))}
+
+
+def warm(pipe, frames):
+    for t in range(WARMUP):
+        pipe.step(frames[t % len(frames)])
+
+
+def plain(a, frames, ns):
+    rows = []
+    print(f"{'N':>4} {'pipeline p50':>13} {'p99':>8} {'decoder p50':>12} {'p99':>8} {'ratio':>6}   (microseconds, one core)")
+    for n in ns:
+        pipe = Pipeline(samples=n, precision=a.precision)
+        warm(pipe, frames)
+        whole = time_calls(lambda i: pipe.step(frames[(i + WARMUP) % len(frames)]), a.frames)
+        bare = time_calls(lambda i: pipe.decoder.step(), a.frames)
+        r = {"samples": n, "pipeline_us": summary(whole), "decoder_us": summary(bare)}
+        r["ratio_p50"] = r["pipeline_us"]["p50"] / r["decoder_us"]["p50"]
+        rows.append(r)
+        print(f"{n:>4} {r['pipeline_us']['p50']:>13.0f} {r['pipeline_us']['p99']:>8.0f} "
+              f"{r['decoder_us']['p50']:>12.0f} {r['decoder_us']['p99']:>8.0f} {r['ratio_p50']:>6.2f}")
+    return {"precision": a.precision, "machine": machine(), "results": rows}
+
+
+def interleaved(calls, blocks, per_block):
+    """Time calls[name](t) for t = WARMUP.., all names taking turns block by block in rotating order.
+    Returns {name: microseconds [blocks, per_block]}."""
+    names = list(calls)
+    out = {k: np.empty((blocks, per_block)) for k in names}
+    for b in range(blocks):
+        t0 = WARMUP + b * per_block
+        for k in names[b % len(names):] + names[:b % len(names)]:
+            out[k][b] = time_calls(lambda i: calls[k](t0 + i), per_block)
+    return out
+
+
+def ratio(times, num, den):
+    per_block = np.median(times[num], axis=1) / np.median(times[den], axis=1)
+    return {"p50": float(np.median(times[num]) / np.median(times[den])),
+            "blocks_min": float(per_block.min()), "blocks_max": float(per_block.max())}
+
+
+def primed(dec, src):
+    """`dec` holding src's inputs and GRU state: a decoder of its own, so timing it leaves src alone."""
+    dec.features[:] = src.features
+    dec.latent[:] = src.latent
+    dec.state[:] = src.state
+    return dec
+
+
+def compare(a, frames, ns):
+    import torch   # only --compare needs torch
+    from reference import TorchDecoder, load_step, max_abs_diff, reference_pipeline
+
+    model = load_step()
+    manifest, session, _ = open_models()
+    diff = max_abs_diff(session, model, manifest)
+    print(f"PyTorch vs ONNX decoder step, same inputs: max abs diff {diff:.2e} (tolerance {PARITY_TOL:.0e})")
+    if not diff < PARITY_TOL:
+        sys.exit("the PyTorch reference does not match the ONNX decoder; not timing it")
+    per_block = a.frames // a.blocks
+    print(f"\np50 per frame in microseconds, one core; ratio p50/p50 [min, max over {a.blocks} blocks of {per_block}]")
+    print(f"{'N':>4} {'fp32 pipe':>10} {'int8 pipe':>10} {'speed-up fp32/int8':>20} "
+          f"{'ORT dec':>8} {'torch dec':>10} {'torch/ORT':>18} {'ref pipe':>9} {'ref/ours':>18} {'pipe/dec':>20}")
+    rows = []
+    for n in ns:
+        pipes = {"pipeline_fp32": Pipeline(samples=n, precision="fp32"),
+                 "pipeline_int8": Pipeline(samples=n, precision="int8"),
+                 "pipeline_reference": reference_pipeline(model, n)}
+        for pipe in pipes.values():
+            warm(pipe, frames)
+        ours, m = pipes["pipeline_fp32"], pipes["pipeline_fp32"].manifest
+        dims = ours.rows, m["latent"], m["hidden"], m["features"]
+        decoders = {"decoder_ort": primed(Decoder(ours.decoder.session, *dims), ours.decoder),
+                    "decoder_torch": primed(TorchDecoder(model, *dims), ours.decoder)}
+        for dec in decoders.values():
+            for _ in range(WARMUP):
+                dec.step()
+        calls = {k: (lambda t, p=p: p.step(frames[t % len(frames)])) for k, p in pipes.items()}
+        calls.update({k: (lambda t, d=d: d.step()) for k, d in decoders.items()})
+        times = interleaved(calls, a.blocks, per_block)
+        r = {"samples": n, "rows": ours.rows, "us": {k: summary(v) for k, v in times.items()},
+             "ratios": {k: ratio(times, *v) for k, v in RATIOS.items()},
+             "ssi_switches": {k: len(p.switches) for k, p in pipes.items()}}
+        rows.append(r)
+        us = {k: f"{v['p50']:.0f}" for k, v in r["us"].items()}
+        rs = {k: f"{v['p50']:.2f} [{v['blocks_min']:.2f},{v['blocks_max']:.2f}]" for k, v in r["ratios"].items()}
+        print(f"{n:>4} {us['pipeline_fp32']:>10} {us['pipeline_int8']:>10} {rs['int8_speedup']:>20} "
+              f"{us['decoder_ort']:>8} {us['decoder_torch']:>10} {rs['decoder_torch_over_ort']:>18} "
+              f"{us['pipeline_reference']:>9} {rs['pipeline_reference_over_ours']:>18} {rs['pipeline_over_decoder']:>20}")
+    method = {
+        "cores": 1, "warmup_calls": WARMUP, "blocks": a.blocks, "calls_per_block": per_block,
+        "schedule": "all contestants in one process, taking turns block by block in rotating order",
+        "statistic": "p50/p99 over all timed calls; ratio = p50/p50, blocks_min/max = range of per-block p50 ratios",
+        "sample": SAMPLE.name,
+        "reference": "models.nets.DecoderStep from models/checkpoints in PyTorch eager, one thread, per frame: "
+                     "torch.from_numpy inputs, no_grad forward, .numpy() copies back (bench/reference.py)",
+    }
+    return {"method": method, "machine": machine(torch=torch.__version__),
+            "parity_max_abs_diff": diff, "results": rows}
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--samples", default="1,10,32,100")
-    ap.add_argument("--frames", type=int, default=600)
-    ap.add_argument("--precision", default="fp32")
+    ap.add_argument("--frames", type=int, default=600, help="timed calls per side")
+    ap.add_argument("--precision", default="fp32", help="models of the plain run (--compare times fp32 and int8)")
+    ap.add_argument("--compare", action="store_true", help="int8 vs fp32 and ONNX Runtime vs PyTorch eager, interleaved")
+    ap.add_argument("--blocks", type=int, default=10, help="--compare: blocks the timed calls are split into")
     ap.add_argument("--json")
     a = ap.parse_args()
+    if a.compare and not 1 <= a.blocks <= a.frames:
+        ap.error("--blocks must be 1..--frames")
     try:
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
     except (AttributeError, OSError):
         pass
     take = from_sample(SAMPLE)
     frames = [take.signals.slice(t, t + 1) for t in range(take.frames)]
-    rows = []
-    print(f"{'N':>4} {'pipeline p50':>13} {'p99':>8} {'decoder p50':>12} {'p99':>8} {'ratio':>6}   (microseconds, one core)")
-    for n in [int(x) for x in a.samples.split(",")]:
-        pipe = Pipeline(samples=n, precision=a.precision)
-        for t in range(120):
-            pipe.step(frames[t % len(frames)])
-        whole = time_calls(lambda i: pipe.step(frames[(i + 120) % len(frames)]), a.frames)
-        bare = time_calls(lambda i: pipe.decoder.step(), a.frames)
-        r = {"samples": n, "pipeline_us": {"p50": float(np.median(whole)), "p99": float(np.percentile(whole, 99))},
-             "decoder_us": {"p50": float(np.median(bare)), "p99": float(np.percentile(bare, 99))}}
-        r["ratio_p50"] = r["pipeline_us"]["p50"] / r["decoder_us"]["p50"]
-        rows.append(r)
-        print(f"{n:>4} {r['pipeline_us']['p50']:>13.0f} {r['pipeline_us']['p99']:>8.0f} "
-              f"{r['decoder_us']['p50']:>12.0f} {r['decoder_us']['p99']:>8.0f} {r['ratio_p50']:>6.2f}")
+    ns = [int(x) for x in a.samples.split(",")]
+    report = (compare if a.compare else plain)(a, frames, ns)
     if a.json:
-        Path(a.json).write_text(json.dumps({"precision": a.precision, "results": rows}, indent=2) + "\n")
+        Path(a.json).write_text(json.dumps(report, indent=2) + "\n")
 
 
 if __name__ == "__main__":
