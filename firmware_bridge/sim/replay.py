@@ -370,6 +370,11 @@ def tile_take(take, seconds):
     return type(take)(take.name, tiled, np.concatenate([take.gt_pos] * reps), take.fps, imu)
 
 
+# Faults the simulated devices apply while replaying; the others shape the traffic when a session is
+# synthesised from a take, so a recording cannot have them.
+REPLAY_TIME_FAULTS = {"unplug_at", "unplug_s", "i2c_error_rate"}
+
+
 def load_source(source, transports, faults, seed=0, seconds=None):
     """A recording (.npz session), or a BVH clip / sample take synthesised through the device models
     (repeated to last `seconds` when that is longer than the take)."""
@@ -377,6 +382,11 @@ def load_source(source, transports, faults, seed=0, seconds=None):
     if path.endswith(".npz"):
         d = np.load(path, allow_pickle=False)
         if "kind" in d.files:
+            ignored = sorted(set(faults or {}) - REPLAY_TIME_FAULTS)
+            if ignored:
+                print(f"edge replay: {path} is a recording: its traffic is replayed as recorded, so "
+                      f"{', '.join(ignored)} do not apply (only unplug and i2c-errors do); replay a take or BVH "
+                      "to inject them", file=sys.stderr)
             return Session.load(path)
     from edge.takes import load_take
     take = load_take(path)
