@@ -384,9 +384,9 @@ def load_source(source, transports, faults, seed=0, seconds=None):
         if "kind" in d.files:
             ignored = sorted(set(faults or {}) - REPLAY_TIME_FAULTS)
             if ignored:
-                print(f"edge replay: {path} is a recording: its traffic is replayed as recorded, so "
-                      f"{', '.join(ignored)} do not apply (only unplug and i2c-errors do); replay a take or BVH "
-                      "to inject them", file=sys.stderr)
+                print(f"edge replay: {path} is a recording, replayed as recorded: these faults do not apply "
+                      f"to it: {', '.join(ignored)} (only unplug and i2c-errors do; replay a take or BVH to "
+                      "inject the others)", file=sys.stderr)
             return Session.load(path)
     from edge.takes import load_take
     take = load_take(path)
