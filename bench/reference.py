@@ -28,11 +28,12 @@ def load_step(ckpt=ROOT / "models" / "checkpoints"):
     return DecoderStep(cvae).eval()
 
 
-class TorchDecoder:
-    """Drop-in for edge.inference.Decoder that runs `model` in PyTorch eager mode."""
+class TorchDecoder(Decoder):
+    """edge.inference.Decoder (same buffers, `state`, ping-pong, one-shot mode) whose step runs
+    `model` in PyTorch eager mode instead of an ONNX Runtime session."""
 
     def __init__(self, model, rows, latent_dim, hidden_dim, n_features, recurrent=True):
-        self.model, self.rows, self.recurrent = model, rows, recurrent
+        self.model, self.rows, self.capacity, self.recurrent = model, rows, rows, recurrent
         self.features = np.zeros((rows, n_features), np.float32)
         self.latent = np.zeros((rows, latent_dim), np.float32)
         self.hidden = [np.zeros((rows, hidden_dim), np.float32), np.zeros((rows, hidden_dim), np.float32)]
@@ -40,15 +41,8 @@ class TorchDecoder:
         self.contacts = np.zeros((rows, 2), np.float32)
         self._cur = 0
 
-    @property
-    def state(self):
-        """The GRU state the next step reads (after a step: the state it wrote)."""
-        return self.hidden[self._cur]
-
-    def reset(self):
-        self.hidden[0][:] = 0
-        self.hidden[1][:] = 0
-        self._cur = 0
+    def resize(self, rows):
+        raise NotImplementedError("the reference runs a fixed N")
 
     def step(self):
         with torch.no_grad():

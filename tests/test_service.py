@@ -38,17 +38,21 @@ def feed(take, headset_fd, hub_fd, stop, hz=60.0):
         time.sleep(max(0.0, t0 + k / hz - time.monotonic()))
 
 
-def test_run_streams_poses_that_listen_decodes(tmp_path):
+def run_board(seconds, runtime, output=None, prepare=None):
+    """A service on two ptys (headset, tracker hub) fed the sample take for `seconds`, and `edge listen`
+    on the headset side. Returns (service, decoded frames, listener)."""
     take = from_sample(SAMPLE)
     hm, hs, hpath = pty_pair()
     tm, ts, tpath = pty_pair()
     cfg = config_mod.from_dict({
         "headset": {"url": f"serial://{hpath}?role=headset"},
         "trackers": [{"url": f"serial://{tpath}?role=hub"}],
-        "output": {"pose_stream": "headset", "bvh": str(tmp_path / "take.bvh")},
-        "runtime": {"samples": 4, "lookahead": 3, "adaptive": False},
+        "output": {"pose_stream": "headset", **(output or {})},
+        "runtime": runtime,
     })
     service = Service(cfg, status=None)
+    if prepare:
+        prepare(service)
     stop = threading.Event()
     feeder = threading.Thread(target=feed, args=(take, hm, tm, stop), daemon=True)
     runner = threading.Thread(target=lambda: service.run(stop=stop.is_set), daemon=True)
@@ -56,12 +60,20 @@ def test_run_streams_poses_that_listen_decodes(tmp_path):
     runner.start()
     frames = []
     ear = Listener(fd=hm)
-    deadline = time.monotonic() + 2.5
+    deadline = time.monotonic() + seconds
     while time.monotonic() < deadline:
         frames += ear.poll(0.05)
     stop.set()
     runner.join(5)
     feeder.join(5)
+    for fd in (hm, hs, tm, ts):
+        os.close(fd)
+    return service, frames, ear
+
+
+def test_run_streams_poses_that_listen_decodes(tmp_path):
+    service, frames, ear = run_board(2.5, {"samples": 4, "lookahead": 3, "adaptive": False},
+                                     {"bvh": str(tmp_path / "take.bvh")})
     summary = service.summary()
     assert len(frames) > 60 and ear.stats["corrupt"] == 0
     assert summary["frames_out"] >= len(frames) and summary["frames_in"] - summary["frames_out"] <= 3
@@ -74,8 +86,6 @@ def test_run_streams_poses_that_listen_decodes(tmp_path):
     # The BVH recorder got the same frames.
     text = (tmp_path / "take.bvh").read_text()
     assert f"Frames: {summary['frames_out']}" in " ".join(text.split())
-    for fd in (hm, hs, tm, ts):
-        os.close(fd)
 
 
 @pytest.mark.parametrize("raw, message", [
@@ -112,35 +122,15 @@ def test_a_service_that_runs_late_lowers_n_and_keeps_streaming():
     """Adaptive N in the service: every tick is late against a 1 us period, so the watchdog must cut
     N to 1 while poses keep flowing (the real budget is the frame period; see edge profile --hog-at)."""
     from edge.governor import SampleGovernor
-    take = from_sample(SAMPLE)
-    hm, hs, hpath = pty_pair()
-    tm, ts, tpath = pty_pair()
-    cfg = config_mod.from_dict({
-        "headset": {"url": f"serial://{hpath}?role=headset"},
-        "trackers": [{"url": f"serial://{tpath}?role=hub"}],
-        "runtime": {"samples": 16, "lookahead": 3},
-    })
-    service = Service(cfg, status=None)
-    assert service.governor is not None and service.pipeline.samples == 16
-    service.governor = SampleGovernor(0.001, 16)
-    stop = threading.Event()
-    feeder = threading.Thread(target=feed, args=(take, hm, tm, stop), daemon=True)
-    runner = threading.Thread(target=lambda: service.run(stop=stop.is_set), daemon=True)
-    feeder.start()
-    runner.start()
-    frames = []
-    ear = Listener(fd=hm)
-    deadline = time.monotonic() + 2.0
-    while time.monotonic() < deadline:
-        frames += ear.poll(0.05)
-    stop.set()
-    runner.join(5)
-    feeder.join(5)
+
+    def impossible_budget(service):
+        assert service.governor is not None and service.pipeline.samples == 16
+        service.governor = SampleGovernor(0.001, 16)
+
+    service, frames, ear = run_board(2.0, {"samples": 16, "lookahead": 3}, prepare=impossible_budget)
     summary = service.summary()
     assert summary["samples"] == 1 and summary["samples_max"] == 16
     # One cut, in proportion to how late the tick was (thousands of periods: straight to 1).
     assert [c[1:] for c in summary["samples_changes"]] == [[16, 1, "late"]]
     assert frames[-1].num_samples == 1 and len(frames) > 60
     assert ear.stats["corrupt"] == 0
-    for fd in (hm, hs, tm, ts):
-        os.close(fd)
