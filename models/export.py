@@ -21,7 +21,8 @@ from models.nets import CVAE, HIDDEN, LATENT, DecoderStep, PoseAE
 def load_checkpoint(ckpt):
     ckpt = Path(ckpt)
     meta = json.loads((ckpt / "meta.json").read_text())
-    cvae, ae = CVAE(posterior=meta.get("posterior_encoder", False)), PoseAE()
+    cvae = CVAE(posterior=meta.get("posterior_encoder", False), learned_prior=meta.get("learned_prior", False))
+    ae = PoseAE()
     cvae.load_state_dict(torch.load(ckpt / "cvae.pt", weights_only=True))
     ae.load_state_dict(torch.load(ckpt / "ae.pt", weights_only=True))
     return cvae.eval(), ae.eval(), meta

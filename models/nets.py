@@ -56,11 +56,19 @@ class CVAE(nn.Module):
     the recognition network q(z | x, y) of a conditional VAE (Sohn et al. 2015). The paper's encoder
     sees the trackers only, so z cannot carry pose information and the decoder learns to ignore it;
     the decoder, which is all that ships, is the same either way.
+
+    learned_prior=True adds a conditional prior p(z | x_t, h_{t-1}) = N(mu_p, sigma_p) computed from
+    the trackers and the decoder's GRU state; the KL term is KL(q || p), and the shipped decoder step
+    maps the runtime's epsilon to z = mu_p + sigma_p * epsilon inside the graph. epsilon = 0 (N=1) is
+    then the prior's mean, not z = 0, and the spread of the samples follows how ambiguous the pose is
+    given the trackers (wide for legs during a kick, narrow when standing).
     """
 
-    def __init__(self, posterior=False):
+    def __init__(self, posterior=False, learned_prior=False):
         super().__init__()
-        self.posterior = posterior
+        self.posterior, self.learned_prior = posterior, learned_prior
+        self.prior = nn.Sequential(nn.Linear(NUM_FEATURES + HIDDEN, HIDDEN), nn.ReLU(),
+                                   nn.Linear(HIDDEN, 2 * LATENT)) if learned_prior else None
         self.norm = Normalizer(NUM_FEATURES)
         self.target_norm = Normalizer(NUM_JOINTS * 3) if posterior else None
         self.enc_fc = nn.Linear(NUM_FEATURES + (NUM_JOINTS * 3 if posterior else 0), HIDDEN)
@@ -80,17 +88,44 @@ class CVAE(nn.Module):
         return self.mu(h), self.logvar(h).clamp(-10, 5)
 
     def decode(self, x, z, h0=None):
+        rot, con, h = self._decode_seq(x, z, h0)
+        return rot, con, h[-1:]
+
+    def _decode_seq(self, x, z, h0=None):
         inp = torch.relu(self.dec_fc(torch.cat([z, self.norm(x)], dim=-1)))
-        h, hn = self.dec_gru(inp, h0)
-        h = torch.relu(h)
-        return self.rot_head(h) + _IDENTITY_6D, torch.sigmoid(self.contact_head(h)), hn
+        h, _ = self.dec_gru(inp, h0)
+        y = torch.relu(h)
+        return self.rot_head(y) + _IDENTITY_6D, torch.sigmoid(self.contact_head(y)), h
+
+    def prior_params(self, x_norm, h_prev):
+        """Conditional prior from normalised features and the previous GRU state -> (mu_p, logvar_p)."""
+        out = self.prior(torch.cat([x_norm, h_prev], dim=-1))
+        return out[..., :LATENT], out[..., LATENT:].clamp(-8, 3)
 
     def forward(self, x, sample=True, target=None):
-        """x [W,B,24] time-major -> rot6d [W,B,120], contacts [W,B,2], mu, logvar."""
+        """x [W,B,24] time-major -> rot6d [W,B,120], contacts [W,B,2], mu, logvar (posterior), and
+        the prior's (mu_p, logvar_p) per frame when it is learned (else None)."""
         mu, logvar = self.encode(x, target)
         z = mu + torch.exp(0.5 * logvar) * torch.randn_like(mu) if sample else mu
-        rot, con, _ = self.decode(x, z)
-        return rot, con, mu, logvar
+        rot, con, h = self._decode_seq(x, z)
+        prior = None
+        if self.learned_prior:
+            h_prev = torch.cat([torch.zeros_like(h[:1]), h[:-1]], dim=0)
+            prior = self.prior_params(self.norm(x), h_prev)
+        return rot, con, mu, logvar, prior
+
+    def decode_prior_mean(self, x):
+        """Frame-by-frame decoding at epsilon = 0, as N=1 runs: z_t = 0, or mu_p(x_t, h_{t-1})."""
+        if not self.learned_prior:
+            return self.decode(x, torch.zeros(x.shape[:-1] + (LATENT,)))
+        h = torch.zeros((1,) + x.shape[1:-1] + (HIDDEN,))
+        xn, rots, cons = self.norm(x), [], []
+        for t in range(len(x)):
+            z, _ = self.prior_params(xn[t:t + 1], h)
+            rot, con, h = self.decode(x[t:t + 1], z, h)
+            rots.append(rot)
+            cons.append(con)
+        return torch.cat(rots), torch.cat(cons), h
 
 
 class DecoderStep(nn.Module):
@@ -113,10 +148,15 @@ class DecoderStep(nn.Module):
             self.w_hh.bias.copy_(g.bias_hh_l0)
         self.rot_head = cvae.rot_head
         self.contact_head = cvae.contact_head
+        self.prior = cvae.prior
         self.register_buffer("identity6d", _IDENTITY_6D.clone())
 
     def forward(self, features, latent, hidden):
-        x = torch.relu(self.fc(torch.cat([latent, self.norm(features)], dim=-1)))
+        xn = self.norm(features)
+        if self.prior is not None:      # epsilon -> z through the learned conditional prior
+            out = self.prior(torch.cat([xn, hidden], dim=-1))
+            latent = out[:, :LATENT] + torch.exp(0.5 * out[:, LATENT:].clamp(-8, 3)) * latent
+        x = torch.relu(self.fc(torch.cat([latent, xn], dim=-1)))
         gi = self.w_ih(x)
         gh = self.w_hh(hidden)
         r = torch.sigmoid(gi[:, :HIDDEN] + gh[:, :HIDDEN])

@@ -38,18 +38,23 @@ def to_t(b):
 
 
 def cvae_losses(model, b, sample=True):
-    """Training uses the posterior sample; validation decodes at the prior mean (z = 0), as N=1 runs."""
+    """Training uses the posterior sample; validation decodes at the prior mean (epsilon = 0), as N=1 runs."""
+    prior = None
     if sample:
-        rot6d, con, mu, logvar = model(b["features"], True, b["gt_rel"])
+        rot6d, con, mu, logvar, prior = model(b["features"], True, b["gt_rel"])
     else:
         mu = logvar = torch.zeros(b["features"].shape[:-1] + (LATENT,))
-        rot6d, con, _ = model.decode(b["features"], mu)
+        rot6d, con, _ = model.decode_prior_mean(b["features"])
     local = matrix_from_6d(rot6d.reshape(rot6d.shape[:-1] + (NUM_PREDICTED, 6)))
     pos = fk_positions(b["root_rot"], local)
     pos = pos - pos[..., HEAD:HEAD + 1, :]
     err = pos - b["gt_rel"]
     mse = (err ** 2).sum(-1).mean()
-    kl = (-0.5 * (1 + logvar - mu ** 2 - logvar.exp())).mean()
+    if prior is None:
+        kl = (-0.5 * (1 + logvar - mu ** 2 - logvar.exp())).mean()
+    else:                          # KL(q || p) between diagonal Gaussians, p the learned prior
+        mu_p, logvar_p = prior
+        kl = (0.5 * (logvar_p - logvar + (logvar.exp() + (mu - mu_p) ** 2) / logvar_p.exp() - 1)).mean()
     bce = torch.nn.functional.binary_cross_entropy(con.clamp(1e-6, 1 - 1e-6), b["contacts"])
     rot = ((rot6d - b["rot6d"]) ** 2).mean()
     mpjpe = err.norm(dim=-1).mean()
@@ -103,6 +108,8 @@ def main():
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--posterior", action="store_true", help="encoder also sees the target pose (q(z|x,y))")
+    ap.add_argument("--learned-prior", action="store_true",
+                    help="conditional prior p(z | trackers, GRU state); implies --posterior")
     ap.add_argument("--kl", type=float, default=LOSS["lambda_kl"], help="KL weight lambda")
     ap.add_argument("--out", default="models")
     ap.add_argument("--ckpt", default=".cache/train")
@@ -110,6 +117,7 @@ def main():
 
     out, ckpt = Path(a.out), Path(a.ckpt)
     ckpt.mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
     logf = open(out / "train_log.txt", "w")
 
     def log(msg):
@@ -142,7 +150,8 @@ def main():
     vstarts = ds.window_starts(cs_val, 240)
     val_batches = [to_t(ds.make_batch(cs_val, vrng.choice(vstarts, 128), 240, vrng, None)) for _ in range(4)]
 
-    model = CVAE(posterior=a.posterior)
+    a.posterior = a.posterior or a.learned_prior
+    model = CVAE(posterior=a.posterior, learned_prior=a.learned_prior)
     fit = [to_t(q.get()) for _ in range(8)]
     model.norm.fit(torch.cat([b["features"] for b in fit]))
     if a.posterior:
@@ -184,7 +193,7 @@ def main():
     log(f"cvae: {it} iterations in {time.time() - t1:.0f} s; best val {best:.2f} cm at it {best_it}")
     meta = {"plausibility_threshold_m": threshold, "iterations": it, "best_iteration": best_it,
             "val_mpjpe_cm_training": best, "minutes": a.minutes, "sources": a.sources or sorted(ds.SOURCE_FOLDERS),
-            "loss": LOSS, "posterior_encoder": a.posterior, "batch": a.batch, "window": a.window, "lr": a.lr, "seed": a.seed,
+            "loss": LOSS, "posterior_encoder": a.posterior, "learned_prior": a.learned_prior, "batch": a.batch, "window": a.window, "lr": a.lr, "seed": a.seed,
             "train_clips": len(cs_train.names), "train_minutes": len(cs_train.root) / 3600}
     (ckpt / "meta.json").write_text(json.dumps(meta, indent=2))
     from models.export import export_all
