@@ -13,7 +13,9 @@ Raising is slow and one ladder step at a time: after `hold` frames at the curren
 most 10 % were slower than `low` x the period. A raise that proves too much (a late frame within
 `probation` frames) is undone, back to the N that fitted, and the hold before the next try doubles
 (up to `max_hold`), so a busy board is not probed every few seconds; `calm` frames without a
-lowering bring the hold back to its base.
+lowering bring the hold back to its base. A board that has gone quiet (no frame slower than `low`
+in the judged window) is climbed at the base hold whatever the doubled one says, so N comes back
+within seconds of the contention ending.
 """
 LADDER = (1, 2, 4, 8, 16, 24, 32, 48, 64, 96, 128)
 
@@ -69,8 +71,8 @@ class SampleGovernor:
                 cut = min(0.5, self.high_ms / frame_ms)
                 self._change(self._level_at_most(int(self.samples * cut)), "late")
             self.since_lower = 0
-        elif (self.level < len(self.ladder) - 1 and self.since_change >= self.hold
-              and self._slow_count <= self.window // 10):
+        elif (self.level < len(self.ladder) - 1 and self._slow_count <= self.window // 10
+              and self.since_change >= (self.base_hold if self._slow_count == 0 else self.hold)):
             self._change(self.level + 1, "slack")
             self.last_raise_at = self.frame
         if self.since_lower >= self.calm:

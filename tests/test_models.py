@@ -115,3 +115,22 @@ def test_onnx_autoencoder_matches_pytorch(torch):
     with torch.no_grad():
         ref = ae(torch.from_numpy(x)).numpy()
     assert np.abs(onnx_ae(x) - ref).max() < 1e-4
+
+
+def test_learned_prior_step_at_zero_epsilon_decodes_the_prior_mean(torch):
+    """--learned-prior: the exported step maps epsilon through p(z | x, h); epsilon = 0 (N=1) must be
+    the frame-by-frame prior-mean decoding training validates with."""
+    from models.nets import LATENT, CVAE, DecoderStep
+    torch.manual_seed(0)
+    cvae = CVAE(posterior=True, learned_prior=True).eval()
+    x = torch.randn(40, 3, 24)
+    step = DecoderStep(cvae).eval()
+    with torch.no_grad():
+        rot_seq, con_seq, _ = cvae.decode_prior_mean(x)
+        h = torch.zeros(3, 128)
+        for t in range(40):
+            rot, con, h = step(x[t], torch.zeros(3, LATENT), h)
+            assert torch.allclose(rot, rot_seq[t], atol=1e-5) and torch.allclose(con, con_seq[t], atol=1e-6)
+        # and a non-zero epsilon moves the pose: the prior has a spread
+        rot_eps, _, _ = step(x[0], torch.ones(3, LATENT), torch.zeros(3, 128))
+        assert not torch.allclose(rot_eps, step(x[0], torch.zeros(3, LATENT), torch.zeros(3, 128))[0])
