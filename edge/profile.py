@@ -366,6 +366,8 @@ def contention_report(resp, live_n, period, hog, governor):
                                    "samples_last": int(n[-1]), "frame_ms": _pct(resp[sl] * 1e3)}
     steps = np.flatnonzero(np.diff(live_n)) + 1
     out["samples_timeline"] = [[0, int(live_n[0])]] + [[int(i), int(live_n[i])] for i in steps]
+    out["frame_ms_per_frame"] = [round(float(x), 2) for x in resp * 1e3]     # for `edge report`
+    out["period_ms"] = 1e3 * period
     if hog:
         out["hog"] = {"start_frame": hog[0], "frames": hog[1], "processes": hog[2]}
     if governor is not None:

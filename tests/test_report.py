@@ -189,6 +189,16 @@ def test_latency_and_health_are_drawn_when_the_json_carries_them(run, tmp_path):
     assert "no --dump folder given" in page
 
 
+def test_a_profile_run_under_a_hog_gets_its_contention_picture(tmp_path):
+    out = tmp_path / "hog.json"
+    assert edge_main(["profile", "--samples", "8", "--adaptive", "--frames", "90", "--hog-at", "0.5",
+                      "--hog-seconds", "0.5", "--hog-procs", "1", "--no-cgroup", "--json", str(out)]) == 0
+    build_report(out, tmp_path / "rep")
+    assert_picture(tmp_path / "rep" / "contention.png")
+    page = (tmp_path / "rep" / "index.html").read_text()
+    assert '<img src="contention.png"' in page and "during: " in page
+
+
 def test_malformed_health_timeline_is_skipped_with_the_reason(run, tmp_path):
     result = json.loads(run[0].read_text())
     health = synthetic_health()

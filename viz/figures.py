@@ -5,6 +5,7 @@
     latency_histogram  frame latencies against the 60 Hz frame budget
     ssi_timeline       SSI: every sample's cost, the outlier bound, switches and the sample shown
     health_timeline    lost and recovered trackers, corrupt packets, injected faults
+    contention_timeline  edge profile under a CPU hog: every frame's time and the N running
 
 Data checks that decide whether a picture can be drawn at all live in viz.report.
 """
@@ -309,4 +310,46 @@ def health_timeline(health, path, title="Tracker health"):
     ax.grid(axis="x", color=canvas.GRID)
     ax.set_axisbelow(True)
     ax.legend(fontsize=7.5, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    return canvas.save_png(fig, path)
+
+
+# --------------------------------------------------------------------------------------------------
+# Adaptive N under contention
+
+
+def contention_timeline(frame_ms, samples_timeline, period_ms, hog, path, title="Adaptive N under a CPU hog"):
+    """Two panels over time: each frame's response time against the deadline (misses in red), and the
+    number of samples running. `samples_timeline` is [[first frame, N], ...]; `hog` {"start_frame",
+    "frames", "processes"} or None. Frames at 1000/period_ms Hz."""
+    ms = np.asarray(frame_ms, dtype=float)
+    t = np.arange(len(ms)) * period_ms / 1000.0
+    n = np.empty(len(ms))
+    for (a, v), nxt in zip(samples_timeline, samples_timeline[1:] + [[len(ms), None]]):
+        n[a:nxt[0]] = v
+    fig = canvas.new_figure(8.0, 4.6)
+    top = fig.add_axes([0.09, 0.52, 0.88, 0.38])
+    bottom = fig.add_axes([0.09, 0.11, 0.88, 0.33], sharex=top)
+    late = ms > period_ms
+    for ax in (top, bottom):
+        if hog:
+            a, b = hog["start_frame"], hog["start_frame"] + hog["frames"]
+            ax.axvspan(a * period_ms / 1000.0, b * period_ms / 1000.0, color="#f3e2c7", zorder=0,
+                       label=f"{hog['processes']} busy processes on the core" if ax is top else None)
+        ax.grid(color=canvas.GRID, linewidth=0.6)
+    top.plot(t[~late], ms[~late], ".", markersize=1.6, color="#5b7db1", label="frame (release to done)")
+    top.plot(t[late], ms[late], ".", markersize=3.5, color=canvas.BUDGET, label=f"late: {int(late.sum())} frames")
+    top.axhline(period_ms, color=canvas.BUDGET, linewidth=1.2, label=f"deadline {period_ms:.1f} ms")
+    top.set_ylim(0, max(2.2 * period_ms, np.percentile(ms, 99.5) * 1.1))
+    top.set_ylabel("ms")
+    top.legend(fontsize=7.5, loc="upper right", markerscale=3)
+    top.set_title(f"{title}: {len(ms)} frames, {100 * late.mean():.2f} % late", fontsize=10.5, loc="left")
+    bottom.step(t, n, where="post", color="#2d7d46", linewidth=1.5)
+    from matplotlib.ticker import NullFormatter
+    bottom.set_yscale("log", base=2)
+    ticks = [v for v in (1, 2, 4, 8, 16, 32, 64, 128) if v <= n.max() * 1.01]
+    bottom.set_yticks(ticks, [str(v) for v in ticks])
+    bottom.yaxis.set_minor_formatter(NullFormatter())
+    bottom.set_ylim(0.8, max(n.max() * 1.4, 2))
+    bottom.set_ylabel("samples N")
+    bottom.set_xlabel("time (s)")
     return canvas.save_png(fig, path)

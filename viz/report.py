@@ -1,6 +1,6 @@
 """`edge report RUN.json [--dump DIR] --out DIR`: the pictures of a run and an index.html that shows them.
 
-RUN.json is what `edge eval --json` wrote; DIR the folder `edge eval --dump` wrote (one .npz per clip).
+RUN.json is what `edge eval --json` (or `edge replay`, `edge profile`) wrote; DIR the folder `edge eval --dump` wrote (one .npz per clip).
 What gets drawn depends on what the data carries; every picture that cannot be drawn gets a line in
 index.html saying why:
 
@@ -10,6 +10,8 @@ index.html saying why:
     latency histogram           RUN.json: latency_ms_samples, a list of per-frame latencies in ms
                                 (edge eval measures quality, not time; the simulator will add them)
     tracker health              RUN.json: health_timeline (format: viz.figures.check_health_timeline)
+    adaptive N under contention RUN.json from `edge profile --hog-at S` / `--adaptive`: contention
+                                (frame_ms_per_frame, samples_timeline, hog)
 
 Skeletons, the animation and the SSI timeline are drawn for one clip: --clip NAME, or by default the
 clip with the largest MPJPE in RUN.json.
@@ -74,6 +76,7 @@ def build_report(run_json, out, dump=None, clip=None, every=STRIP_EVERY, strip_f
     sections.append(per_joint_section(run, out))
     sections.append(latency_section(run, out))
     sections.append(health_section(run, out))
+    sections.append(contention_section(run, out))
     return write_index(out, Path(run_json), run, sections)
 
 
@@ -193,6 +196,23 @@ def health_section(run, out):
     return Section("Tracker health", "health_timeline.png",
                    "Red: a tracker was lost (no data for 250 ms); green triangles: it came back. Grey ticks: corrupt "
                    "packets. Purple dashed lines: faults the simulator injected.")
+
+
+def contention_section(run, out):
+    from viz.figures import contention_timeline
+
+    c = run.get("contention") or {}
+    ms, steps = c.get("frame_ms_per_frame"), c.get("samples_timeline")
+    if not ms or not steps:
+        return Section("Adaptive N under contention", None, "Skipped: only `edge profile --hog-at S` or "
+                       "`--adaptive` runs carry per-frame times and the N timeline.")
+    title = ("Adaptive N" if run.get("adaptive") else "Fixed N") + (" under a CPU hog" if c.get("hog") else "")
+    contention_timeline(ms, steps, c.get("period_ms", 1000.0 / 60.0), c.get("hog"), out / "contention.png", title)
+    phases = c.get("phases", {})
+    text = "; ".join(f"{k}: {v['deadline_misses']} late of {v['frames']} frames, N mean {v['samples_mean']:g}"
+                     for k, v in phases.items() if k != "whole")
+    return Section("Adaptive N under contention", "contention.png",
+                   f"Each frame's response time (release to done) and the number of samples running. {text}.")
 
 
 # --------------------------------------------------------------------------------------------------
