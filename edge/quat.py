@@ -24,15 +24,12 @@ def inv(q):
     return q * np.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
 
 
+_NEXT, _PREV = [1, 2, 0], [2, 0, 1]
+
+
 def cross(a, b):
     """Cross product over the last axis (np.cross's axis handling costs more than the arithmetic here)."""
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.result_type(a, b))
-    np.subtract(a1 * b2, a2 * b1, out=out[..., 0])
-    np.subtract(a2 * b0, a0 * b2, out=out[..., 1])
-    np.subtract(a0 * b1, a1 * b0, out=out[..., 2])
-    return out
+    return a[..., _NEXT] * b[..., _PREV] - a[..., _PREV] * b[..., _NEXT]
 
 
 def rotate(q, v):
