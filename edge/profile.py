@@ -31,8 +31,8 @@ Contention (--hog-at S [--hog-seconds D] [--hog-procs K]): K busy processes star
 measured run, on the worker's core but outside its cgroup, and stop D seconds later. With
 --adaptive the deadline watchdog (edge.governor, the same one `edge run` uses) lowers N while
 frames run late and raises it again when there is slack; `contention` in the JSON has deadline
-misses and N before, during and after the hog and every change of N. Without --adaptive the same
-run shows what a fixed N does. A frame whose deadline passed before it could start is skipped and
+misses and N before, during and after the hog, every change of N and each frame's time, and
+`edge report OUT --out DIR` draws them. Without --adaptive the same run shows what a fixed N does. A frame whose deadline passed before it could start is skipped and
 counted as a miss, as `edge run` does (it resynchronises instead of bursting).
 
 Stage timings: `sync`, `pipeline_step` and `output_encoding` are measured in the paced loop (wall time,

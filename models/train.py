@@ -37,6 +37,32 @@ def to_t(b):
     return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in b.items()}
 
 
+def head_positions(rot6d, root_rot):
+    """Decoder 6D output -> joint positions relative to the head (the runtime hangs the body from it)."""
+    local = matrix_from_6d(rot6d.reshape(rot6d.shape[:-1] + (NUM_PREDICTED, 6)))
+    pos = fk_positions(root_rot, local)
+    return pos - pos[..., HEAD:HEAD + 1, :]
+
+
+def variety_losses(model, b, K):
+    """Best-of-K ("variety", multiple-choice) training for sample diversity: the prior mean (z = 0, what
+    N=1 runs) learns the usual regression, and of K latents held fixed over the window, only the one
+    closest to the truth is pulled towards it, so the samples spread over the poses the trackers leave
+    open instead of collapsing onto the mean. Returns (mse at z=0, best-of-K mse, bce, rot, mpjpe at z=0)."""
+    x, gt = b["features"], b["gt_rel"]
+    W, B = x.shape[:2]
+    rot0, con0, _ = model.decode(x, torch.zeros(W, B, LATENT))
+    eps = torch.randn(1, B * K, LATENT).expand(W, -1, -1)
+    rotk, _, _ = model.decode(x.repeat(1, K, 1), eps)
+    err0 = head_positions(rot0, b["root_rot"]) - gt
+    errk = head_positions(rotk, b["root_rot"].repeat(1, K, 1, 1)) - gt.repeat(1, K, 1, 1)
+    per_window = (errk ** 2).sum(-1).mean(dim=(0, 2)).view(K, B)
+    best = per_window.min(0).values.mean()
+    bce = torch.nn.functional.binary_cross_entropy(con0.clamp(1e-6, 1 - 1e-6), b["contacts"])
+    rot = ((rot0 - b["rot6d"]) ** 2).mean()
+    return (err0 ** 2).sum(-1).mean(), best, bce, rot, err0.norm(dim=-1).mean()
+
+
 def cvae_losses(model, b, sample=True):
     """Training uses the posterior sample; validation decodes at the prior mean (epsilon = 0), as N=1 runs."""
     prior = None
@@ -111,6 +137,10 @@ def main():
     ap.add_argument("--learned-prior", action="store_true",
                     help="conditional prior p(z | trackers, GRU state); implies --posterior")
     ap.add_argument("--kl", type=float, default=LOSS["lambda_kl"], help="KL weight lambda")
+    ap.add_argument("--variety", type=int, default=0, metavar="K",
+                    help="best-of-K training for sample diversity (z = 0 regression + the best of K latents)")
+    ap.add_argument("--init", help="start the CVAE from this checkpoint folder (e.g. models/checkpoints) and "
+                                   "reuse its autoencoder instead of training one")
     ap.add_argument("--out", default="models")
     ap.add_argument("--ckpt", default=".cache/train")
     a = ap.parse_args()
@@ -141,9 +171,15 @@ def main():
         p.start()
 
     t0 = time.time()
-    ae, threshold = train_ae(cs_train, cs_val, a.ae_steps, a.seed, log)
-    torch.save(ae.state_dict(), ckpt / "ae.pt")
-    log(f"autoencoder trained in {time.time() - t0:.0f} s")
+    if a.init:
+        import shutil
+        shutil.copy(Path(a.init) / "ae.pt", ckpt / "ae.pt")
+        threshold = json.loads((Path(a.init) / "meta.json").read_text())["plausibility_threshold_m"]
+        log(f"autoencoder and threshold from {a.init}")
+    else:
+        ae, threshold = train_ae(cs_train, cs_val, a.ae_steps, a.seed, log)
+        torch.save(ae.state_dict(), ckpt / "ae.pt")
+        log(f"autoencoder trained in {time.time() - t0:.0f} s")
 
     # Validation: fixed clean windows of 4 s, latent at the prior mean (what N=1 runs).
     vrng = np.random.default_rng(1234)
@@ -152,8 +188,11 @@ def main():
 
     a.posterior = a.posterior or a.learned_prior
     model = CVAE(posterior=a.posterior, learned_prior=a.learned_prior)
+    if a.init:
+        model.load_state_dict(torch.load(Path(a.init) / "cvae.pt", weights_only=True))
     fit = [to_t(q.get()) for _ in range(8)]
-    model.norm.fit(torch.cat([b["features"] for b in fit]))
+    if not a.init:
+        model.norm.fit(torch.cat([b["features"] for b in fit]))
     if a.posterior:
         model.target_norm.fit(torch.cat([b["gt_rel"].flatten(-2) for b in fit]))
     opt = torch.optim.Adam(model.parameters(), lr=a.lr)
@@ -167,8 +206,12 @@ def main():
             g["lr"] = 1e-5 + 0.5 * (a.lr - 1e-5) * (1 + np.cos(np.pi * frac))
         b = to_t(q.get())
         model.train()
-        mse, kl, bce, rot, mpjpe = cvae_losses(model, b)
-        loss = LOSS["w_pos"] * mse + LOSS["lambda_kl"] * kl + LOSS["gamma_bce"] * bce + LOSS["w_rot"] * rot
+        if a.variety:
+            mse, kl, bce, rot, mpjpe = variety_losses(model, b, a.variety)    # kl slot: the best-of-K term
+            loss = LOSS["w_pos"] * (mse + kl) + LOSS["gamma_bce"] * bce + LOSS["w_rot"] * rot
+        else:
+            mse, kl, bce, rot, mpjpe = cvae_losses(model, b)
+            loss = LOSS["w_pos"] * mse + LOSS["lambda_kl"] * kl + LOSS["gamma_bce"] * bce + LOSS["w_rot"] * rot
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -193,7 +236,7 @@ def main():
     log(f"cvae: {it} iterations in {time.time() - t1:.0f} s; best val {best:.2f} cm at it {best_it}")
     meta = {"plausibility_threshold_m": threshold, "iterations": it, "best_iteration": best_it,
             "val_mpjpe_cm_training": best, "minutes": a.minutes, "sources": a.sources or sorted(ds.SOURCE_FOLDERS),
-            "loss": LOSS, "posterior_encoder": a.posterior, "learned_prior": a.learned_prior, "batch": a.batch, "window": a.window, "lr": a.lr, "seed": a.seed,
+            "loss": LOSS, "posterior_encoder": a.posterior, "learned_prior": a.learned_prior, "variety": a.variety, "init": a.init, "batch": a.batch, "window": a.window, "lr": a.lr, "seed": a.seed,
             "train_clips": len(cs_train.names), "train_minutes": len(cs_train.root) / 3600}
     (ckpt / "meta.json").write_text(json.dumps(meta, indent=2))
     from models.export import export_all
