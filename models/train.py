@@ -4,6 +4,10 @@
 
 Seeded, CPU only, with a progress bar and a log (models/train_log.txt). Loss (SSI eq. 1):
   L = w_pos * MSE(FK positions, head-anchored, m^2) + lambda * KL + gamma * BCE(contacts) + w_rot * MSE(6D)
+
+Sample-diversity experiments (measured in models/MODEL_CARD.md, none shipped): --posterior (the
+encoder also sees the pose), --learned-prior (a conditional prior p(z | trackers, GRU state)), and
+--variety K --init models/checkpoints (best-of-K fine-tuning of the shipped decoder).
 """
 import argparse
 import json
