@@ -1,7 +1,7 @@
 """Adaptive N: a deadline watchdog that decides how many SSI samples to run.
 
 Feed it every frame's response time (release to done, ms); it answers the N for the next frame, and
-the pipeline changes N without a visible pop (Pipeline.set_samples).
+the pipeline changes N without a visible pop (Pipeline.set_samples). `steer` does both.
 
 Lowering is fast and multiplicative: a missed deadline, or two frames in ten slower than `high` x
 the frame period (one such frame can be a scheduling hiccup that N cannot fix), cuts N at once, at
@@ -78,6 +78,13 @@ class SampleGovernor:
         if self.since_lower >= self.calm:
             self.hold = self.base_hold
         return self.samples
+
+    def steer(self, pipeline, frame_ms):
+        """Observe a frame of `pipeline` (anything with `samples` and `set_samples`) and pass a new N on."""
+        before = self.samples
+        n = self.observe(frame_ms, pipeline.samples)
+        if n != before:
+            pipeline.set_samples(n)
 
     def _change(self, level, reason):
         self.changes.append((self.frame, self.samples, self.ladder[level], reason))

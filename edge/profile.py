@@ -1,7 +1,7 @@
 """`edge profile`: how many SSI samples fit a CPU budget, measured on the real pipeline.
 
     edge profile [--cpu-quota Q] [--hz H] [--samples N|auto] [--frames K] [--precision fp32|int8] --json OUT
-    edge profile --samples 128 --adaptive --frames 2400 --hog-at 10 --hog-seconds 20 --hog-procs 3 --json OUT
+    edge profile --samples 128 --adaptive --frames 4200 --hog-at 15 --hog-seconds 30 --hog-procs 5 --json OUT
 
 A worker process runs the board's per-frame path on synthesised input (the bundled sample's tracker
 signals, looped): FrameSynchronizer.frame -> Pipeline.step -> POSE_FRAME encoding, with frames released
@@ -32,8 +32,9 @@ measured run, on the worker's core but outside its cgroup, and stop D seconds la
 --adaptive the deadline watchdog (edge.governor, the same one `edge run` uses) lowers N while
 frames run late and raises it again when there is slack; `contention` in the JSON has deadline
 misses and N before, during and after the hog, every change of N and each frame's time, and
-`edge report OUT --out DIR` draws them. Without --adaptive the same run shows what a fixed N does. A frame whose deadline passed before it could start is skipped and
-counted as a miss, as `edge run` does (it resynchronises instead of bursting).
+`edge report OUT --out DIR` draws them. Without --adaptive the same run shows what a fixed N does.
+A frame whose deadline passed before it could start is skipped and counted as a miss, as `edge run`
+does (it resynchronises instead of bursting).
 
 Stage timings: `sync`, `pipeline_step` and `output_encoding` are measured in the paced loop (wall time,
 every frame). The stages inside Pipeline.step (features, decoder, FK, IK, autoencoder, selection,
@@ -247,8 +248,8 @@ class Hog:
             p.kill()
 
     def reap(self):
+        self.stop()
         for p in self.procs:
-            p.kill()
             p.wait()
 
 
@@ -282,7 +283,6 @@ def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None):
         st = {"sync": np.empty(frames), "pipeline_step": np.empty(frames), "output_encoding": np.zeros(frames)}
         live_n = np.empty(frames, np.int32)
         governor = SampleGovernor(1000.0 * period, samples) if adaptive else None
-        governor_n = samples
         misses = late_starts = skipped = 0
         t0 += warm * period
         with Progress(frames, bar_desc) as bar:
@@ -294,37 +294,33 @@ def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None):
                 k = warm + i
                 release = t0 + i * period
                 now = clock()
+                skip = now >= release + period
                 if now < release:
                     time.sleep(release - now)
-                elif now >= release + period:
+                elif not skip:
+                    late_starts += 1 if now > release + 0.001 else 0
+                live_n[i] = pipe.samples
+                if skip:
                     # Its deadline passed before it could start: skipped and missed, as `edge run` does
                     # (a late service resynchronises to the next tick instead of bursting).
-                    misses += 1
                     skipped += 1
                     resp[i], comp[i], cpu[i] = now - release, np.nan, np.nan
                     for v in st.values():
                         v[i] = np.nan
-                    live_n[i] = pipe.samples
-                    if governor is not None:
-                        governor_n = _govern(governor, pipe, resp[i], governor_n)
-                    continue
                 else:
-                    late_starts += 1 if now > release + 0.001 else 0
-                a, ca = clock(), cpu_clock()
-                sig = feeder.frame(k)
-                b = clock()
-                pose = pipe.step(sig)
-                c = clock()
-                if pose is not None:
-                    enc(pose, k / hz)
-                d, cd = clock(), cpu_clock()
-                st["sync"][i], st["pipeline_step"][i], st["output_encoding"][i] = b - a, c - b, d - c
-                resp[i], comp[i], cpu[i] = d - release, d - a, cd - ca
-                if d > release + period:
-                    misses += 1
-                live_n[i] = pipe.samples
+                    a, ca = clock(), cpu_clock()
+                    sig = feeder.frame(k)
+                    b = clock()
+                    pose = pipe.step(sig)
+                    c = clock()
+                    if pose is not None:
+                        enc(pose, k / hz)
+                    d, cd = clock(), cpu_clock()
+                    st["sync"][i], st["pipeline_step"][i], st["output_encoding"][i] = b - a, c - b, d - c
+                    resp[i], comp[i], cpu[i] = d - release, d - a, cd - ca
+                misses += 1 if skip or resp[i] > period else 0
                 if governor is not None:
-                    governor_n = _govern(governor, pipe, resp[i], governor_n)
+                    governor.steer(pipe, resp[i] * 1e3)
                 if i % 30 == 29 or i == frames - 1:
                     # cheap on purpose: this runs inside the measured process between frames
                     bar.update(30 if i % 30 == 29 else (i % 30) + 1,
@@ -340,12 +336,6 @@ def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None):
     if adaptive or hog:
         stats["contention"] = contention_report(resp, live_n, period, hog, governor)
     return stats, pipe, feeder
-
-
-def _govern(governor, pipe, resp_s, asked):
-    """Tell the watchdog how the frame went; pass a new N on to the pipeline. Returns the N asked for."""
-    n = governor.observe(resp_s * 1e3, pipe.samples)
-    return pipe.set_samples(n) if n != asked else asked
 
 
 def contention_report(resp, live_n, period, hog, governor):

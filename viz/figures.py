@@ -321,6 +321,8 @@ def contention_timeline(frame_ms, samples_timeline, period_ms, hog, path, title=
     """Two panels over time: each frame's response time against the deadline (misses in red), and the
     number of samples running. `samples_timeline` is [[first frame, N], ...]; `hog` {"start_frame",
     "frames", "processes"} or None. Frames at 1000/period_ms Hz."""
+    from matplotlib.ticker import NullFormatter
+
     ms = np.asarray(frame_ms, dtype=float)
     t = np.arange(len(ms)) * period_ms / 1000.0
     n = np.empty(len(ms))
@@ -344,7 +346,6 @@ def contention_timeline(frame_ms, samples_timeline, period_ms, hog, path, title=
     top.legend(fontsize=7.5, loc="upper right", markerscale=3)
     top.set_title(f"{title}: {len(ms)} frames, {100 * late.mean():.2f} % late", fontsize=10.5, loc="left")
     bottom.step(t, n, where="post", color="#2d7d46", linewidth=1.5)
-    from matplotlib.ticker import NullFormatter
     bottom.set_yscale("log", base=2)
     ticks = [v for v in (1, 2, 4, 8, 16, 32, 64, 128) if v <= n.max() * 1.01]
     bottom.set_yticks(ticks, [str(v) for v in ticks])

@@ -1,6 +1,7 @@
 """`edge report RUN.json [--dump DIR] --out DIR`: the pictures of a run and an index.html that shows them.
 
-RUN.json is what `edge eval --json` (or `edge replay`, `edge profile`) wrote; DIR the folder `edge eval --dump` wrote (one .npz per clip).
+RUN.json is what `edge eval --json` (or `edge replay`, `edge profile`) wrote; DIR the folder
+`edge eval --dump` wrote (one .npz per clip).
 What gets drawn depends on what the data carries; every picture that cannot be drawn gets a line in
 index.html saying why:
 
