@@ -1,6 +1,6 @@
 """Measure the SSI runtime against its targets on the validation split, in one run.
 
-    python bench/ssi_check.py --data ../shared/mocap [--samples 32] [--runs 3] [--out out/ssi_check]
+    python bench/ssi_check.py --data ../shared/mocap [--samples 32] [--runs 3] [--out out/ssi_check] [--models DIR]
 
 Runs edge eval at N=1, at N with SSI and at N with --no-ssi (same seed), and the high-kick study at
 N = 1, 10, 100, then prints each target with the measured figures. Takes tens of minutes on 2 cores.
@@ -23,6 +23,7 @@ def main():
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--out", default="out/ssi_check")
     ap.add_argument("--skip-study", action="store_true")
+    ap.add_argument("--models", help="model folder to check (default: the shipped models/)")
     a = ap.parse_args()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -32,7 +33,7 @@ def main():
         if path.exists():
             runs[name] = json.loads(path.read_text())
             continue
-        runs[name] = evaluate([a.data], "val", samples=n, no_ssi=no_ssi, seed=0)
+        runs[name] = evaluate([a.data], "val", samples=n, no_ssi=no_ssi, seed=0, models=a.models)
         path.write_text(json.dumps(runs[name], indent=2) + "\n")
     n1, ssi, base = runs["n1"], runs["ssi"], runs["no_ssi"]
     rows = [
@@ -51,7 +52,7 @@ def main():
         if path.exists():
             study = json.loads(path.read_text())
         else:
-            study = run_study([a.data], "high-kick", [1, 10, 100], a.runs, split="val")
+            study = run_study([a.data], "high-kick", [1, 10, 100], a.runs, split="val", models=a.models)
             path.write_text(json.dumps(study, indent=2) + "\n")
         err = {r["samples"]: r["mean"] for r in study["results"]}
         rows.append(("high-kick N=10 <= 0.6 x N=1", err[10], 0.6 * err[1]))

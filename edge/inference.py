@@ -109,11 +109,14 @@ class Autoencoder:
 
     def __call__(self, positions):
         if self.rows and len(positions) == self.rows:
-            inp, out = self.inp[:self.rows], self.out[:self.rows]
-            inp[:] = positions
-            self.session.run_with_iobinding(self._io)
-            return out
+            self.inp[:self.rows] = positions
+            return self.run()
         return self.session.run(None, {"positions": np.ascontiguousarray(positions, dtype=np.float32)})[0]
+
+    def run(self):
+        """Run on the bound rows of `inp` as they are (a caller that filled them itself); returns `out`'s rows."""
+        self.session.run_with_iobinding(self._io)
+        return self.out[:self.rows]
 
 
 def open_models(folder=None, threads=1, precision="fp32"):

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from edge import quat
+from edge import native, quat
 from edge.criteria import Composite, FrameContext, Plausibility
 from edge.features import body_points, features, heading
 from edge.ik import FootLock, apply_limb_ik, smoothstep
@@ -108,7 +108,8 @@ class LookaheadBuffer:
 
 class Pipeline:
     def __init__(self, models=None, samples=1, seed=0, fps=60.0, body_scale=1.0, precision="fp32", threads=1,
-                 lookahead=None, transition=10, ssi=True, criteria=None, foot_ik=True, arm_ik=True):
+                 lookahead=None, transition=10, ssi=True, criteria=None, foot_ik=True, arm_ik=True,
+                 use_native=True):
         if not 1 <= samples <= 128:
             raise ValueError(f"samples must be 1..128, got {samples}")
         lookahead = (10 if samples > 1 else 0) if lookahead is None else lookahead
@@ -127,7 +128,7 @@ class Pipeline:
         self.recompute = Decoder(dec_session, lookahead + 1, m["latent"], m["hidden"], m["features"], recurrent=False)
         self.autoencoder = Autoencoder(ae_session, N)
         self.threshold = m["plausibility_threshold_m"]
-        self.scorer = PlausibilityScorer(self.autoencoder, self.threshold)
+        self.scorer = PlausibilityScorer(self.autoencoder, self.threshold, use_native)
         self.criteria = Composite(criteria if criteria is not None else [Plausibility(self.scorer)])
 
         # N=1 is the plain CVAE at the prior mean; more samples draw fixed latents once (SSI 3.2).
@@ -149,6 +150,14 @@ class Pipeline:
         self._limb_weights[:, 2:] = 1.0 if arm_ik else 0.0
         self._limb_ends = np.zeros((R, 4, 3, 3))
         self._toe_offsets = OFFSETS[TOES][:, :, None]
+        # The compiled core (edge/native) runs _forward and the limb IK when a C compiler is there.
+        self.native = native.load() if use_native else None
+        if self.native:
+            self._c = {"parents": np.ascontiguousarray(PARENTS, np.int64), "offsets": np.ascontiguousarray(OFFSETS),
+                       "chains": np.ascontiguousarray(LIMB_CHAINS, np.int64), "poles": np.ascontiguousarray(LIMB_POLES)}
+            self._addr = {k: native.addr(v) for k, v in self._c.items()}
+            for k in ("_local", "_world", "_pos", "_limb_targets", "_limb_weights", "_limb_ends"):
+                self._addr[k] = native.addr(getattr(self, k))
         self.out = Pose()
         self.reset()
 
@@ -264,6 +273,14 @@ class Pipeline:
         waist_m [3,3] or per row [R,3,3]; anchor (the tracked head joint) [3] or [R,3].
         """
         R = len(rot6d)
+        if self.native:
+            a = self._addr
+            r6, r6_stride = native.rows(rot6d, 1, np.float32)
+            root, root_stride = native.rows(waist_m, 2)
+            head, head_stride = native.rows(anchor, 1)
+            self.native.ep_forward(R, NUM_JOINTS, a["parents"], a["offsets"], HEAD, r6, r6_stride, root, root_stride,
+                                   head, head_stride, a["_local"], a["_world"], a["_pos"])
+            return
         loc, W, P = self._local[:R], self._world[:R], self._pos[:R]
         loc[:, 0] = waist_m
         quat.matrix_from_6d(rot6d.reshape(R, NUM_PREDICTED, 6), out=loc[:, 1:])
@@ -285,8 +302,14 @@ class Pipeline:
         wts[:, :2] = self._weights[:rows] if self.foot_ik else 0.0
         ends[:, :2] = W[:, ANKLES]
         ends[:, 2:] = hand_m if self.arm_ik else W[:, LIMB_CHAINS[2:, 2]]
-        apply_limb_ik(loc, W, P, PARENTS, LIMB_CHAINS, tgt, wts, LIMB_POLES, ends, OFFSETS)
-        P[:, TOES] = P[:, ANKLES] + (W[:, ANKLES] @ self._toe_offsets)[..., 0]
+        if self.native:
+            a = self._addr
+            self.native.ep_limb_ik(rows, NUM_JOINTS, a["parents"], a["offsets"], len(LIMB_CHAINS), a["chains"],
+                                   a["poles"], a["_limb_targets"], a["_limb_weights"], a["_limb_ends"],
+                                   a["_local"], a["_world"], a["_pos"])
+        else:
+            apply_limb_ik(loc, W, P, PARENTS, LIMB_CHAINS, tgt, wts, LIMB_POLES, ends, OFFSETS)
+            P[:, TOES] = P[:, ANKLES] + (W[:, ANKLES] @ self._toe_offsets)[..., 0]
         if self.arm_ik:
             W[:, HEAD] = head_m
             loc[:, HEAD] = np.swapaxes(W[:, NECK], -1, -2) @ head_m

@@ -5,11 +5,12 @@ those rotations reconstructs the pose, and the mean lower-body joint distance is
 """
 import numpy as np
 
-from edge import quat
-from edge.skeleton import LEGS, NUM_JOINTS, NUM_PREDICTED, fk_legs
+from edge import native, quat
+from edge.skeleton import LEGS, NUM_JOINTS, NUM_PREDICTED, OFFSETS, fk_legs
 
 # Rows of the autoencoder's rotation output (joint index - 1) for hip, knee and ankle of each leg.
 _LEG_ROWS = LEGS[:, :3] - 1
+OFFSETS_C = np.ascontiguousarray(OFFSETS, np.float64)
 
 
 def yaw_matrix(rot_m):
@@ -32,14 +33,30 @@ def local_pose(world_pos, pelvis_rot_m):
 
 
 class PlausibilityScorer:
-    """Mean lower-body reconstruction error of poses under the autoencoder (metres)."""
+    """Mean lower-body reconstruction error of poses under the autoencoder (metres).
 
-    def __init__(self, autoencoder, threshold_m):
+    A batch of exactly the autoencoder's bound rows (the pipeline's N samples, every frame) goes
+    through the compiled core into preallocated buffers, and the result is a view that the next call
+    overwrites; any other batch (whole clips in `edge eval`) takes the numpy path.
+    """
+
+    def __init__(self, autoencoder, threshold_m, use_native=True):
         self.autoencoder = autoencoder
         self.threshold = threshold_m
+        self._native = native.load() if use_native and autoencoder.capacity else None
+        if self._native:
+            cap = autoencoder.capacity
+            self._local = np.zeros((cap, NUM_JOINTS, 3))
+            self._root_local = np.zeros((cap, 3, 3))
+            self._err = np.zeros(cap)
+            self._legs = np.ascontiguousarray(LEGS, np.int64)
+            self._leg_rows = np.ascontiguousarray(_LEG_ROWS, np.int64)
 
     def lower_body_error(self, world_pos, pelvis_rot_m):
         """world_pos [B,J,3], pelvis_rot_m [B,3,3] -> [B] error in metres."""
+        B = len(world_pos)
+        if self._native and B == self.autoencoder.rows and world_pos.flags.c_contiguous:
+            return self._lower_body_error_native(B, world_pos, pelvis_rot_m)
         local, root_local = local_pose(world_pos, pelvis_rot_m)
         B = len(local)
         rot6d = self.autoencoder(local.reshape(B, NUM_JOINTS * 3)).reshape(B, NUM_PREDICTED, 6)
@@ -47,3 +64,14 @@ class PlausibilityScorer:
         recon = fk_legs(root_local, local[:, 0], legs)                      # [B,2,4,3]
         d = recon - local[:, LEGS]
         return np.sqrt(np.einsum("...i,...i->...", d, d)).mean(axis=(1, 2))
+
+    def _lower_body_error_native(self, B, world_pos, pelvis_rot_m):
+        lib, ae = self._native, self.autoencoder
+        pelvis, stride = native.rows(pelvis_rot_m, 2)
+        lib.ep_local_pose(B, NUM_JOINTS, native.addr(world_pos), pelvis, stride, native.addr(self._local),
+                          native.addr(ae.inp), native.addr(self._root_local))
+        out = ae.run()
+        lib.ep_leg_error(B, NUM_JOINTS, native.addr(out), out.shape[1], native.addr(self._leg_rows),
+                         native.addr(self._legs), native.addr(OFFSETS_C), native.addr(self._local),
+                         native.addr(self._root_local), native.addr(self._err))
+        return self._err[:B]

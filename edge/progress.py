@@ -9,6 +9,7 @@ class Progress:
         self.stream = stream or sys.stderr
         self.n, self.t0, self._last, self.postfix = 0, time.monotonic(), 0.0, ""
         self.enabled = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self._decile = 0     # off a terminal, a line per tenth of the way (counts may jump past one)
 
     def update(self, k=1, postfix=None):
         self.n += k
@@ -27,7 +28,8 @@ class Progress:
         line = f"{self.desc} [{bar}] {self.n}/{self.total} {el:5.0f}s eta {eta:4.0f}s {self.postfix}"
         if self.enabled:
             self.stream.write("\r" + line[:160] + "\x1b[K")
-        elif self.n >= self.total or int(frac * 10) != int((self.n - 1) / self.total * 10):
+        elif int(frac * 10) > self._decile:
+            self._decile = int(frac * 10)
             self.stream.write(line[:160] + "\n")
         self.stream.flush()
 

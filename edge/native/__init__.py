@@ -1,0 +1,119 @@
+"""The compiled post-processing core (postproc.c), built on first use with the system C compiler.
+
+At the pipeline's sizes (a few hundred 3x3 products per frame) numpy spends its time in per-call
+overhead, not arithmetic; one C call replaces a few hundred numpy calls. The numpy functions stay
+the reference: every C function is tested against one (tests/test_native.py), and the pipeline falls
+back to them, saying so once, when no compiler is available.
+
+    EDGEPOSE_NATIVE=0     use numpy only
+    CC=...                the compiler (default cc)
+
+The library is cached per source hash in $EDGEPOSE_CACHE or ~/.cache/edgepose, so an edited
+postproc.c rebuilds and a read-only install still works.
+"""
+import ctypes
+import hashlib
+import os
+import shlex
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+SOURCE = Path(__file__).with_name("postproc.c")
+CFLAGS = ("-O2", "-shared", "-fPIC", "-ffp-contract=off", "-fno-math-errno")
+_lib = None
+_error = None
+
+
+def _cache_dir():
+    base = os.environ.get("EDGEPOSE_CACHE") or Path(os.environ.get("XDG_CACHE_HOME", Path.home() / ".cache")) / "edgepose"
+    return Path(base) / "native"
+
+
+def build(force=False):
+    """Compile postproc.c (if not cached) and return the library's path."""
+    cc = shlex.split(os.environ.get("CC", "cc"))
+    src = SOURCE.read_bytes()
+    tag = hashlib.sha1(src + " ".join(cc + list(CFLAGS)).encode() + os.uname().machine.encode()).hexdigest()[:12]
+    out = _cache_dir() / f"postproc-{tag}.so"
+    if out.exists() and not force:
+        return out
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
+    os.close(fd)
+    try:
+        subprocess.run(cc + list(CFLAGS) + ["-o", tmp, str(SOURCE), "-lm"], check=True, capture_output=True,
+                       text=True, timeout=120)
+        os.replace(tmp, out)       # atomic: concurrent builders never load a half-written file
+    except FileNotFoundError:
+        raise OSError(f"no C compiler ({cc[0]}); install one (apt install gcc) or set CC") from None
+    except subprocess.CalledProcessError as e:
+        raise OSError(f"{cc[0]} failed on {SOURCE.name}: {e.stderr.strip()[:400]}") from None
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return out
+
+
+_P = ctypes.c_void_p
+_I = ctypes.c_int
+_SIGNATURES = {
+    "ep_forward": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _P, _I, _P, _P, _P],
+    "ep_limb_ik": [_I, _I, _P, _P, _I, _P, _P, _P, _P, _P, _P, _P, _P],
+    "ep_local_pose": [_I, _I, _P, _P, _I, _P, _P, _P],
+    "ep_leg_error": [_I, _I, _P, _I, _P, _P, _P, _P, _P, _P],
+}
+
+
+def load():
+    """The ctypes library, or None (with the reason in `why_unavailable()`) when it cannot be had."""
+    global _lib, _error
+    if _lib is not None or _error is not None:
+        return _lib
+    if os.environ.get("EDGEPOSE_NATIVE", "1") == "0":
+        _error = "disabled by EDGEPOSE_NATIVE=0"
+        return None
+    try:
+        lib = ctypes.CDLL(str(build()))
+    except OSError as e:
+        _error = str(e)
+        print(f"edgepose: compiled post-processing unavailable ({_error}); using numpy (slower)", file=sys.stderr)
+        return None
+    for name, args in _SIGNATURES.items():
+        fn = getattr(lib, name)
+        fn.argtypes, fn.restype = args, None
+    _lib = lib
+    return _lib
+
+
+def why_unavailable():
+    load()
+    return _error
+
+
+def addr(a):
+    """Address of an array's first element (the caller guarantees dtype and layout). Not
+    __array_interface__: on numpy 2 that grows a cache on every call on a view (a per-frame leak)."""
+    return a.ctypes.data
+
+
+def rows(a, row_ndim, dtype=np.float64):
+    """(address, row stride in elements) of `a`, one row of `row_ndim` trailing dims or a stack of them.
+
+    A single row gets stride 0 (every row shares it). Rows must be contiguous inside; the stack may be strided."""
+    if a.dtype != dtype:
+        raise TypeError(f"expected {np.dtype(dtype).name}, got {a.dtype}")
+    inner = a.shape[a.ndim - row_ndim:]
+    if a.ndim == row_ndim:
+        if not a.flags.c_contiguous:
+            raise ValueError("a shared row must be contiguous")
+        return addr(a), 0
+    want = a.itemsize
+    for n, s in zip(reversed(inner), reversed(a.strides[a.ndim - row_ndim:])):
+        if s != want:
+            raise ValueError("rows must be contiguous inside")
+        want *= n
+    return addr(a), a.strides[0] // a.itemsize

@@ -1,0 +1,263 @@
+/* The pipeline's per-sample post-processing in C: 6D -> rotation, FK hung from the head, two-bone
+ * limb IK, and the plausibility score around the autoencoder (SSI 3.1, 3.2.1).
+ *
+ * Each function is the loop form of a numpy reference in edge/ (named in its comment) and is tested
+ * against it (tests/test_native.py). Python's per-call overhead, not arithmetic, is what the numpy
+ * versions pay at this size (a few hundred 3x3 products per frame), so one call here replaces a few
+ * hundred numpy calls. Arrays are row-major float64 unless marked float; a *_stride argument is the
+ * distance between rows in elements, 0 when every row shares one value.
+ *
+ * Built with -ffp-contract=off so no multiply-add is fused: results then match numpy, and x86 and
+ * ARM match each other.
+ */
+#include <math.h>
+#include <stdint.h>
+
+typedef double mat3[9];
+
+static void matmul3(const double *a, const double *b, double *out) {
+    for (int i = 0; i < 3; i++)
+        for (int k = 0; k < 3; k++)
+            out[i * 3 + k] = a[i * 3 + 0] * b[0 * 3 + k] + a[i * 3 + 1] * b[1 * 3 + k] + a[i * 3 + 2] * b[2 * 3 + k];
+}
+
+/* a^T b */
+static void matmul3_tn(const double *a, const double *b, double *out) {
+    for (int i = 0; i < 3; i++)
+        for (int k = 0; k < 3; k++)
+            out[i * 3 + k] = a[0 * 3 + i] * b[0 * 3 + k] + a[1 * 3 + i] * b[1 * 3 + k] + a[2 * 3 + i] * b[2 * 3 + k];
+}
+
+static void matvec3(const double *m, const double *v, double *out) {
+    for (int i = 0; i < 3; i++)
+        out[i] = m[i * 3 + 0] * v[0] + m[i * 3 + 1] * v[1] + m[i * 3 + 2] * v[2];
+}
+
+static void copy9(const double *src, double *dst) {
+    for (int i = 0; i < 9; i++) dst[i] = src[i];
+}
+
+static double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
+
+static void cross3(const double *a, const double *b, double *out) {
+    out[0] = a[1] * b[2] - a[2] * b[1];
+    out[1] = a[2] * b[0] - a[0] * b[2];
+    out[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+static double clamp(double x, double lo, double hi) { return x < lo ? lo : (x > hi ? hi : x); }
+
+/* edge.quat.matrix_from_6d on float32 input: numpy keeps float32 through the Gram-Schmidt. */
+static void matrix_from_6d_f32(const float *r6, double *m) {
+    float a0 = r6[0], a1 = r6[1], a2 = r6[2], b0 = r6[3], b1 = r6[4], b2 = r6[5];
+    float na = sqrtf(a0 * a0 + a1 * a1 + a2 * a2);
+    na = na > 1e-8f ? na : 1e-8f;
+    float x0 = a0 / na, x1 = a1 / na, x2 = a2 / na;
+    float d = x0 * b0 + x1 * b1 + x2 * b2;
+    b0 = b0 - d * x0;
+    b1 = b1 - d * x1;
+    b2 = b2 - d * x2;
+    float nb = sqrtf(b0 * b0 + b1 * b1 + b2 * b2);
+    nb = nb > 1e-8f ? nb : 1e-8f;
+    float y0 = b0 / nb, y1 = b1 / nb, y2 = b2 / nb;
+    float z0 = x1 * y2 - x2 * y1, z1 = x2 * y0 - x0 * y2, z2 = x0 * y1 - x1 * y0;
+    m[0] = x0; m[1] = y0; m[2] = z0;
+    m[3] = x1; m[4] = y1; m[5] = z1;
+    m[6] = x2; m[7] = y2; m[8] = z2;
+}
+
+/* The same in float64 (the plausibility score casts the autoencoder's output first). */
+static void matrix_from_6d_f64(const double *a, const double *bin, double *m) {
+    double na = sqrt(dot3(a, a));
+    na = na > 1e-8 ? na : 1e-8;
+    double x[3] = {a[0] / na, a[1] / na, a[2] / na};
+    double d = dot3(x, bin);
+    double b[3] = {bin[0] - d * x[0], bin[1] - d * x[1], bin[2] - d * x[2]};
+    double nb = sqrt(dot3(b, b));
+    nb = nb > 1e-8 ? nb : 1e-8;
+    double y[3] = {b[0] / nb, b[1] / nb, b[2] / nb}, z[3];
+    cross3(x, y, z);
+    for (int i = 0; i < 3; i++) {
+        m[i * 3 + 0] = x[i];
+        m[i * 3 + 1] = y[i];
+        m[i * 3 + 2] = z[i];
+    }
+}
+
+/* edge.pipeline.Pipeline._forward: decoder 6D [R, (J-1)*6] float -> local rotations (root from root_m),
+ * FK (edge.skeleton.fk, parents[j] < j) and the body translated so joint `head` sits at `anchor`. */
+void ep_forward(int R, int J, const int64_t *parents, const double *offsets, int head,
+                const float *rot6d, int rot6d_stride, const double *root_m, int root_stride,
+                const double *anchor, int anchor_stride, double *local, double *world, double *pos) {
+    for (int r = 0; r < R; r++) {
+        double *L = local + (int64_t)r * J * 9, *W = world + (int64_t)r * J * 9, *P = pos + (int64_t)r * J * 3;
+        const float *r6 = rot6d + (int64_t)r * rot6d_stride;
+        copy9(root_m + (int64_t)r * root_stride, L);
+        for (int j = 1; j < J; j++) matrix_from_6d_f32(r6 + (j - 1) * 6, L + j * 9);
+        copy9(L, W);
+        P[0] = P[1] = P[2] = 0.0;
+        for (int j = 1; j < J; j++) {
+            int p = (int)parents[j];
+            double v[3];
+            matmul3(W + p * 9, L + j * 9, W + j * 9);
+            matvec3(W + p * 9, offsets + j * 3, v);
+            for (int i = 0; i < 3; i++) P[j * 3 + i] = P[p * 3 + i] + v[i];
+        }
+        const double *an = anchor + (int64_t)r * anchor_stride;
+        double shift[3] = {an[0] - P[head * 3], an[1] - P[head * 3 + 1], an[2] - P[head * 3 + 2]};
+        for (int j = 0; j < J; j++)
+            for (int i = 0; i < 3; i++) P[j * 3 + i] += shift[i];
+    }
+}
+
+/* edge.ik._angle_between */
+static double angle_between(const double *u, const double *v) {
+    return acos(clamp(dot3(u, v) / sqrt(dot3(u, u) * dot3(v, v) + 1e-18), -1.0, 1.0));
+}
+
+/* edge.ik._normalize */
+static void normalize3(double *v) {
+    double n = sqrt(dot3(v, v));
+    n = n > 1e-9 ? n : 1e-9;
+    v[0] /= n; v[1] /= n; v[2] /= n;
+}
+
+/* edge.ik._axis_angle_matrix (Rodrigues) */
+static void axis_angle_matrix(const double *axis, double angle, double *m) {
+    double c = cos(angle), s = sin(angle), x = axis[0], y = axis[1], z = axis[2];
+    for (int i = 0; i < 3; i++)
+        for (int k = 0; k < 3; k++) m[i * 3 + k] = axis[i] * axis[k] * (1.0 - c);
+    m[0] += c; m[4] += c; m[8] += c;
+    m[1] -= s * z; m[3] += s * z;
+    m[2] += s * y; m[6] -= s * y;
+    m[5] -= s * x; m[7] += s * x;
+}
+
+/* edge.ik.two_bone_ik for one chain a -> b -> c: new world rotations of a and b. */
+static void two_bone_ik(const double *a, const double *b, const double *c, const double *t, const double *a_rot,
+                        const double *b_rot, const double *pole, double *a_new, double *b_new) {
+    double ab[3], cb[3], ca[3], ta[3], nab[3];
+    for (int i = 0; i < 3; i++) {
+        ab[i] = b[i] - a[i];
+        cb[i] = c[i] - b[i];
+        ca[i] = c[i] - a[i];
+        ta[i] = t[i] - a[i];
+        nab[i] = -ab[i];
+    }
+    double lab = sqrt(dot3(ab, ab)), lcb = sqrt(dot3(cb, cb));
+    double lat = clamp(sqrt(dot3(ta, ta)), 1e-4, (lab + lcb) * (1 - 1e-4));
+    double ac_ab_0 = angle_between(ca, ab), ba_bc_0 = angle_between(nab, cb), ac_at_0 = angle_between(ca, ta);
+    double ac_ab_1 = acos(clamp((lcb * lcb - lab * lab - lat * lat) / (-2 * lab * lat), -1, 1));
+    double ba_bc_1 = acos(clamp((lat * lat - lab * lab - lcb * lcb) / (-2 * lab * lcb), -1, 1));
+    double axis0[3], axis1[3];
+    cross3(ca, ab, axis0);
+    if (dot3(axis0, axis0) < 1e-12) cross3(ca, pole, axis0);   /* straight chain: bend towards the pole */
+    normalize3(axis0);
+    cross3(ca, ta, axis1);
+    normalize3(axis1);
+    mat3 r0, r1, r2, r20, tmp;
+    axis_angle_matrix(axis0, ac_ab_1 - ac_ab_0, r0);
+    axis_angle_matrix(axis0, ba_bc_1 - ba_bc_0, r1);
+    axis_angle_matrix(axis1, ac_at_0, r2);
+    matmul3(r2, r0, r20);
+    matmul3(r20, a_rot, a_new);
+    matmul3(r1, b_rot, tmp);
+    matmul3(r20, tmp, b_new);
+}
+
+/* edge.ik.apply_limb_ik with offsets (world rotations and positions of the chains updated), then the
+ * positions of the end joints' children (the toes; edge.pipeline.Pipeline._post).
+ * chains [K,3] (root, mid, end); targets [R,K,3]; weights [R,K]; poles [K,3] in the mid joint's
+ * frame; ends [R,K,3,3] the end joints' new world rotations. */
+void ep_limb_ik(int R, int J, const int64_t *parents, const double *offsets, int K, const int64_t *chains,
+                const double *poles, const double *targets, const double *weights, const double *ends,
+                double *local, double *world, double *pos) {
+    for (int r = 0; r < R; r++) {
+        double *L = local + (int64_t)r * J * 9, *W = world + (int64_t)r * J * 9, *P = pos + (int64_t)r * J * 3;
+        for (int k = 0; k < K; k++) {
+            int ia = (int)chains[k * 3], ib = (int)chains[k * 3 + 1], ic = (int)chains[k * 3 + 2];
+            const double *tg = targets + ((int64_t)r * K + k) * 3;
+            double w = weights[(int64_t)r * K + k], goal[3], pole[3], a[3], v[3];
+            for (int i = 0; i < 3; i++) {
+                goal[i] = P[ic * 3 + i] + w * (tg[i] - P[ic * 3 + i]);
+                a[i] = P[ia * 3 + i];
+            }
+            matvec3(W + ib * 9, poles + k * 3, pole);
+            mat3 a_new, b_new, end;
+            two_bone_ik(P + ia * 3, P + ib * 3, P + ic * 3, goal, W + ia * 9, W + ib * 9, pole, a_new, b_new);
+            copy9(ends + ((int64_t)r * K + k) * 9, end);
+            matmul3_tn(W + (int)parents[ia] * 9, a_new, L + ia * 9);
+            matmul3_tn(a_new, b_new, L + ib * 9);
+            matmul3_tn(b_new, end, L + ic * 9);
+            copy9(a_new, W + ia * 9);
+            copy9(b_new, W + ib * 9);
+            copy9(end, W + ic * 9);
+            matvec3(a_new, offsets + ib * 3, v);
+            for (int i = 0; i < 3; i++) P[ib * 3 + i] = a[i] + v[i];
+            matvec3(b_new, offsets + ic * 3, v);
+            for (int i = 0; i < 3; i++) P[ic * 3 + i] = P[ib * 3 + i] + v[i];
+            for (int j = ic + 1; j < J; j++) {
+                if (parents[j] != ic) continue;
+                matvec3(W + ic * 9, offsets + j * 3, v);
+                for (int i = 0; i < 3; i++) P[j * 3 + i] = P[ic * 3 + i] + v[i];
+            }
+        }
+    }
+}
+
+/* edge.plausibility.local_pose: world positions [B,J,3] and pelvis rotations (rows pelvis_stride
+ * apart) -> positions in the character frame (float64 `local`, and float for the autoencoder's
+ * input) and the pelvis rotation in it. */
+void ep_local_pose(int B, int J, const double *pos, const double *pelvis, int pelvis_stride, double *local,
+                   float *ae_in, double *root_local) {
+    for (int r = 0; r < B; r++) {
+        const double *P = pos + (int64_t)r * J * 3, *R = pelvis + (int64_t)r * pelvis_stride;
+        double theta = atan2(R[2], R[8]), c = cos(theta), s = sin(theta);
+        /* yaw = [[c,0,s],[0,1,0],[-s,0,c]]; we apply its transpose */
+        double yt[9] = {c, 0.0, -s, 0.0, 1.0, 0.0, s, 0.0, c};
+        double *Lr = local + (int64_t)r * J * 3;
+        float *A = ae_in + (int64_t)r * J * 3;
+        for (int j = 0; j < J; j++) {
+            double rel[3] = {P[j * 3] - P[0] * 1.0, P[j * 3 + 1] - P[1] * 0.0, P[j * 3 + 2] - P[2] * 1.0};
+            matvec3(yt, rel, Lr + j * 3);
+            for (int i = 0; i < 3; i++) A[j * 3 + i] = (float)Lr[j * 3 + i];
+        }
+        matmul3(yt, R, root_local + (int64_t)r * 9);
+    }
+}
+
+/* edge.plausibility.PlausibilityScorer.lower_body_error after the autoencoder: its 6D output
+ * [B,rot_dim] float -> leg rotations (rows leg_rows [2,3]), leg FK (edge.skeleton.fk_legs) from the
+ * pelvis, and the mean distance to the input's leg joints legs [2,4]. */
+void ep_leg_error(int B, int J, const float *ae_out, int rot_dim, const int64_t *leg_rows, const int64_t *legs,
+                  const double *offsets, const double *local, const double *root_local, double *err) {
+    for (int r = 0; r < B; r++) {
+        const float *o = ae_out + (int64_t)r * rot_dim;
+        const double *Lr = local + (int64_t)r * J * 3;
+        double total = 0.0;
+        for (int s = 0; s < 2; s++) {
+            mat3 rot, next, leg;
+            double base[3] = {Lr[0], Lr[1], Lr[2]}, v[3];
+            copy9(root_local + (int64_t)r * 9, rot);
+            for (int k = 0; k < 4; k++) {
+                matvec3(rot, offsets + legs[s * 4 + k] * 3, v);
+                double d2 = 0.0;
+                for (int i = 0; i < 3; i++) {
+                    base[i] = base[i] + v[i];
+                    double d = base[i] - Lr[legs[s * 4 + k] * 3 + i];
+                    d2 += d * d;
+                }
+                total += sqrt(d2);
+                if (k < 3) {
+                    const float *r6 = o + leg_rows[s * 3 + k] * 6;
+                    double a6[6];
+                    for (int i = 0; i < 6; i++) a6[i] = (double)r6[i];
+                    matrix_from_6d_f64(a6, a6 + 3, leg);
+                    matmul3(rot, leg, next);
+                    copy9(next, rot);
+                }
+            }
+        }
+        err[r] = total / 8.0;
+    }
+}

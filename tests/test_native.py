@@ -1,0 +1,148 @@
+"""The compiled post-processing core (edge/native) against its numpy references, and the fallback."""
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from edge import native, quat
+from edge.ik import apply_limb_ik
+from edge.inference import Autoencoder, open_models
+from edge.pipeline import LIMB_CHAINS, LIMB_POLES, Pipeline
+from edge.plausibility import PlausibilityScorer
+from edge.skeleton import ANKLES, HEAD, JOINT, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, TOES, fk
+from edge.takes import from_sample
+from tests.conftest import SAMPLE
+
+lib = native.load()
+pytestmark = pytest.mark.skipif(lib is None, reason=f"compiled core unavailable: {native.why_unavailable()}")
+P64 = np.ascontiguousarray(PARENTS, np.int64)
+A = native.addr
+
+
+def random_6d(R, seed):
+    """Decoder-like 6D output: near-identity columns with noise, some far from orthonormal."""
+    rng = np.random.default_rng(seed)
+    r6 = np.tile([1.0, 0, 0, 0, 1.0, 0], (R, NUM_PREDICTED)) + 0.6 * rng.standard_normal((R, NUM_PREDICTED * 6))
+    return r6.astype(np.float32)
+
+
+def random_rotations(shape, seed):
+    rng = np.random.default_rng(seed)
+    return quat.to_matrix(quat.normalize(rng.standard_normal(shape + (4,))))
+
+
+def numpy_forward(r6, root_m, anchor):
+    R = len(r6)
+    loc = np.zeros((R, NUM_JOINTS, 3, 3))
+    loc[:, 0] = root_m
+    quat.matrix_from_6d(r6.reshape(R, NUM_PREDICTED, 6), out=loc[:, 1:])
+    W, P = fk(loc, np.zeros(3))
+    P += anchor[..., None, :] - P[:, HEAD:HEAD + 1]
+    return loc, W, P
+
+
+def native_forward(r6, root_m, anchor):
+    R = len(r6)
+    loc, W, P = np.zeros((R, NUM_JOINTS, 3, 3)), np.zeros((R, NUM_JOINTS, 3, 3)), np.zeros((R, NUM_JOINTS, 3))
+    a, sa = native.rows(r6, 1, np.float32)
+    b, sb = native.rows(root_m, 2)
+    c, sc = native.rows(anchor, 1)
+    lib.ep_forward(R, NUM_JOINTS, A(P64), A(OFFSETS), HEAD, a, sa, b, sb, c, sc, A(loc), A(W), A(P))
+    return loc, W, P
+
+
+@pytest.mark.parametrize("shared", [True, False])
+def test_forward_matches_numpy_6d_fk_and_head_anchor(shared):
+    R = 37
+    r6 = random_6d(R, 0)
+    root = random_rotations(() if shared else (R,), 1)
+    anchor = np.array([0.3, 1.6, -0.2]) if shared else np.random.default_rng(2).normal(0, 1, (R, 3))
+    for ref, got in zip(numpy_forward(r6, root, anchor), native_forward(r6, root, anchor)):
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
+
+
+def test_limb_ik_matches_numpy_on_reachable_unreachable_and_straight_chains():
+    R, K = 64, len(LIMB_CHAINS)
+    rng = np.random.default_rng(3)
+    loc, W, P = numpy_forward(random_6d(R, 4), random_rotations((R,), 5), rng.normal(0, 1, (R, 3)))
+    loc[:8, [JOINT["l_knee"], JOINT["r_knee"], JOINT["l_elbow"], JOINT["r_elbow"]]] = np.eye(3)   # straight
+    W, P = fk(loc, np.zeros((R, 3)))
+    ends = P[:, LIMB_CHAINS[:, 2]]
+    targets = ends + rng.normal(0, 0.4, (R, K, 3))          # some out of reach
+    weights = rng.uniform(0, 1, (R, K))
+    weights[:4] = 1.0
+    weights[4:6] = 0.0
+    end_rot = np.concatenate([W[:, ANKLES], random_rotations((R, 2), 6)], axis=1)
+    ref = [x.copy() for x in (loc, W, P)]
+    apply_limb_ik(*ref, PARENTS, LIMB_CHAINS, targets, weights, LIMB_POLES, end_rot, OFFSETS)
+    ref[2][:, TOES] = ref[2][:, ANKLES] + (ref[1][:, ANKLES] @ OFFSETS[TOES][:, :, None])[..., 0]
+    got = [x.copy() for x in (loc, W, P)]
+    lib.ep_limb_ik(R, NUM_JOINTS, A(P64), A(OFFSETS), K, A(np.ascontiguousarray(LIMB_CHAINS, np.int64)),
+                   A(LIMB_POLES), A(targets), A(weights), A(np.ascontiguousarray(end_rot)), *map(A, got))
+    # A straight chain puts acos at +-1, where 1e-16 differences in its argument become 1e-8 in angle.
+    for r, g in zip(ref, got):
+        np.testing.assert_allclose(g[8:], r[8:], rtol=0, atol=1e-10)
+        np.testing.assert_allclose(g[:8], r[:8], rtol=0, atol=1e-6)
+
+
+def test_plausibility_score_matches_numpy_and_reuses_its_buffers():
+    manifest, _, ae_session = open_models()
+    B = 24
+    _, W, P = numpy_forward(random_6d(B, 7), random_rotations((B,), 8), np.random.default_rng(9).normal(0, 1, (B, 3)))
+    fast = PlausibilityScorer(Autoencoder(ae_session, B), manifest["plausibility_threshold_m"])
+    slow = PlausibilityScorer(Autoencoder(ae_session, B), manifest["plausibility_threshold_m"], use_native=False)
+    assert fast._native and not slow._native
+    got = fast.lower_body_error(P, W[:, 0])           # the pelvis rows are strided, as in the pipeline
+    np.testing.assert_allclose(got, slow.lower_body_error(P, W[:, 0]), rtol=0, atol=1e-9)
+    assert got.base is fast._err
+    # Other batch sizes (whole clips in edge eval) take the numpy path and still agree.
+    np.testing.assert_allclose(fast.lower_body_error(P[:5], W[:5, 0]), got[:5], rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("samples,ssi", [(1, True), (8, False), (8, True)])
+def test_pipeline_output_is_the_same_with_and_without_the_compiled_core(samples, ssi):
+    take = from_sample(SAMPLE)
+    runs = []
+    for use_native in (True, False):
+        pipe = Pipeline(samples=samples, ssi=ssi, use_native=use_native)
+        assert (pipe.native is not None) == use_native
+        poses = []
+        for t in range(400):
+            pose = pipe.step(take.signals.slice(t, t + 1))
+            if pose is not None:
+                poses.append((pose.positions.copy(), pose.rotations.copy(), pose.sample))
+        runs.append((poses, list(pipe.switches)))
+    (a, sw_a), (b, sw_b) = runs
+    assert sw_a == sw_b
+    assert [p[2] for p in a] == [p[2] for p in b]
+    np.testing.assert_allclose(np.array([p[0] for p in a]), np.array([p[0] for p in b]), rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.array([p[1] for p in a]), np.array([p[1] for p in b]), rtol=0, atol=1e-9)
+
+
+def _python(code, **env):
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, **env}, cwd=os.path.dirname(os.path.dirname(__file__)))
+
+
+def test_without_a_compiler_the_pipeline_falls_back_to_numpy_and_says_so(tmp_path):
+    code = ("from edge import native; from edge.pipeline import Pipeline; p = Pipeline(samples=2); "
+            "print('native' if p.native else 'numpy', native.why_unavailable())")
+    r = _python(code, CC="/nonexistent/cc", EDGEPOSE_CACHE=str(tmp_path))
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.startswith("numpy") and "no C compiler" in r.stdout
+    assert "using numpy" in r.stderr
+    r = _python(code, EDGEPOSE_NATIVE="0")
+    assert r.stdout.startswith("numpy disabled"), r.stdout + r.stderr
+
+
+def test_a_source_edit_rebuilds_into_a_new_cached_library(tmp_path, monkeypatch):
+    monkeypatch.setenv("EDGEPOSE_CACHE", str(tmp_path))
+    first = native.build()
+    assert first.exists() and native.build() == first
+    src = tmp_path / "postproc.c"
+    src.write_text(native.SOURCE.read_text() + "\n/* edited */\n")
+    monkeypatch.setattr(native, "SOURCE", src)
+    second = native.build()
+    assert second != first and second.exists()
