@@ -143,6 +143,7 @@ class Pipeline:
         self._world = np.zeros((R, NUM_JOINTS, 3, 3))
         self._pos = np.zeros((R, NUM_JOINTS, 3))
         self._zero3 = np.zeros(3)
+        self._quats = np.zeros((4, 4))
         self._targets = np.zeros((R, 2, 3))            # foot goals and IK weights, per row
         self._weights = np.zeros((R, 2))
         self._limb_targets = np.zeros((R, 4, 3))
@@ -150,14 +151,19 @@ class Pipeline:
         self._limb_weights[:, 2:] = 1.0 if arm_ik else 0.0
         self._limb_ends = np.zeros((R, 4, 3, 3))
         self._toe_offsets = OFFSETS[TOES][:, :, None]
-        # The compiled core (edge/native) runs _forward and the limb IK when a C compiler is there.
+        # The compiled core (edge/native) runs _forward, the foot locks and the limb IK when a C compiler
+        # is there (and the scorer the plausibility score); the numpy code is the reference and fallback.
         self.native = native.load() if use_native else None
         if self.native:
             self._c = {"parents": np.ascontiguousarray(PARENTS, np.int64), "offsets": np.ascontiguousarray(OFFSETS),
                        "chains": np.ascontiguousarray(LIMB_CHAINS, np.int64), "poles": np.ascontiguousarray(LIMB_POLES)}
+            self._c["ankles"] = np.ascontiguousarray(ANKLES, np.int64)
             self._addr = {k: native.addr(v) for k, v in self._c.items()}
-            for k in ("_local", "_world", "_pos", "_limb_targets", "_limb_weights", "_limb_ends"):
+            for k in ("_local", "_world", "_pos", "_targets", "_limb_targets", "_limb_weights", "_limb_ends"):
                 self._addr[k] = native.addr(getattr(self, k))
+            for k in ("lock_pos", "locked", "raw", "since_release", "weight"):     # FootLock's state
+                self._addr[k] = native.addr(getattr(self.feet, k))
+            self._addr["contacts"] = native.addr(self.decoder.contacts)
         self.out = Pose()
         self.reset()
 
@@ -191,10 +197,11 @@ class Pipeline:
         b.override[s] = False
         b.features[s] = feat
         b.anchor[s] = points[0]
-        b.waist_m[s] = quat.to_matrix(waist_rot)
         b.wrists[s] = points[1:3]
-        b.hand_m[s] = quat.to_matrix(sig.hand_rot[0])
-        b.head_m[s] = quat.to_matrix(sig.head_rot[0])
+        q = self._quats                      # waist, hands, head: one to_matrix call
+        q[0], q[1:3], q[3] = waist_rot, sig.hand_rot[0], sig.head_rot[0]
+        m = quat.to_matrix(q)
+        b.waist_m[s], b.hand_m[s], b.head_m[s] = m[0], m[1:3], m[3]
         dec = self.decoder
         dec.features[:] = feat
         b.hidden_in[s, :N] = dec.state[:N]
@@ -211,14 +218,21 @@ class Pipeline:
         rows = N + 1 if live else N
         self._forward(dec.rot6d[:rows], b.waist_m[s], b.anchor[s])
         if self.foot_ik:
-            lock, w = self.feet.update(dec.contacts[:N], self._pos[:N, ANKLES])
             # Each sample's foot goal is where its lock draws the ankle; a transition blends goals
             # (not lock positions, which are stale for a foot that is free) and lock weights.
-            ankle = self._pos[:N, ANKLES]
             goal = self._targets[:N]
-            np.subtract(lock, ankle, out=goal)
-            goal *= w[..., None]
-            goal += ankle
+            if self.native:
+                a, f = self._addr, self.feet
+                self.native.ep_foot_locks(N, 2, a["contacts"], a["_pos"], NUM_JOINTS, a["ankles"], f.release_frames,
+                                          f.max_slip, a["lock_pos"], a["locked"], a["raw"], a["since_release"],
+                                          a["weight"], a["_targets"])
+                w = f.weight[:N]
+            else:
+                lock, w = self.feet.update(dec.contacts[:N], self._pos[:N, ANKLES])
+                ankle = self._pos[:N, ANKLES]
+                np.subtract(lock, ankle, out=goal)
+                goal *= w[..., None]
+                goal += ankle
             self._weights[:N] = 1.0
             b.ik_weight[s, :N] = w
             if live:

@@ -51,6 +51,9 @@ class PlausibilityScorer:
             self._err = np.zeros(cap)
             self._legs = np.ascontiguousarray(LEGS, np.int64)
             self._leg_rows = np.ascontiguousarray(_LEG_ROWS, np.int64)
+            self._a = {k: native.addr(v) for k, v in (("local", self._local), ("root_local", self._root_local),
+                       ("err", self._err), ("legs", self._legs), ("leg_rows", self._leg_rows), ("offsets", OFFSETS_C),
+                       ("inp", autoencoder.inp), ("out", autoencoder.out))}
 
     def lower_body_error(self, world_pos, pelvis_rot_m):
         """world_pos [B,J,3], pelvis_rot_m [B,3,3] -> [B] error in metres."""
@@ -66,12 +69,10 @@ class PlausibilityScorer:
         return np.sqrt(np.einsum("...i,...i->...", d, d)).mean(axis=(1, 2))
 
     def _lower_body_error_native(self, B, world_pos, pelvis_rot_m):
-        lib, ae = self._native, self.autoencoder
+        lib, ae, a = self._native, self.autoencoder, self._a
         pelvis, stride = native.rows(pelvis_rot_m, 2)
-        lib.ep_local_pose(B, NUM_JOINTS, native.addr(world_pos), pelvis, stride, native.addr(self._local),
-                          native.addr(ae.inp), native.addr(self._root_local))
-        out = ae.run()
-        lib.ep_leg_error(B, NUM_JOINTS, native.addr(out), out.shape[1], native.addr(self._leg_rows),
-                         native.addr(self._legs), native.addr(OFFSETS_C), native.addr(self._local),
-                         native.addr(self._root_local), native.addr(self._err))
+        lib.ep_local_pose(B, NUM_JOINTS, native.addr(world_pos), pelvis, stride, a["local"], a["inp"], a["root_local"])
+        ae.run()
+        lib.ep_leg_error(B, NUM_JOINTS, a["out"], ae.out.shape[1], a["leg_rows"], a["legs"], a["offsets"], a["local"],
+                         a["root_local"], a["err"])
         return self._err[:B]

@@ -24,7 +24,7 @@ def inv(q):
     return q * np.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
 
 
-_NEXT, _PREV = [1, 2, 0], [2, 0, 1]
+_NEXT, _PREV = np.array([1, 2, 0]), np.array([2, 0, 1])    # index arrays, not lists: no conversion per call
 
 
 def cross(a, b):

@@ -146,3 +146,27 @@ def test_a_source_edit_rebuilds_into_a_new_cached_library(tmp_path, monkeypatch)
     monkeypatch.setattr(native, "SOURCE", src)
     second = native.build()
     assert second != first and second.exists()
+
+
+def test_foot_locks_match_numpy_through_contacts_releases_and_slips():
+    from edge.ik import FootLock
+    B, T = 16, 300
+    rng = np.random.default_rng(10)
+    ref, nat = FootLock(B), FootLock(B)
+    ankles64 = np.ascontiguousarray(ANKLES, np.int64)
+    pos = np.zeros((B, NUM_JOINTS, 3))
+    goal = np.zeros((B, 2, 3))
+    contacts = np.zeros((B, 2), np.float32)
+    walk = np.zeros((B, 2, 3))
+    for t in range(T):
+        walk += rng.normal(0, 0.01, walk.shape) + (rng.uniform(size=(B, 2, 1)) < 0.02) * 0.1   # drifts and slips
+        pos[:, ANKLES] = walk
+        contacts[:] = (np.sin(t / 9.0 + np.arange(B)[:, None] + [0, 1.5]) + rng.normal(0, 0.3, (B, 2))) > 0
+        lock, w = ref.update(contacts, pos[:, ANKLES])
+        want = (lock - pos[:, ANKLES]) * w[..., None] + pos[:, ANKLES]
+        lib.ep_foot_locks(B, 2, A(contacts), A(pos), NUM_JOINTS, A(ankles64), nat.release_frames, nat.max_slip,
+                          A(nat.lock_pos), A(nat.locked), A(nat.raw), A(nat.since_release), A(nat.weight), A(goal))
+        assert np.array_equal(nat.locked, ref.locked) and np.array_equal(nat.raw, ref.raw)
+        np.testing.assert_allclose(nat.weight, ref.weight, rtol=0, atol=1e-15)
+        np.testing.assert_allclose(goal, want, rtol=0, atol=1e-12)
+    assert ref.locked.any() and (~ref.locked).any()

@@ -261,3 +261,30 @@ void ep_leg_error(int B, int J, const float *ae_out, int rot_dim, const int64_t 
         err[r] = total / 8.0;
     }
 }
+
+/* edge.ik.FootLock.update for B samples and F feet, and the foot goals the pipeline hands the leg IK:
+ * each foot's ankle drawn towards its lock by the lock's weight (edge.pipeline.Pipeline.step).
+ * State arrays are FootLock's (locked and raw are numpy bools); goal [B,F,3] out. */
+void ep_foot_locks(int B, int F, const float *contacts, const double *pos, int J, const int64_t *ankles,
+                   double release_frames, double max_slip, double *lock_pos, uint8_t *locked, uint8_t *raw,
+                   double *since, double *weight, double *goal) {
+    for (int r = 0; r < B; r++) {
+        for (int f = 0; f < F; f++) {
+            int i = r * F + f;
+            const double *ankle = pos + ((int64_t)r * J + ankles[f]) * 3;
+            double *lock = lock_pos + (int64_t)i * 3;
+            int contact = contacts[i] > 0.5f;
+            double d[3] = {ankle[0] - lock[0], ankle[1] - lock[1], ankle[2] - lock[2]};
+            int slipped = locked[i] && sqrt(dot3(d, d)) > max_slip;
+            int start = contact && !locked[i] && (!raw[i] || weight[i] == 0.0);
+            if (start)
+                for (int k = 0; k < 3; k++) lock[k] = ankle[k] + weight[i] * (lock[k] - ankle[k]);
+            locked[i] = (locked[i] && contact && !slipped) || start;
+            raw[i] = contact;
+            since[i] = locked[i] ? 0.0 : since[i] + 1.0;
+            double x = clamp(since[i] / release_frames, 0.0, 1.0);
+            weight[i] = locked[i] ? 1.0 : 1.0 - x * x * (3 - 2 * x);
+            for (int k = 0; k < 3; k++) goal[(int64_t)i * 3 + k] = (lock[k] - ankle[k]) * weight[i] + ankle[k];
+        }
+    }
+}
