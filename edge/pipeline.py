@@ -218,22 +218,9 @@ class Pipeline:
         rows = N + 1 if live else N
         self._forward(dec.rot6d[:rows], b.waist_m[s], b.anchor[s])
         if self.foot_ik:
-            # Each sample's foot goal is where its lock draws the ankle; a transition blends goals
-            # (not lock positions, which are stale for a foot that is free) and lock weights.
-            goal = self._targets[:N]
-            if self.native:
-                a, f = self._addr, self.feet
-                self.native.ep_foot_locks(N, 2, a["contacts"], a["_pos"], NUM_JOINTS, a["ankles"], f.release_frames,
-                                          f.max_slip, a["lock_pos"], a["locked"], a["raw"], a["since_release"],
-                                          a["weight"], a["_targets"])
-                w = f.weight[:N]
-            else:
-                lock, w = self.feet.update(dec.contacts[:N], self._pos[:N, ANKLES])
-                ankle = self._pos[:N, ANKLES]
-                np.subtract(lock, ankle, out=goal)
-                goal *= w[..., None]
-                goal += ankle
-            self._weights[:N] = 1.0
+            # A transition blends the two samples' foot goals (not lock positions, which are stale
+            # for a foot that is free) and lock weights.
+            goal, w = self._foot_goals(N)
             b.ik_weight[s, :N] = w
             if live:
                 self._targets[N] = (1 - a) * goal[c] + a * goal[n]
@@ -300,6 +287,26 @@ class Pipeline:
         quat.matrix_from_6d(rot6d.reshape(R, NUM_PREDICTED, 6), out=loc[:, 1:])
         fk(loc, self._zero3, out=(W, P))
         P += anchor[..., None, :] - P[:, HEAD:HEAD + 1]
+
+    def _foot_goals(self, N):
+        """Update the N samples' foot-contact locks from the decoder's contacts and the FK ankles; each
+        sample's foot goal (in _targets) is where its lock draws the ankle, so the leg IK runs at weight 1.
+        Returns (goals [N,2,3], lock weights [N,2])."""
+        goal = self._targets[:N]
+        if self.native:
+            a, f = self._addr, self.feet
+            self.native.ep_foot_locks(N, 2, a["contacts"], a["_pos"], NUM_JOINTS, a["ankles"], f.release_frames,
+                                      f.max_slip, a["lock_pos"], a["locked"], a["raw"], a["since_release"],
+                                      a["weight"], a["_targets"])
+            w = f.weight[:N]
+        else:
+            lock, w = self.feet.update(self.decoder.contacts[:N], self._pos[:N, ANKLES])
+            ankle = self._pos[:N, ANKLES]
+            np.subtract(lock, ankle, out=goal)
+            goal *= w[..., None]
+            goal += ankle
+        self._weights[:N] = 1.0
+        return goal, w
 
     def _post(self, rows, wrists, hand_m, head_m):
         """Leg IK to the foot locks and arm IK to the controllers in one batched call, head to the headset.

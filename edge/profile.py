@@ -371,7 +371,6 @@ def micro_stages(pipe, feeder, reps=300):
     import numpy as np
     from edge.features import body_points, features, heading
     from edge.pipeline import best_other, is_outlier
-    from edge.skeleton import ANKLES
     N, b, dec = pipe.samples, pipe.buffer, pipe.decoder
     sig = feeder.frame(10**6)
     s = b.slot(pipe.t)
@@ -390,7 +389,7 @@ def micro_stages(pipe, feeder, reps=300):
 
     def ik():
         if pipe.foot_ik:
-            lock, w = pipe.feet.update(dec.contacts[:N], pipe._pos[:N, ANKLES])
+            pipe._foot_goals(N)
         pipe._post(N, b.wrists[s], b.hand_m[s], b.head_m[s])
 
     def selection():

@@ -110,9 +110,10 @@ void ep_forward(int R, int J, const int64_t *parents, const double *offsets, int
     }
 }
 
-/* edge.ik._angle_between */
-static double angle_between(const double *u, const double *v) {
-    return acos(clamp(dot3(u, v) / sqrt(dot3(u, u) * dot3(v, v) + 1e-18), -1.0, 1.0));
+/* cos and sin of edge.ik._angle_between(u, v), an angle in [0, pi]: no acos needed downstream. */
+static void angle_between_cs(const double *u, const double *v, double *c, double *s) {
+    *c = clamp(dot3(u, v) / sqrt(dot3(u, u) * dot3(v, v) + 1e-18), -1.0, 1.0);
+    *s = sqrt(1.0 - *c * *c);
 }
 
 /* edge.ik._normalize */
@@ -122,9 +123,9 @@ static void normalize3(double *v) {
     v[0] /= n; v[1] /= n; v[2] /= n;
 }
 
-/* edge.ik._axis_angle_matrix (Rodrigues) */
-static void axis_angle_matrix(const double *axis, double angle, double *m) {
-    double c = cos(angle), s = sin(angle), x = axis[0], y = axis[1], z = axis[2];
+/* edge.ik._axis_angle_matrix (Rodrigues), from the angle's cosine and sine */
+static void axis_angle_matrix_cs(const double *axis, double c, double s, double *m) {
+    double x = axis[0], y = axis[1], z = axis[2];
     for (int i = 0; i < 3; i++)
         for (int k = 0; k < 3; k++) m[i * 3 + k] = axis[i] * axis[k] * (1.0 - c);
     m[0] += c; m[4] += c; m[8] += c;
@@ -133,7 +134,9 @@ static void axis_angle_matrix(const double *axis, double angle, double *m) {
     m[5] -= s * x; m[7] += s * x;
 }
 
-/* edge.ik.two_bone_ik for one chain a -> b -> c: new world rotations of a and b. */
+/* edge.ik.two_bone_ik for one chain a -> b -> c: new world rotations of a and b. The same rotations,
+ * with each angle difference's cosine and sine taken from the angles' own (cos(x - y) = cx cy + sx sy)
+ * instead of acos, cos and sin: trigonometry was most of this function's time. */
 static void two_bone_ik(const double *a, const double *b, const double *c, const double *t, const double *a_rot,
                         const double *b_rot, const double *pole, double *a_new, double *b_new) {
     double ab[3], cb[3], ca[3], ta[3], nab[3];
@@ -146,9 +149,13 @@ static void two_bone_ik(const double *a, const double *b, const double *c, const
     }
     double lab = sqrt(dot3(ab, ab)), lcb = sqrt(dot3(cb, cb));
     double lat = clamp(sqrt(dot3(ta, ta)), 1e-4, (lab + lcb) * (1 - 1e-4));
-    double ac_ab_0 = angle_between(ca, ab), ba_bc_0 = angle_between(nab, cb), ac_at_0 = angle_between(ca, ta);
-    double ac_ab_1 = acos(clamp((lcb * lcb - lab * lab - lat * lat) / (-2 * lab * lat), -1, 1));
-    double ba_bc_1 = acos(clamp((lat * lat - lab * lab - lcb * lcb) / (-2 * lab * lcb), -1, 1));
+    double c0, s0, c1, s1, c_at, s_at;                         /* ac_ab_0, ba_bc_0, ac_at_0 */
+    angle_between_cs(ca, ab, &c0, &s0);
+    angle_between_cs(nab, cb, &c1, &s1);
+    angle_between_cs(ca, ta, &c_at, &s_at);
+    double c0t = clamp((lcb * lcb - lab * lab - lat * lat) / (-2 * lab * lat), -1, 1);   /* ac_ab_1 */
+    double c1t = clamp((lat * lat - lab * lab - lcb * lcb) / (-2 * lab * lcb), -1, 1);   /* ba_bc_1 */
+    double s0t = sqrt(1.0 - c0t * c0t), s1t = sqrt(1.0 - c1t * c1t);
     double axis0[3], axis1[3];
     cross3(ca, ab, axis0);
     if (dot3(axis0, axis0) < 1e-12) cross3(ca, pole, axis0);   /* straight chain: bend towards the pole */
@@ -156,9 +163,9 @@ static void two_bone_ik(const double *a, const double *b, const double *c, const
     cross3(ca, ta, axis1);
     normalize3(axis1);
     mat3 r0, r1, r2, r20, tmp;
-    axis_angle_matrix(axis0, ac_ab_1 - ac_ab_0, r0);
-    axis_angle_matrix(axis0, ba_bc_1 - ba_bc_0, r1);
-    axis_angle_matrix(axis1, ac_at_0, r2);
+    axis_angle_matrix_cs(axis0, c0t * c0 + s0t * s0, s0t * c0 - c0t * s0, r0);
+    axis_angle_matrix_cs(axis0, c1t * c1 + s1t * s1, s1t * c1 - c1t * s1, r1);
+    axis_angle_matrix_cs(axis1, c_at, s_at, r2);
     matmul3(r2, r0, r20);
     matmul3(r20, a_rot, a_new);
     matmul3(r1, b_rot, tmp);
