@@ -470,6 +470,7 @@ def worker(cfg):
             "ssi_switches": st["ssi_switches"], "stages": stages, "rss_mb": round(rss_now, 1),
             "rss_peak_mb": round(rss, 1), "budget": budget, "frame_budget_ms": frame_budget_ms,
             "probes": probes, "runs": attempts, "core": sorted(os.sched_getaffinity(0)),
+            "compiled_core": pipe.native is not None,
             "contention": st.get("contention")}
 
 
@@ -562,7 +563,7 @@ def main(args):
               "stage_methods": {k: STAGE_METHODS[k] for k in res["stages"]},
               "budget": {**res["budget"], "frame_period_ms": res["frame_budget_ms"], "headroom": args.headroom},
               "probes": res["probes"], "runs": res["runs"], "ssi_switches": res["ssi_switches"],
-              "pinned_core": res["core"], "input": f"{SAMPLE.name} signals looped, through FrameSynchronizer",
+              "pinned_core": res["core"], "compiled_core": res["compiled_core"], "input": f"{SAMPLE.name} signals looped, through FrameSynchronizer",
               "seconds": round(time.time() - t0, 1)}
     if res.get("contention"):
         result["adaptive"] = args.adaptive
