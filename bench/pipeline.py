@@ -11,6 +11,7 @@ microseconds and the pipeline / decoder ratio.
   decoder_ort, decoder_torch     one bare decoder step on the pipeline's rows in ONNX Runtime, and in
                                  PyTorch eager run per frame as research code runs it (bench/reference.py)
   pipeline_reference             the fp32 pipeline with its decoders swapped for that PyTorch eager step
+  pipeline_numpy                 the fp32 pipeline without the compiled core (edge/native): numpy only
 Each is warmed, then all take turns in --blocks blocks of --frames / --blocks calls (the order
 rotating block by block), so machine noise hits every side alike. Ratios are p50 / p50 over all timed
 calls, with the range of the per-block ratios; the fp32 pipeline / ORT decoder ratio of the plain run
@@ -46,6 +47,7 @@ RATIOS = {
     "decoder_torch_over_ort": ("decoder_torch", "decoder_ort"),
     "pipeline_reference_over_ours": ("pipeline_reference", "pipeline_fp32"),
     "pipeline_over_decoder": ("pipeline_fp32", "decoder_ort"),
+    "compiled_core_speedup": ("pipeline_numpy", "pipeline_fp32"),
 }
 
 
@@ -124,12 +126,14 @@ def compare(a, frames, ns):
     per_block = a.frames // a.blocks
     print(f"\np50 per frame in microseconds, one core; ratio p50/p50 [min, max over {a.blocks} blocks of {per_block}]")
     print(f"{'N':>4} {'fp32 pipe':>10} {'int8 pipe':>10} {'speed-up fp32/int8':>20} "
-          f"{'ORT dec':>8} {'torch dec':>10} {'torch/ORT':>18} {'ref pipe':>9} {'ref/ours':>18} {'pipe/dec':>20}")
+          f"{'ORT dec':>8} {'torch dec':>10} {'torch/ORT':>18} {'ref pipe':>9} {'ref/ours':>18} {'pipe/dec':>20} "
+          f"{'numpy pipe':>11} {'numpy/ours':>18}")
     rows = []
     for n in ns:
         pipes = {"pipeline_fp32": Pipeline(samples=n, precision="fp32"),
                  "pipeline_int8": Pipeline(samples=n, precision="int8"),
-                 "pipeline_reference": reference_pipeline(model, n)}
+                 "pipeline_reference": reference_pipeline(model, n),
+                 "pipeline_numpy": Pipeline(samples=n, precision="fp32", use_native=False)}
         for pipe in pipes.values():
             warm(pipe, frames)
         ours, m = pipes["pipeline_fp32"], pipes["pipeline_fp32"].manifest
@@ -150,7 +154,8 @@ def compare(a, frames, ns):
         rs = {k: f"{v['p50']:.2f} [{v['blocks_min']:.2f},{v['blocks_max']:.2f}]" for k, v in r["ratios"].items()}
         print(f"{n:>4} {us['pipeline_fp32']:>10} {us['pipeline_int8']:>10} {rs['int8_speedup']:>20} "
               f"{us['decoder_ort']:>8} {us['decoder_torch']:>10} {rs['decoder_torch_over_ort']:>18} "
-              f"{us['pipeline_reference']:>9} {rs['pipeline_reference_over_ours']:>18} {rs['pipeline_over_decoder']:>20}")
+              f"{us['pipeline_reference']:>9} {rs['pipeline_reference_over_ours']:>18} {rs['pipeline_over_decoder']:>20} "
+              f"{us['pipeline_numpy']:>11} {rs['compiled_core_speedup']:>18}")
     method = {
         "cores": 1, "warmup_calls": WARMUP, "blocks": a.blocks, "calls_per_block": per_block,
         "schedule": "all contestants in one process, taking turns block by block in rotating order",

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 SOURCE = Path(__file__).with_name("postproc.c")
-CFLAGS = ("-O2", "-shared", "-fPIC", "-ffp-contract=off", "-fno-math-errno")
+CFLAGS = ("-O3", "-shared", "-fPIC", "-ffp-contract=off", "-fno-math-errno")
 _lib = None
 _error = None
 
