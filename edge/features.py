@@ -12,6 +12,7 @@ from edge.signals import EYE_OFFSET, GRIP_OFFSET
 from edge.skeleton import PELVIS_TO_HEAD
 
 NUM_FEATURES = 24
+_XZ = np.array([1.0, 0.0, 1.0])
 POINTS = ("head", "l_wrist", "r_wrist", "pelvis")
 
 
@@ -48,13 +49,13 @@ def heading(waist_rot):
 
 def to_local(points, waist_pos, yaw_q):
     """World points [...,K,3] -> the character frame: X/Z relative to the waist, inverse waist yaw."""
-    rel = points - waist_pos[..., None, :] * np.array([1.0, 0.0, 1.0])
+    rel = points - waist_pos[..., None, :] * _XZ
     return quat.rotate(quat.inv(yaw_q)[..., None, :], rel)
 
 
 def features(points, prev_points, yaw_q, fps):
     """points, prev_points [...,4,3] world; yaw_q [...,4] -> [...,24] (positions then velocities)."""
-    rel = points - points[..., 3:4, :] * np.array([1.0, 0.0, 1.0])       # to_local's, with the velocities:
+    rel = points - points[..., 3:4, :] * _XZ                            # to_local's, with the velocities:
     both = quat.rotate(quat.inv(yaw_q)[..., None, :], np.concatenate([rel, (points - prev_points) * fps], axis=-2))
     return both.reshape(both.shape[:-2] + (24,))
 

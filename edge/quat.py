@@ -20,8 +20,11 @@ def mul(a, b):
     ], axis=-1)
 
 
+_CONJUGATE = np.array([1.0, -1.0, -1.0, -1.0])
+
+
 def inv(q):
-    return q * np.array([1.0, -1.0, -1.0, -1.0], dtype=q.dtype)
+    return q * _CONJUGATE.astype(q.dtype, copy=False)
 
 
 _NEXT, _PREV = np.array([1, 2, 0]), np.array([2, 0, 1])    # index arrays, not lists: no conversion per call
@@ -137,12 +140,15 @@ def angle(q):
 
 def yaw(q):
     """Heading about +Y of the frame's forward axis (+Z), in radians."""
-    fwd = rotate(q, np.array([0.0, 0.0, 1.0]))
+    fwd = rotate(q, _FORWARD)
     return np.arctan2(fwd[..., 0], fwd[..., 2])
 
 
+_FORWARD, _UP = np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0])
+
+
 def from_yaw(theta):
-    return from_axis_angle(np.array([0.0, 1.0, 0.0]), theta)
+    return from_axis_angle(_UP, theta)
 
 
 def matrix_to_6d(m):
