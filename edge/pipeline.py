@@ -27,7 +27,8 @@ from edge.features import body_points, features, heading
 from edge.ik import FootLock, apply_limb_ik, smoothstep
 from edge.inference import Autoencoder, Decoder, open_models
 from edge.plausibility import PlausibilityScorer
-from edge.skeleton import ANKLES, HEAD, JOINT, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, TOES, fk
+from edge.signals import EYE_OFFSET, GRIP_OFFSET
+from edge.skeleton import ANKLES, HEAD, JOINT, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, PELVIS_TO_HEAD, TOES, fk
 
 # Legs (foot locks) and arms (controllers) solved in one batched IK call.
 LIMB_CHAINS = np.array([[JOINT[f"{s}_{a}"], JOINT[f"{s}_{b}"], JOINT[f"{s}_{c}"]]
@@ -164,6 +165,16 @@ class Pipeline:
             for k in ("lock_pos", "locked", "raw", "since_release", "weight"):     # FootLock's state
                 self._addr[k] = native.addr(getattr(self.feet, k))
             self._addr["contacts"] = native.addr(self.decoder.contacts)
+            # One frame's tracker signals in, and what ep_frame_features makes of them.
+            self._frame_in = np.zeros(25)
+            self._in = {k: self._frame_in[i:j].reshape(shape) for k, i, j, shape in (
+                ("head_pos", 0, 3, (3,)), ("head_rot", 3, 7, (4,)), ("hand_pos", 7, 13, (2, 3)),
+                ("hand_rot", 13, 21, (2, 4)), ("waist_rot", 21, 25, (4,)))}
+            self._frame_offsets = np.concatenate([EYE_OFFSET[None], GRIP_OFFSET, (PELVIS_TO_HEAD * body_scale)[None]])
+            self._points, self._prev = np.zeros((4, 3)), np.zeros((4, 3))
+            self._feat32, self._mats = np.zeros(24, np.float32), np.zeros((4, 3, 3))
+            for k in ("_frame_in", "_frame_offsets", "_points", "_prev", "_feat32", "_mats"):
+                self._addr[k] = native.addr(getattr(self, k))
         self.out = Pose()
         self.reset()
 
@@ -187,20 +198,22 @@ class Pipeline:
         self.t += 1
         t, b, N = self.t, self.buffer, self.samples
         s = b.slot(t)
-        points, waist_rot = body_points(sig, self.body_scale)
-        points, waist_rot = points[0], waist_rot[0]
-        prev = points if self._prev_points is None else self._prev_points
-        self._prev_points = points
-        feat = features(points, prev, heading(waist_rot), self.fps)
-
         b.frame[s] = t
         b.override[s] = False
+        if self.native:
+            points, feat, m = self._frame_inputs_native(sig)
+        else:
+            points, waist_rot = body_points(sig, self.body_scale)
+            points, waist_rot = points[0], waist_rot[0]
+            prev = points if self._prev_points is None else self._prev_points
+            self._prev_points = points
+            feat = features(points, prev, heading(waist_rot), self.fps)
+            q = self._quats                      # waist, hands, head: one to_matrix call
+            q[0], q[1:3], q[3] = waist_rot, sig.hand_rot[0], sig.head_rot[0]
+            m = quat.to_matrix(q)
         b.features[s] = feat
         b.anchor[s] = points[0]
         b.wrists[s] = points[1:3]
-        q = self._quats                      # waist, hands, head: one to_matrix call
-        q[0], q[1:3], q[3] = waist_rot, sig.hand_rot[0], sig.head_rot[0]
-        m = quat.to_matrix(q)
         b.waist_m[s], b.hand_m[s], b.head_m[s] = m[0], m[1:3], m[3]
         dec = self.decoder
         dec.features[:] = feat
@@ -246,6 +259,23 @@ class Pipeline:
         elif self.ssi and N > 1 and t - self.lookahead > self.trans_end:
             self._maybe_switch(t, s)
         return self._emit(t - self.lookahead)
+
+    def _frame_inputs_native(self, sig):
+        """body_points, heading, features and the tracker matrices of one frame in one C call
+        (bit-identical to the numpy path; tests/test_native.py). Returns (points [4,3], features
+        [24] float32, matrices [4,3,3]: waist, hands, head)."""
+        v, a = self._in, self._addr
+        v["head_pos"][:] = sig.head_pos[0]
+        v["head_rot"][:] = sig.head_rot[0]
+        v["hand_pos"][:] = sig.hand_pos[0]
+        v["hand_rot"][:] = sig.hand_rot[0]
+        v["waist_rot"][:] = sig.waist_rot[0]
+        first = self._prev_points is None       # the first frame's velocity is zero: prev = points
+        self.native.ep_frame_features(a["_frame_in"], a["_frame_offsets"], a["_points" if first else "_prev"],
+                                      self.fps, a["_points"], a["_feat32"], a["_mats"])
+        np.copyto(self._prev, self._points)
+        self._prev_points = self._prev
+        return self._points, self._feat32, self._mats
 
     def set_samples(self, n):
         """Adaptive N: run the first n (1..max_samples) samples, each keeping its own latent.

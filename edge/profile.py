@@ -384,6 +384,9 @@ def micro_stages(pipe, feeder, reps=300):
         return _pct(out / 1e6)
 
     def feat():
+        if pipe.native:
+            pipe._frame_inputs_native(sig)
+            return
         pts, wr = body_points(sig, pipe.body_scale)
         features(pts[0], pts[0], heading(wr[0]), pipe.fps)
 
@@ -478,7 +481,8 @@ STAGE_METHODS = {
     "sync": "in the paced loop, wall time: FrameSynchronizer.add_headset/add_tracker + frame(t)",
     "pipeline_step": "in the paced loop, wall time: Pipeline.step as a whole",
     "output_encoding": "in the paced loop, wall time: quat.from_matrix + protocol.encode_pose_frame",
-    "features": "micro-timed after the run, thread CPU time: edge.features.body_points + features",
+    "features": "micro-timed after the run, thread CPU time: edge.features.body_points + features "
+                "(Pipeline._frame_inputs_native with the compiled core)",
     "decoder": "micro-timed, thread CPU time: pipe.decoder.step() (N+1 rows, IOBinding)",
     "fk": "micro-timed, thread CPU time: pipe._forward (6D -> matrices, FK, hang from the head)",
     "ik": "micro-timed, thread CPU time: pipe.feet.update + pipe._post (foot locks, batched leg+arm IK)",

@@ -170,3 +170,21 @@ def test_foot_locks_match_numpy_through_contacts_releases_and_slips():
         np.testing.assert_allclose(nat.weight, ref.weight, rtol=0, atol=1e-15)
         np.testing.assert_allclose(goal, want, rtol=0, atol=1e-12)
     assert ref.locked.any() and (~ref.locked).any()
+
+
+def test_frame_features_are_bit_identical_to_the_numpy_features_training_used():
+    from edge.features import body_points, features, heading
+    take = from_sample(SAMPLE)
+    pipe = Pipeline(samples=1, body_scale=1.07)
+    prev = None
+    for t in range(300):
+        sig = take.signals.slice(t, t + 1)
+        points, waist_rot = body_points(sig, 1.07)
+        points, waist_rot = points[0], waist_rot[0]
+        want = features(points, points if prev is None else prev, heading(waist_rot), 60.0).astype(np.float32)
+        prev = points
+        q = np.stack([waist_rot, *sig.hand_rot[0], sig.head_rot[0]])
+        got_points, got, mats = pipe._frame_inputs_native(sig)
+        assert np.array_equal(got, want), t
+        assert np.array_equal(got_points, points)
+        assert np.array_equal(mats, quat.to_matrix(q))

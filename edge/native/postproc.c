@@ -295,3 +295,58 @@ void ep_foot_locks(int B, int F, const float *contacts, const double *pos, int J
         }
     }
 }
+
+/* edge.quat.rotate, in its order of operations: t = 2 (u x v); v + w t + u x t. */
+static void quat_rotate(const double *q, const double *v, double *out) {
+    double c[3], t[3], c2[3];
+    cross3(q + 1, v, c);
+    for (int i = 0; i < 3; i++) t[i] = 2.0 * c[i];
+    cross3(q + 1, t, c2);
+    for (int i = 0; i < 3; i++) out[i] = v[i] + q[0] * t[i] + c2[i];
+}
+
+/* edge.quat.to_matrix */
+static void quat_to_matrix(const double *q, double *m) {
+    double w = q[0], x = q[1], y = q[2], z = q[3];
+    m[0] = 1 - 2 * (y * y + z * z); m[1] = 2 * (x * y - w * z); m[2] = 2 * (x * z + w * y);
+    m[3] = 2 * (x * y + w * z); m[4] = 1 - 2 * (x * x + z * z); m[5] = 2 * (y * z - w * x);
+    m[6] = 2 * (x * z - w * y); m[7] = 2 * (y * z + w * x); m[8] = 1 - 2 * (x * x + y * y);
+}
+
+/* One frame of tracker signals -> the decoder's 24 features and what the pipeline keeps of the frame:
+ * edge.features.body_points, heading and features (the same arithmetic, in numpy's order, so the
+ * result is bit-identical to the numpy path training used), and the tracker rotations as matrices.
+ * in [25]: head_pos 3, head_rot 4, hand_pos 2x3, hand_rot 2x4, waist_rot 4; offsets [4,3]: eye,
+ * left grip, right grip, pelvis-to-head (scaled); prev [4,3]: last frame's points.
+ * Out: points [4,3] (head, wrists, waist), features (float, the decoder's input), mats [4,9]
+ * (waist, left hand, right hand, head). */
+void ep_frame_features(const double *in, const double *offsets, const double *prev, double fps, double *points,
+                       float *features, double *mats) {
+    const double *head_pos = in, *head_rot = in + 3, *hand_pos = in + 7, *hand_rot = in + 13, *waist_rot = in + 21;
+    const double *rots[4] = {head_rot, hand_rot, hand_rot + 4, waist_rot};
+    double turned[4][3];
+    for (int k = 0; k < 4; k++) quat_rotate(rots[k], offsets + k * 3, turned[k]);
+    for (int i = 0; i < 3; i++) {
+        points[i] = head_pos[i] - turned[0][i];
+        points[3 + i] = hand_pos[i] - turned[1][i];
+        points[6 + i] = hand_pos[3 + i] - turned[2][i];
+        points[9 + i] = points[i] - turned[3][i];
+    }
+    /* heading: yaw of the waist's forward axis, as a quaternion about +Y; then its inverse */
+    const double forward[3] = {0.0, 0.0, 1.0}, xz[3] = {1.0, 0.0, 1.0};
+    double fwd[3];
+    quat_rotate(waist_rot, forward, fwd);
+    double half = atan2(fwd[0], fwd[2]) / 2, c = cos(half), s = sin(half);
+    double inv[4] = {c * 1.0, (s * 0.0) * -1.0, (s * 1.0) * -1.0, (s * 0.0) * -1.0};
+    for (int k = 0; k < 8; k++) {
+        double v[3], r[3];
+        for (int i = 0; i < 3; i++)
+            v[i] = k < 4 ? points[k * 3 + i] - points[9 + i] * xz[i] : (points[(k - 4) * 3 + i] - prev[(k - 4) * 3 + i]) * fps;
+        quat_rotate(inv, v, r);
+        for (int i = 0; i < 3; i++) features[k * 3 + i] = (float)r[i];
+    }
+    quat_to_matrix(waist_rot, mats);
+    quat_to_matrix(hand_rot, mats + 9);
+    quat_to_matrix(hand_rot + 4, mats + 18);
+    quat_to_matrix(head_rot, mats + 27);
+}
