@@ -148,7 +148,7 @@ def compare(a, frames, ns):
         times = interleaved(calls, a.blocks, per_block)
         r = {"samples": n, "rows": ours.rows, "us": {k: summary(v) for k, v in times.items()},
              "ratios": {k: ratio(times, *v) for k, v in RATIOS.items()},
-             "ssi_switches": {k: len(p.switches) for k, p in pipes.items()}}
+             "ssi_switches": {k: p.switch_count for k, p in pipes.items()}}
         rows.append(r)
         us = {k: f"{v['p50']:.0f}" for k, v in r["us"].items()}
         rs = {k: f"{v['p50']:.2f} [{v['blocks_min']:.2f},{v['blocks_max']:.2f}]" for k, v in r["ratios"].items()}

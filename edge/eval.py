@@ -77,7 +77,7 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision="fp32", max_f
                 continue
             run = run_take(pipe, take, max_frames)
             pred, pelvis = run.pred, run.pelvis
-            switches += len(pipe.switches)
+            switches += pipe.switch_count
             switch_frames += int(run.transition.sum())
             T = len(pred)
             w = int(round(WARMUP_S * take.fps))

@@ -17,6 +17,7 @@ Adaptive N: buffers are sized for `max_samples` once; `set_samples(n)` runs the 
 from then on (edge.governor decides n from the frame times). Dropping the shown sample reuses the
 SSI transition; a revived sample starts from the shown sample's GRU state, so nothing pops.
 """
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -35,6 +36,7 @@ LIMB_CHAINS = np.array([[JOINT[f"{s}_{a}"], JOINT[f"{s}_{b}"], JOINT[f"{s}_{c}"]
                         for a, b, c in (("hip", "knee", "ankle"), ("shoulder", "elbow", "wrist")) for s in "lr"])
 LIMB_POLES = np.array([[0.0, 0.0, 1.0]] * 2 + [[0.0, 0.0, -1.0]] * 2)   # knees bend forward, elbows back
 NECK = JOINT["neck"]
+SWITCH_HISTORY = 10_000     # switches kept in Pipeline.switches (hours of a take; edge eval reads them per take)
 
 
 @dataclass
@@ -189,7 +191,10 @@ class Pipeline:
         self.current = 0
         self.trans = None           # (from, to, first frame, length) of the running transition
         self.trans_end = -1
-        self.switches = []          # (detected at frame, first transition frame, from, to)
+        # (detected at frame, first transition frame, from, to), the most recent SWITCH_HISTORY of them:
+        # a service runs for days and switches about once a second. switch_count counts them all.
+        self.switches = deque(maxlen=SWITCH_HISTORY)
+        self.switch_count = 0
         self._prev_points = None
 
     # ------------------------------------------------------------------ per frame
@@ -400,6 +405,7 @@ class Pipeline:
         T = self.transition
         self.trans, self.trans_end = (c, n, s0, T), s0 + T - 1
         self.switches.append((t, s0, c, n))
+        self.switch_count += 1
         self.current = n
         self._recompute_transition(c, n, s0, T, t)
 

@@ -332,7 +332,7 @@ def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None):
     stats = {"samples": samples, "frames": frames, "deadline_misses": misses, "late_starts": late_starts,
              "skipped_frames": skipped,
              "frame_ms": _pct(ms(resp)), "compute_ms": _pct(ms(comp)), "cpu_ms": _pct(ms(cpu)),
-             "stages_in_loop_ms": {k: _pct(ms(v)) for k, v in st.items()}, "ssi_switches": len(pipe.switches)}
+             "stages_in_loop_ms": {k: _pct(ms(v)) for k, v in st.items()}, "ssi_switches": pipe.switch_count}
     if adaptive or hog:
         stats["contention"] = contention_report(resp, live_n, period, hog, governor)
     return stats, pipe, feeder

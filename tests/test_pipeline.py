@@ -33,14 +33,14 @@ def test_single_sample_is_the_prior_mean_and_never_switches(take):
     assert np.all(pipe.latents == 0) and pipe.lookahead == 0 and not pipe.ssi
     for t in range(100):
         assert pipe.step(take.signals.slice(t, t + 1)).sample == 0
-    assert pipe.switches == []
+    assert list(pipe.switches) == []
 
 
 def test_no_ssi_keeps_the_starting_sample_with_random_latents(take):
     pipe = Pipeline(samples=8, ssi=False)
     assert np.std(pipe.latents) > 0.5
     poses = [pipe.step(take.signals.slice(t, t + 1)) for t in range(200)]
-    assert {p.sample for p in poses if p is not None} == {0} and pipe.switches == []
+    assert {p.sample for p in poses if p is not None} == {0} and list(pipe.switches) == []
 
 
 class ForcedSwitch:
@@ -75,7 +75,7 @@ def run_forced_switch(take, lookahead, at, frames, transition=10):
 
 def test_transition_starts_at_the_oldest_unsent_frame_and_lands_on_the_new_sample(take):
     pipe, out, own_new = run_forced_switch(take, lookahead=10, at=40, frames=80)
-    assert pipe.switches == [(40, 30, 0, 3)]
+    assert list(pipe.switches) == [(40, 30, 0, 3)]
     assert [f for f in out if out[f][2]] == list(range(30, 40))          # frames t-tau .. t-tau+T-1
     assert all(out[f][1] == 0 for f in range(10, 30))
     assert all(out[f][1] == 3 for f in range(40, 70))
@@ -142,7 +142,7 @@ def test_dropping_the_shown_sample_moves_to_a_kept_one_with_the_ssi_transition(t
         pose = pipe.step(take.signals.slice(t, t + 1))
         if pose is not None:
             out[pose.frame] = (pose.sample, pose.transition, pipe.samples)
-    assert pipe.switches == [(40, 30, 0, 3), (70, 60, 3, 0)]
+    assert list(pipe.switches) == [(40, 30, 0, 3), (70, 60, 3, 0)]
     assert [f for f in out if out[f][1]] == list(range(30, 40)) + list(range(60, 70))
     # The smaller N applies once no transition frame still has to be computed from sample 3: here the
     # whole transition (60..69) was recomputed inside the look-ahead at frame 70, so from frame 71 on
@@ -178,3 +178,22 @@ def test_a_live_transition_keeps_its_source_sample_running_until_its_last_frame(
         live[t] = pipe.samples
     assert pipe.switches[-1] == (70, 67, 3, 0) and pipe.trans_end == 76
     assert {live[t] for t in range(70, 76)} == {6} and {live[t] for t in range(76, 90)} == {2}
+
+
+def test_switch_history_is_bounded_for_long_runs_but_every_switch_is_counted(take, monkeypatch):
+    import edge.pipeline as pipeline_mod
+    monkeypatch.setattr(pipeline_mod, "SWITCH_HISTORY", 5)
+
+    class CurrentIsWorst:          # makes the shown sample an outlier on every frame
+        name, weight = "worst", 1.0
+
+        def cost(self, ctx):
+            c = np.zeros(len(ctx.positions))
+            c[pipe.current] = 1.0
+            return c
+
+    pipe = Pipeline(samples=4, lookahead=0, transition=1, criteria=[CurrentIsWorst()])
+    for t in range(30):
+        pipe.step(take.signals.slice(t, t + 1))
+    assert pipe.switch_count == 30 and len(pipe.switches) == 5
+    assert [s[0] for s in pipe.switches] == list(range(25, 30))

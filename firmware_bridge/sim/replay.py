@@ -328,7 +328,7 @@ def report(session, summary, m, service, ear, opened, errors, faults, speed, dur
                         "reader (processing, serial transfer, decoding); the deliberate delays (SSI look-ahead, and the "
                         "synchroniser interpolating one headset period back) are reported apart",
         "lookahead_ms": 1000.0 * service.pipeline.lookahead / hz,
-        "sync_delay_ms": 1000.0 * service.cfg.sync_latency, "ssi_switches": len(service.pipeline.switches),
+        "sync_delay_ms": 1000.0 * service.cfg.sync_latency, "ssi_switches": service.pipeline.switch_count,
         "samples": service.pipeline.samples, "samples_max": summary["samples_max"],
         "samples_changes": summary["samples_changes"], "frame_ms": summary["frame_ms"], "reopens": summary["reopens"],
         "output_errors": summary["output_errors"], "resume_after_replug_s": resume_s,
