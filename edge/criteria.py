@@ -93,6 +93,8 @@ class Composite:
         self.criteria = list(criteria)
 
     def cost(self, ctx):
+        if len(self.criteria) == 1 and self.criteria[0].weight == 1.0:
+            return self.criteria[0].cost(ctx)         # the default (plausibility alone): no sum to build
         total = np.zeros(len(ctx.positions))
         for c in self.criteria:
             if c.weight:

@@ -101,12 +101,13 @@ def test_plausibility_score_matches_numpy_and_reuses_its_buffers():
     np.testing.assert_allclose(fast.lower_body_error(P[:5], W[:5, 0]), got[:5], rtol=0, atol=1e-9)
 
 
-@pytest.mark.parametrize("samples,ssi", [(1, True), (8, False), (8, True)])
-def test_pipeline_output_is_the_same_with_and_without_the_compiled_core(samples, ssi):
+@pytest.mark.parametrize("samples,ssi,ik", [(1, True, "both"), (8, False, "both"), (8, True, "both"),
+                                              (8, True, "feet"), (8, True, "arms")])
+def test_pipeline_output_is_the_same_with_and_without_the_compiled_core(samples, ssi, ik):
     take = from_sample(SAMPLE)
     runs = []
     for use_native in (True, False):
-        pipe = Pipeline(samples=samples, ssi=ssi, use_native=use_native)
+        pipe = Pipeline(samples=samples, ssi=ssi, use_native=use_native, foot_ik=ik != "arms", arm_ik=ik != "feet")
         assert (pipe.native is not None) == use_native
         poses = []
         for t in range(400):

@@ -67,6 +67,7 @@ _SIGNATURES = {
     "ep_leg_error": [_I, _I, _P, _I, _P, _P, _P, _P, _P, _P],
     "ep_foot_locks": [_I, _I, _P, _P, _I, _P, ctypes.c_double, ctypes.c_double, _P, _P, _P, _P, _P, _P],
     "ep_frame_features": [_P, _P, _P, ctypes.c_double, _P, _P, _P],
+    "ep_post": [_I, _I, _P, _P, _P, _P, _P, _P, _I, _I, _P, _I, _P, _I, _P, _I, _I, _I, _P, _P, _P],
 }
 
 

@@ -172,8 +172,40 @@ static void two_bone_ik(const double *a, const double *b, const double *c, const
     matmul3(r20, tmp, b_new);
 }
 
-/* edge.ik.apply_limb_ik with offsets (world rotations and positions of the chains updated), then the
- * positions of the end joints' children (the toes; edge.pipeline.Pipeline._post).
+/* One chain of edge.ik.apply_limb_ik (with offsets) on one pose: ends moved `w` of the way to the
+ * target, world rotations and positions of the chain updated, then the positions of the end joint's
+ * children (the toes). pole in the mid joint's frame; end_rot the end joint's new world rotation. */
+static void solve_chain(double *L, double *W, double *P, int J, const int64_t *parents, const double *offsets,
+                        const int64_t *chain, const double *tg, double w, const double *pole_local,
+                        const double *end_rot) {
+    int ia = (int)chain[0], ib = (int)chain[1], ic = (int)chain[2];
+    double goal[3], pole[3], a[3], v[3];
+    for (int i = 0; i < 3; i++) {
+        goal[i] = P[ic * 3 + i] + w * (tg[i] - P[ic * 3 + i]);
+        a[i] = P[ia * 3 + i];
+    }
+    matvec3(W + ib * 9, pole_local, pole);
+    mat3 a_new, b_new, end;
+    copy9(end_rot, end);
+    two_bone_ik(P + ia * 3, P + ib * 3, P + ic * 3, goal, W + ia * 9, W + ib * 9, pole, a_new, b_new);
+    matmul3_tn(W + (int)parents[ia] * 9, a_new, L + ia * 9);
+    matmul3_tn(a_new, b_new, L + ib * 9);
+    matmul3_tn(b_new, end, L + ic * 9);
+    copy9(a_new, W + ia * 9);
+    copy9(b_new, W + ib * 9);
+    copy9(end, W + ic * 9);
+    matvec3(a_new, offsets + ib * 3, v);
+    for (int i = 0; i < 3; i++) P[ib * 3 + i] = a[i] + v[i];
+    matvec3(b_new, offsets + ic * 3, v);
+    for (int i = 0; i < 3; i++) P[ic * 3 + i] = P[ib * 3 + i] + v[i];
+    for (int j = ic + 1; j < J; j++) {
+        if (parents[j] != ic) continue;
+        matvec3(W + ic * 9, offsets + j * 3, v);
+        for (int i = 0; i < 3; i++) P[j * 3 + i] = P[ic * 3 + i] + v[i];
+    }
+}
+
+/* edge.ik.apply_limb_ik with offsets, then the positions of the end joints' children (the toes).
  * chains [K,3] (root, mid, end); targets [R,K,3]; weights [R,K]; poles [K,3] in the mid joint's
  * frame; ends [R,K,3,3] the end joints' new world rotations. */
 void ep_limb_ik(int R, int J, const int64_t *parents, const double *offsets, int K, const int64_t *chains,
@@ -181,33 +213,33 @@ void ep_limb_ik(int R, int J, const int64_t *parents, const double *offsets, int
                 double *local, double *world, double *pos) {
     for (int r = 0; r < R; r++) {
         double *L = local + (int64_t)r * J * 9, *W = world + (int64_t)r * J * 9, *P = pos + (int64_t)r * J * 3;
-        for (int k = 0; k < K; k++) {
-            int ia = (int)chains[k * 3], ib = (int)chains[k * 3 + 1], ic = (int)chains[k * 3 + 2];
-            const double *tg = targets + ((int64_t)r * K + k) * 3;
-            double w = weights[(int64_t)r * K + k], goal[3], pole[3], a[3], v[3];
-            for (int i = 0; i < 3; i++) {
-                goal[i] = P[ic * 3 + i] + w * (tg[i] - P[ic * 3 + i]);
-                a[i] = P[ia * 3 + i];
-            }
-            matvec3(W + ib * 9, poles + k * 3, pole);
-            mat3 a_new, b_new, end;
-            two_bone_ik(P + ia * 3, P + ib * 3, P + ic * 3, goal, W + ia * 9, W + ib * 9, pole, a_new, b_new);
-            copy9(ends + ((int64_t)r * K + k) * 9, end);
-            matmul3_tn(W + (int)parents[ia] * 9, a_new, L + ia * 9);
-            matmul3_tn(a_new, b_new, L + ib * 9);
-            matmul3_tn(b_new, end, L + ic * 9);
-            copy9(a_new, W + ia * 9);
-            copy9(b_new, W + ib * 9);
-            copy9(end, W + ic * 9);
-            matvec3(a_new, offsets + ib * 3, v);
-            for (int i = 0; i < 3; i++) P[ib * 3 + i] = a[i] + v[i];
-            matvec3(b_new, offsets + ic * 3, v);
-            for (int i = 0; i < 3; i++) P[ic * 3 + i] = P[ib * 3 + i] + v[i];
-            for (int j = ic + 1; j < J; j++) {
-                if (parents[j] != ic) continue;
-                matvec3(W + ic * 9, offsets + j * 3, v);
-                for (int i = 0; i < 3; i++) P[j * 3 + i] = P[ic * 3 + i] + v[i];
-            }
+        for (int k = 0; k < K; k++)
+            solve_chain(L, W, P, J, parents, offsets, chains + k * 3, targets + ((int64_t)r * K + k) * 3,
+                        weights[(int64_t)r * K + k], poles + k * 3, ends + ((int64_t)r * K + k) * 9);
+    }
+}
+
+/* edge.pipeline.Pipeline._post: the legs (chains 0, 1) to their foot goals [R,2,3] at the lock
+ * weights [R,2] (0 without foot IK), keeping the ankles' orientation; the arms (chains 2, 3) onto the
+ * controllers (wrists [2,3], hand rotations [2,3,3] per row or shared) with the hands turned to them;
+ * the head turned to the headset (head_m [3,3]). Without arm IK the arms and head are left alone. */
+void ep_post(int R, int J, const int64_t *parents, const double *offsets, const int64_t *chains,
+             const double *poles, const double *foot_goals, const double *foot_weights, int foot_ik, int arm_ik,
+             const double *wrists, int wrists_stride, const double *hand_m, int hand_stride, const double *head_m,
+             int head_stride, int neck, int head, double *local, double *world, double *pos) {
+    for (int r = 0; r < R; r++) {
+        double *L = local + (int64_t)r * J * 9, *W = world + (int64_t)r * J * 9, *P = pos + (int64_t)r * J * 3;
+        for (int k = 0; k < 2; k++)
+            solve_chain(L, W, P, J, parents, offsets, chains + k * 3, foot_goals + ((int64_t)r * 2 + k) * 3,
+                        foot_ik ? foot_weights[(int64_t)r * 2 + k] : 0.0, poles + k * 3, W + chains[k * 3 + 2] * 9);
+        for (int k = 2; k < 4; k++)
+            solve_chain(L, W, P, J, parents, offsets, chains + k * 3, wrists + (int64_t)r * wrists_stride + (k - 2) * 3,
+                        arm_ik ? 1.0 : 0.0, poles + k * 3,
+                        arm_ik ? hand_m + (int64_t)r * hand_stride + (k - 2) * 9 : W + chains[k * 3 + 2] * 9);
+        if (arm_ik) {
+            const double *hm = head_m + (int64_t)r * head_stride;
+            copy9(hm, W + head * 9);
+            matmul3_tn(W + neck * 9, hm, L + head * 9);
         }
     }
 }
