@@ -186,6 +186,11 @@ class Pipeline:
             self._feat32, self._mats = np.zeros(24, np.float32), np.zeros((4, 3, 3))
             for k in ("_frame_in", "_frame_offsets", "_points", "_prev", "_feat32", "_mats"):
                 self._addr[k] = native.addr(getattr(self, k))
+            # The live frame reads ring-buffer slot s: (base address, bytes per slot) of each input.
+            b = self.buffer
+            self._slot_addr = {k: (native.addr(getattr(b, k)), getattr(b, k).strides[0])
+                               for k in ("waist_m", "anchor", "wrists", "hand_m", "head_m")}
+            self._addr["rot6d"] = native.addr(self.decoder.rot6d)
         self.out = Pose()
         self.reset()
 
@@ -243,7 +248,7 @@ class Pipeline:
 
         # Post-processing for every row at once; the transition row borrows interpolated foot locks.
         rows = N + 1 if live else N
-        self._forward(dec.rot6d[:rows], b.waist_m[s], b.anchor[s])
+        self._forward(dec.rot6d[:rows], b.waist_m[s], b.anchor[s], slot=s)
         if self.foot_ik:
             # A transition blends the two samples' foot goals (not lock positions, which are stale
             # for a foot that is free) and lock weights.
@@ -252,7 +257,7 @@ class Pipeline:
             if live:
                 self._targets[N] = (1 - a) * goal[c] + a * goal[n]
                 self._weights[N] = (1 - a) * w[c] + a * w[n]
-        self._post(rows, b.wrists[s], b.hand_m[s], b.head_m[s])
+        self._post(rows, b.wrists[s], b.hand_m[s], b.head_m[s], slot=s)
         b.contacts[s, :N] = dec.contacts[:N]
         b.positions[s, :N] = self._pos[:N]
         b.local_rot[s, :N] = self._local[:N]
@@ -312,17 +317,22 @@ class Pipeline:
         return out
 
     # ------------------------------------------------------------------ stages
-    def _forward(self, rot6d, waist_m, anchor):
+    def _forward(self, rot6d, waist_m, anchor, slot=None):
         """6D -> local rotations, FK with the waist IMU as root, body hung from the tracked head.
 
-        waist_m [3,3] or per row [R,3,3]; anchor (the tracked head joint) [3] or [R,3].
+        waist_m [3,3] or per row [R,3,3]; anchor (the tracked head joint) [3] or [R,3]. `slot`: they
+        are the live decoder's rows and ring-buffer slot `slot` (addresses known without asking numpy).
         """
         R = len(rot6d)
         if self.native:
             a = self._addr
-            r6, r6_stride = native.rows(rot6d, 1, np.float32)
-            root, root_stride = native.rows(waist_m, 2)
-            head, head_stride = native.rows(anchor, 1)
+            if slot is not None:
+                (w0, ws), (h0, hs) = self._slot_addr["waist_m"], self._slot_addr["anchor"]
+                r6, r6_stride, root, root_stride, head, head_stride = a["rot6d"], rot6d.shape[1], w0 + slot * ws, 0, h0 + slot * hs, 0
+            else:
+                r6, r6_stride = native.rows(rot6d, 1, np.float32)
+                root, root_stride = native.rows(waist_m, 2)
+                head, head_stride = native.rows(anchor, 1)
             self.native.ep_forward(R, NUM_JOINTS, a["parents"], a["offsets"], HEAD, r6, r6_stride, root, root_stride,
                                    head, head_stride, a["_local"], a["_world"], a["_pos"])
             return
@@ -352,19 +362,24 @@ class Pipeline:
         self._weights[:N] = 1.0
         return goal, w
 
-    def _post(self, rows, wrists, hand_m, head_m):
+    def _post(self, rows, wrists, hand_m, head_m, slot=None):
         """Leg IK to the foot locks and arm IK to the controllers in one batched call, head to the headset.
 
-        wrists [2,3], hand_m [2,3,3], head_m [3,3], or the same per row. Updates rotations and positions
-        in place (the IK moves knees, ankles, toes, elbows and wrists; nothing else).
+        wrists [2,3], hand_m [2,3,3], head_m [3,3], or the same per row; `slot` as in _forward. Updates
+        rotations and positions in place (the IK moves knees, ankles, toes, elbows and wrists; nothing else).
         """
         if not (self.foot_ik or self.arm_ik):
             return
         if self.native:
             a = self._addr
-            wr, wr_stride = native.rows(wrists, 2)
-            hm, hm_stride = native.rows(hand_m, 3)
-            hd, hd_stride = native.rows(head_m, 2)
+            if slot is not None:        # the live frame: buffer slot `slot`, shared by every row
+                sa = self._slot_addr
+                wr, hm, hd = (sa[k][0] + slot * sa[k][1] for k in ("wrists", "hand_m", "head_m"))
+                wr_stride = hm_stride = hd_stride = 0
+            else:
+                wr, wr_stride = native.rows(wrists, 2)
+                hm, hm_stride = native.rows(hand_m, 3)
+                hd, hd_stride = native.rows(head_m, 2)
             self.native.ep_post(rows, NUM_JOINTS, a["parents"], a["offsets"], a["chains"], a["poles"], a["_targets"],
                                 a["_weights"], int(self.foot_ik), int(self.arm_ik), wr, wr_stride, hm, hm_stride,
                                 hd, hd_stride, NECK, HEAD, a["_local"], a["_world"], a["_pos"])
