@@ -30,15 +30,10 @@ def derive_waist_position(head, waist_rot, body_scale=1.0):
 
 
 def body_points(sig, body_scale=1.0):
-    """Signals -> world points [...,4,3] (head, wrists, pelvis) and the waist orientation.
-
-    head_joint, wrist_joints and derive_waist_position in one rotate call (the same arithmetic)."""
-    rots = np.concatenate([sig.head_rot[..., None, :], sig.hand_rot, sig.waist_rot[..., None, :]], axis=-2)
-    offsets = np.concatenate([EYE_OFFSET[None], GRIP_OFFSET, (PELVIS_TO_HEAD * body_scale)[None]])
-    turned = quat.rotate(rots, offsets)
-    head = sig.head_pos - turned[..., 0, :]
-    wrists = sig.hand_pos - turned[..., 1:3, :]
-    waist = head - turned[..., 3, :]
+    """Signals -> world points [...,4,3] (head, wrists, pelvis) and the waist orientation."""
+    head = head_joint(sig.head_pos, sig.head_rot)
+    wrists = wrist_joints(sig.hand_pos, sig.hand_rot)
+    waist = derive_waist_position(head, sig.waist_rot, body_scale)
     return np.concatenate([head[..., None, :], wrists, waist[..., None, :]], axis=-2), sig.waist_rot
 
 
@@ -55,9 +50,9 @@ def to_local(points, waist_pos, yaw_q):
 
 def features(points, prev_points, yaw_q, fps):
     """points, prev_points [...,4,3] world; yaw_q [...,4] -> [...,24] (positions then velocities)."""
-    rel = points - points[..., 3:4, :] * _XZ                            # to_local's, with the velocities:
-    both = quat.rotate(quat.inv(yaw_q)[..., None, :], np.concatenate([rel, (points - prev_points) * fps], axis=-2))
-    return both.reshape(both.shape[:-2] + (24,))
+    local = to_local(points, points[..., 3, :], yaw_q)
+    vel = quat.rotate(quat.inv(yaw_q)[..., None, :], (points - prev_points) * fps)
+    return np.concatenate([local.reshape(local.shape[:-2] + (12,)), vel.reshape(vel.shape[:-2] + (12,))], axis=-1)
 
 
 def sequence_features(sig, fps, body_scale=1.0):

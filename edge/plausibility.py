@@ -10,7 +10,6 @@ from edge.skeleton import LEGS, NUM_JOINTS, NUM_PREDICTED, OFFSETS, fk_legs
 
 # Rows of the autoencoder's rotation output (joint index - 1) for hip, knee and ankle of each leg.
 _LEG_ROWS = LEGS[:, :3] - 1
-OFFSETS_C = np.ascontiguousarray(OFFSETS, np.float64)
 
 
 def yaw_matrix(rot_m):
@@ -52,7 +51,7 @@ class PlausibilityScorer:
             self._legs = np.ascontiguousarray(LEGS, np.int64)
             self._leg_rows = np.ascontiguousarray(_LEG_ROWS, np.int64)
             self._a = {k: native.addr(v) for k, v in (("local", self._local), ("root_local", self._root_local),
-                       ("err", self._err), ("legs", self._legs), ("leg_rows", self._leg_rows), ("offsets", OFFSETS_C),
+                       ("err", self._err), ("legs", self._legs), ("leg_rows", self._leg_rows), ("offsets", OFFSETS),
                        ("inp", autoencoder.inp), ("out", autoencoder.out))}
 
     def lower_body_error(self, world_pos, pelvis_rot_m):

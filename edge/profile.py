@@ -485,7 +485,7 @@ STAGE_METHODS = {
                 "(Pipeline._frame_inputs_native with the compiled core)",
     "decoder": "micro-timed, thread CPU time: pipe.decoder.step() (N+1 rows, IOBinding)",
     "fk": "micro-timed, thread CPU time: pipe._forward (6D -> matrices, FK, hang from the head)",
-    "ik": "micro-timed, thread CPU time: pipe.feet.update + pipe._post (foot locks, batched leg+arm IK)",
+    "ik": "micro-timed, thread CPU time: pipe._foot_goals + pipe._post (foot locks, batched leg+arm IK)",
     "autoencoder": "micro-timed, thread CPU time: pipe.scorer.lower_body_error on pipe._pos[:N] (N>1 only)",
     "selection": "micro-timed, thread CPU time: is_outlier + best_other + pipe._emit",
     "transition_recompute": "micro-timed, thread CPU time: pipe._recompute_transition (only on an SSI switch)",
@@ -567,7 +567,8 @@ def main(args):
               "stage_methods": {k: STAGE_METHODS[k] for k in res["stages"]},
               "budget": {**res["budget"], "frame_period_ms": res["frame_budget_ms"], "headroom": args.headroom},
               "probes": res["probes"], "runs": res["runs"], "ssi_switches": res["ssi_switches"],
-              "pinned_core": res["core"], "compiled_core": res["compiled_core"], "input": f"{SAMPLE.name} signals looped, through FrameSynchronizer",
+              "pinned_core": res["core"], "compiled_core": res["compiled_core"],
+              "input": f"{SAMPLE.name} signals looped, through FrameSynchronizer",
               "seconds": round(time.time() - t0, 1)}
     if res.get("contention"):
         result["adaptive"] = args.adaptive

@@ -7,11 +7,10 @@ import numpy as np
 import pytest
 
 from edge import native, quat
-from edge.ik import apply_limb_ik
 from edge.inference import Autoencoder, open_models
-from edge.pipeline import LIMB_CHAINS, LIMB_POLES, Pipeline
+from edge.pipeline import LIMB_CHAINS, Pipeline
 from edge.plausibility import PlausibilityScorer
-from edge.skeleton import ANKLES, HEAD, JOINT, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, TOES, fk
+from edge.skeleton import ANKLES, HEAD, JOINT, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, fk
 from edge.takes import from_sample
 from tests.conftest import SAMPLE
 
@@ -64,25 +63,26 @@ def test_forward_matches_numpy_6d_fk_and_head_anchor(shared):
 
 
 def test_limb_ik_matches_numpy_on_reachable_unreachable_and_straight_chains():
-    R, K = 64, len(LIMB_CHAINS)
+    R = 64
     rng = np.random.default_rng(3)
     loc, W, P = numpy_forward(random_6d(R, 4), random_rotations((R,), 5), rng.normal(0, 1, (R, 3)))
     loc[:8, [JOINT["l_knee"], JOINT["r_knee"], JOINT["l_elbow"], JOINT["r_elbow"]]] = np.eye(3)   # straight
     W, P = fk(loc, np.zeros((R, 3)))
     ends = P[:, LIMB_CHAINS[:, 2]]
-    targets = ends + rng.normal(0, 0.4, (R, K, 3))          # some out of reach
-    weights = rng.uniform(0, 1, (R, K))
+    targets = ends + rng.normal(0, 0.4, (R, len(LIMB_CHAINS), 3))          # some out of reach
+    weights = rng.uniform(0, 1, (R, 2))
     weights[:4] = 1.0
     weights[4:6] = 0.0
-    end_rot = np.concatenate([W[:, ANKLES], random_rotations((R, 2), 6)], axis=1)
-    ref = [x.copy() for x in (loc, W, P)]
-    apply_limb_ik(*ref, PARENTS, LIMB_CHAINS, targets, weights, LIMB_POLES, end_rot, OFFSETS)
-    ref[2][:, TOES] = ref[2][:, ANKLES] + (ref[1][:, ANKLES] @ OFFSETS[TOES][:, :, None])[..., 0]
-    got = [x.copy() for x in (loc, W, P)]
-    lib.ep_limb_ik(R, NUM_JOINTS, A(P64), A(OFFSETS), K, A(np.ascontiguousarray(LIMB_CHAINS, np.int64)),
-                   A(LIMB_POLES), A(targets), A(weights), A(np.ascontiguousarray(end_rot)), *map(A, got))
+    hand_m, head_m = random_rotations((R, 2), 6), random_rotations((R,), 7)
+    results = []
+    for use_native in (False, True):       # Pipeline._post: legs to foot goals, arms onto controllers, head
+        pipe = Pipeline(samples=R, use_native=use_native)
+        pipe._local[:R], pipe._world[:R], pipe._pos[:R] = loc, W, P
+        pipe._targets[:R], pipe._weights[:R] = targets[:, :2], weights
+        pipe._post(R, targets[:, 2:].copy(), hand_m, head_m)
+        results.append([x[:R].copy() for x in (pipe._local, pipe._world, pipe._pos)])
     # A straight chain puts acos at +-1, where 1e-16 differences in its argument become 1e-8 in angle.
-    for r, g in zip(ref, got):
+    for r, g in zip(*results):
         np.testing.assert_allclose(g[8:], r[8:], rtol=0, atol=1e-10)
         np.testing.assert_allclose(g[:8], r[:8], rtol=0, atol=1e-6)
 

@@ -62,7 +62,6 @@ _P = ctypes.c_void_p
 _I = ctypes.c_int
 _SIGNATURES = {
     "ep_forward": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _P, _I, _P, _P, _P],
-    "ep_limb_ik": [_I, _I, _P, _P, _I, _P, _P, _P, _P, _P, _P, _P, _P],
     "ep_local_pose": [_I, _I, _P, _P, _I, _P, _P, _P],
     "ep_leg_error": [_I, _I, _P, _I, _P, _P, _P, _P, _P, _P],
     "ep_foot_locks": [_I, _I, _P, _P, _I, _P, ctypes.c_double, ctypes.c_double, _P, _P, _P, _P, _P, _P],

@@ -205,20 +205,6 @@ static void solve_chain(double *L, double *W, double *P, int J, const int64_t *p
     }
 }
 
-/* edge.ik.apply_limb_ik with offsets, then the positions of the end joints' children (the toes).
- * chains [K,3] (root, mid, end); targets [R,K,3]; weights [R,K]; poles [K,3] in the mid joint's
- * frame; ends [R,K,3,3] the end joints' new world rotations. */
-void ep_limb_ik(int R, int J, const int64_t *parents, const double *offsets, int K, const int64_t *chains,
-                const double *poles, const double *targets, const double *weights, const double *ends,
-                double *local, double *world, double *pos) {
-    for (int r = 0; r < R; r++) {
-        double *L = local + (int64_t)r * J * 9, *W = world + (int64_t)r * J * 9, *P = pos + (int64_t)r * J * 3;
-        for (int k = 0; k < K; k++)
-            solve_chain(L, W, P, J, parents, offsets, chains + k * 3, targets + ((int64_t)r * K + k) * 3,
-                        weights[(int64_t)r * K + k], poles + k * 3, ends + ((int64_t)r * K + k) * 9);
-    }
-}
-
 /* edge.pipeline.Pipeline._post: the legs (chains 0, 1) to their foot goals [R,2,3] at the lock
  * weights [R,2] (0 without foot IK), keeping the ankles' orientation; the arms (chains 2, 3) onto the
  * controllers (wrists [2,3], hand rotations [2,3,3] per row or shared) with the hands turned to them;
