@@ -16,8 +16,8 @@ class FrameContext:
     """What the criteria see for the frame being judged."""
     frame: int
     positions: np.ndarray       # [N,J,3] world, after IK
-    world_rot: np.ndarray       # [N,J,3,3]
-    pelvis_rot: np.ndarray      # [N,4] quaternion of each sample's pelvis
+    world_rot: np.ndarray       # [N,J,3,3], or None unless a criterion sets needs_world_rot
+    pelvis_rot: np.ndarray      # [N,3,3] each sample's pelvis rotation
     imu: dict = field(default_factory=dict)  # joint index -> measured world rotation [3,3] (extra trackers)
 
 
@@ -72,6 +72,7 @@ class SensorAgreement:
     """Prefer samples whose joint orientations match extra IMU trackers (a zero-order form of DragPoser's
     constraint losses): mean rotation angle (radians) between each sample's joint and the measurement."""
     name = "sensors"
+    needs_world_rot = True      # the pipeline stores every joint's world rotation only when asked
 
     def __init__(self, weight=1.0):
         self.weight = weight
@@ -91,6 +92,11 @@ class Composite:
 
     def __init__(self, criteria):
         self.criteria = list(criteria)
+
+    @property
+    def needs_world_rot(self):
+        """Whether any criterion reads FrameContext.world_rot (the pipeline then stores it)."""
+        return any(getattr(c, "needs_world_rot", False) for c in self.criteria)
 
     def cost(self, ctx):
         if len(self.criteria) == 1 and self.criteria[0].weight == 1.0:

@@ -119,11 +119,19 @@ class Autoencoder:
         return self.out[:self.rows]
 
 
+def model_files(precision, manifest):
+    """(decoder file, autoencoder file) a precision runs: the manifest's `precisions` entry when it has
+    one (python -m quantize keeps the fp32 autoencoder for int8 where int8 measured slower), else
+    <model>.<precision>.onnx."""
+    chosen = manifest.get("precisions", {}).get(precision, {})
+    suffix = "" if precision == "fp32" else f".{precision}"
+    return tuple(chosen.get(m, f"{m}{suffix}.onnx") for m in ("decoder", "autoencoder"))
+
+
 def open_models(folder=None, threads=1, precision="fp32"):
     """Verify the manifest and open both sessions: (manifest, decoder session, autoencoder session)."""
     kw = {} if folder is None else {"folder": folder}
-    suffix = "" if precision == "fp32" else f".{precision}"
-    names = (f"decoder{suffix}.onnx", f"autoencoder{suffix}.onnx")
+    names = model_files(precision, load_manifest(need=(), **kw))
     manifest = load_manifest(need=names, **kw)
     return manifest, make_session(manifest["paths"][names[0]], threads), make_session(manifest["paths"][names[1]], threads)
 

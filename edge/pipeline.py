@@ -17,6 +17,7 @@ Adaptive N: buffers are sized for `max_samples` once; `set_samples(n)` runs the 
 from then on (edge.governor decides n from the frame times). Dropping the shown sample reuses the
 SSI transition; a revived sample starts from the shown sample's GRU state, so nothing pops.
 """
+import ctypes
 from collections import deque
 from dataclasses import dataclass, field
 
@@ -36,6 +37,9 @@ LIMB_CHAINS = np.array([[JOINT[f"{s}_{a}"], JOINT[f"{s}_{b}"], JOINT[f"{s}_{c}"]
                         for a, b, c in (("hip", "knee", "ankle"), ("shoulder", "elbow", "wrist")) for s in "lr"])
 LIMB_POLES = np.array([[0.0, 0.0, 1.0]] * 2 + [[0.0, 0.0, -1.0]] * 2)   # knees bend forward, elbows back
 NECK = JOINT["neck"]
+_FRAME_INPUTS = ("waist_m", "anchor", "wrists", "hand_m", "head_m")    # ep_frame_poses' per-frame inputs, in order
+# What the ring keeps of each row, in frame_context's order (postproc.c).
+_RING_ROWS = ("rot6d", "contacts", "leg_goal", "leg_weight", "lock_weight")
 SWITCH_HISTORY = 10_000     # switches kept in Pipeline.switches (hours of a take; edge eval reads them per take)
 
 
@@ -84,32 +88,37 @@ def best_other(cost, c):
 
 
 class LookaheadBuffer:
-    """Fixed-memory ring buffer of the tau+1 most recent frames for all N samples, allocated once."""
+    """Fixed-memory ring buffer of the tau+1 most recent frames for all N samples, allocated once.
 
-    def __init__(self, slots, samples, hidden, latent, n_features):
-        S, N, J = slots, samples, NUM_JOINTS
+    It keeps what each row's pose is made from, not the pose: the decoder's 6D output, the leg IK's
+    goals and weights, and the frame's tracker inputs. The pose of the one row a frame shows is made
+    again when the frame is sent (Pipeline.pose_from_buffer, bit for bit the live one): 6D is a sixth
+    of a pose's bytes, and a frame at N=100 then writes 60 KB here instead of 360 KB.
+
+    Rows are the N samples and one spare (row N) that a transition's output uses: a frame whose
+    override is set shows row trans_row[slot] (the live N when it was written)."""
+
+    def __init__(self, slots, samples, hidden, n_features, rot_dim):
+        S, N = slots, samples
         self.slots = S
         self.frame = np.full(S, -1, np.int64)
         self.features = np.zeros((S, n_features), np.float32)
-        self.anchor = np.zeros((S, 3))
         self.hidden_in = np.zeros((S, N, hidden), np.float32)
-        self.latent = np.zeros((S, N, latent), np.float32)
-        self.contacts = np.zeros((S, N, 2), np.float32)
-        self.positions = np.zeros((S, N, J, 3))
-        self.local_rot = np.zeros((S, N, J, 3, 3))
-        self.ik_target = np.zeros((S, N, 2, 3))    # where each sample's foot locks draw its ankles
-        self.ik_weight = np.zeros((S, N, 2))       # and how strongly (0 free .. 1 locked)
+        self.rot6d = np.zeros((S, N + 1, rot_dim), np.float32)
+        self.contacts = np.zeros((S, N + 1, 2), np.float32)
+        self.leg_goal = np.zeros((S, N + 1, 2, 3))      # where the leg IK draws each row's ankles
+        self.leg_weight = np.zeros((S, N + 1, 2))       # at what weight (samples: 1, their lock's pull is in the goal)
+        self.lock_weight = np.zeros((S, N, 2))          # the samples' lock weights (0 free .. 1 locked)
         self.cost = np.zeros((S, N))
-        # Inputs the post-processing needs again when a transition is recomputed.
+        # The frame's tracker inputs to the post-processing.
+        self.anchor = np.zeros((S, 3))
         self.waist_m = np.zeros((S, 3, 3))
         self.wrists = np.zeros((S, 2, 3))
         self.hand_m = np.zeros((S, 2, 3, 3))
         self.head_m = np.zeros((S, 3, 3))
-        # Transition output that overrides a sample's own pose for a frame.
+        # Transition output that overrides a sample's own pose for a frame: row trans_row[s].
         self.override = np.zeros(S, bool)
-        self.out_positions = np.zeros((S, J, 3))
-        self.out_local_rot = np.zeros((S, J, 3, 3))
-        self.out_contacts = np.zeros((S, 2))
+        self.trans_row = np.zeros(S, np.int64)
 
     def slot(self, frame):
         return frame % self.slots
@@ -148,7 +157,7 @@ class Pipeline:
         if N > 1:
             self.latents[:] = np.random.default_rng(seed).standard_normal(self.latents.shape)
         self.decoder.latent[:N] = self.latents
-        self.buffer = LookaheadBuffer(lookahead + 1, N, m["hidden"], m["latent"], m["features"])
+        self.buffer = LookaheadBuffer(lookahead + 1, N, m["hidden"], m["features"], self.decoder.rot6d.shape[1])
         self.feet = FootLock(N)
         R = max(self.rows, lookahead + 1)
         self._local = np.zeros((R, NUM_JOINTS, 3, 3))
@@ -163,6 +172,8 @@ class Pipeline:
         self._limb_weights[:, 2:] = 1.0 if arm_ik else 0.0
         self._limb_ends = np.zeros((R, 4, 3, 3))
         self._toe_offsets = OFFSETS[TOES][:, :, None]
+        # Every sample's pelvis is the waist IMU's rotation: a read-only [N,3,3] view of slot s's.
+        self._pelvis = [np.broadcast_to(self.buffer.waist_m[k], (N, 3, 3)) for k in range(lookahead + 1)]
         # The compiled core (edge/native) runs the frame features, _forward, the foot locks and _post when
         # a C compiler is there (and the scorer the plausibility score); numpy is the reference and fallback.
         self.native = native.load() if use_native else None
@@ -190,9 +201,20 @@ class Pipeline:
             # The live frame reads ring-buffer slot s: (base address, bytes per slot) of each input.
             b = self.buffer
             self._slot_addr = {k: (native.addr(getattr(b, k)), getattr(b, k).strides[0])
-                               for k in ("waist_m", "anchor", "wrists", "hand_m", "head_m")}
+                               for k in _FRAME_INPUTS + ("cost",)}
+            self._emit_world = np.zeros((NUM_JOINTS, 3, 3))
             self._addr["rot6d"] = native.addr(self.decoder.rot6d)
+            a, f = self._addr, self.feet
+            ctx = native.FrameContext(NUM_JOINTS, HEAD, NECK, int(foot_ik), int(arm_ik), self.decoder.rot6d.shape[1],
+                                      a["parents"], a["chains"], a["ankles"], a["offsets"], a["poles"], a["rot6d"],
+                                      a["contacts"], f.release_frames, f.max_slip, a["lock_pos"], a["since_release"],
+                                      a["weight"], a["locked"], a["raw"], a["_targets"], a["_weights"], N + 1,
+                                      *(native.addr(getattr(b, k)) for k in _FRAME_INPUTS + _RING_ROWS))
+            self._frame_context = ctypes.pointer(ctx)
         self.out = Pose()
+        if self.native:
+            ctx.out_local, ctx.out_world, ctx.out_pos = (native.addr(v) for v in (self.out.rotations, self._emit_world,
+                                                                                  self.out.positions))
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -238,7 +260,6 @@ class Pipeline:
         dec = self.decoder
         dec.features[:] = feat
         b.hidden_in[s, :N] = dec.state[:N]
-        b.latent[s, :N] = dec.latent[:N]
         live = self.trans is not None and t <= self.trans_end
         if live:
             c, n, s0, T = self.trans
@@ -247,31 +268,34 @@ class Pipeline:
             dec.state[N] = (1 - a) * dec.state[c] + a * dec.state[n]
         dec.step()
 
-        # Post-processing for every row at once; the transition row borrows interpolated foot locks.
+        # Post-processing for every row at once; the transition row (row N) borrows interpolated foot
+        # locks: it blends the two samples' foot goals (not lock positions, which are stale for a foot
+        # that is free) and lock weights.
         rows = N + 1 if live else N
-        self._forward(dec.rot6d[:rows], b.waist_m[s], b.anchor[s], slot=s)
-        if self.foot_ik:
-            # A transition blends the two samples' foot goals (not lock positions, which are stale
-            # for a foot that is free) and lock weights.
-            goal, w = self._foot_goals(N)
-            b.ik_weight[s, :N] = w
-            if live:
-                self._targets[N] = (1 - a) * goal[c] + a * goal[n]
-                self._weights[N] = (1 - a) * w[c] + a * w[n]
-        self._post(rows, b.wrists[s], b.hand_m[s], b.head_m[s], slot=s)
-        b.contacts[s, :N] = dec.contacts[:N]
-        b.positions[s, :N] = self._pos[:N]
-        b.local_rot[s, :N] = self._local[:N]
-        b.ik_target[s, :N] = self._targets[:N]
+        if self.native:             # _forward, _foot_goals, the blend, _post and the ring copies below in one call
+            self.native.ep_frame_poses(self._frame_context, s, rows, N, *((c, n, float(a)) if live else (0, 0, 0.0)),
+                                       self._addr["_world"] if self.criteria.needs_world_rot else None, self._addr["_pos"])
+        else:
+            self._forward(dec.rot6d[:rows], b.waist_m[s], b.anchor[s])
+            if self.foot_ik:
+                goal, w = self._foot_goals(N)
+                if live:
+                    self._targets[N] = (1 - a) * goal[c] + a * goal[n]
+                    self._weights[N] = (1 - a) * w[c] + a * w[n]
+            self._post(rows, b.wrists[s], b.hand_m[s], b.head_m[s])
+            b.rot6d[s, :rows] = dec.rot6d[:rows]
+            b.contacts[s, :rows] = dec.contacts[:rows]
+            b.leg_goal[s, :rows] = self._targets[:rows]
+            b.leg_weight[s, :rows] = self._weights[:rows]
+            b.lock_weight[s, :N] = self.feet.weight[:N]
         if live:
             b.override[s] = True
-            b.out_positions[s] = self._pos[N]
-            b.out_local_rot[s] = self._local[N]
-            b.out_contacts[s] = dec.contacts[N]
+            b.trans_row[s] = N
 
         # Judge frame t, the newest, and decide (3.2.4: detection at t + tau relative to the output).
         if N > 1:
-            ctx = FrameContext(t, self._pos[:N], self._world[:N], self._world[:N, 0])
+            world = self._world[:N] if self.criteria.needs_world_rot else None
+            ctx = FrameContext(t, self._pos[:N], world, self._pelvis[s][:N])
             b.cost[s, :N] = self.criteria.cost(ctx)
         if self._pending is not None:
             self._apply_samples(t, s)
@@ -322,7 +346,8 @@ class Pipeline:
         """6D -> local rotations, FK with the waist IMU as root, body hung from the tracked head.
 
         waist_m [3,3] or per row [R,3,3]; anchor (the tracked head joint) [3] or [R,3]. `slot`: they
-        are the live decoder's rows and ring-buffer slot `slot` (addresses known without asking numpy).
+        are the live decoder's rows and ring-buffer slot `slot`'s inputs (addresses known without
+        asking numpy). Writes the scratch rows _local, _world, _pos.
         """
         R = len(rot6d)
         if self.native:
@@ -350,6 +375,7 @@ class Pipeline:
         sample's foot goal (in _targets) is where its lock draws the ankle, so the leg IK runs at weight 1.
         Returns (goals [N,2,3], lock weights [N,2])."""
         goal = self._targets[:N]
+        pos = self._pos
         if self.native:
             a, f = self._addr, self.feet
             self.native.ep_foot_locks(N, 2, a["contacts"], a["_pos"], NUM_JOINTS, a["ankles"], f.release_frames,
@@ -357,8 +383,8 @@ class Pipeline:
                                       a["weight"], a["_targets"])
             w = f.weight[:N]
         else:
-            lock, w = self.feet.update(self.decoder.contacts[:N], self._pos[:N, ANKLES])
-            ankle = self._pos[:N, ANKLES]
+            lock, w = self.feet.update(self.decoder.contacts[:N], pos[:N, ANKLES])
+            ankle = pos[:N, ANKLES]
             np.subtract(lock, ankle, out=goal)
             goal *= w[..., None]
             goal += ankle
@@ -401,7 +427,14 @@ class Pipeline:
             loc[:, HEAD] = np.swapaxes(W[:, NECK], -1, -2) @ head_m
 
     def _maybe_switch(self, t, s):
-        cost, c = self.buffer.cost[s, :self.samples], self.current
+        c = self.current
+        if self.native:             # is_outlier and best_other in one call
+            c0, cs = self._slot_addr["cost"]
+            n = self.native.ep_switch_to(self.samples, c0 + s * cs, c)
+            if n >= 0:
+                self._start_transition(c, n, t)
+            return
+        cost = self.buffer.cost[s, :self.samples]
         if is_outlier(cost, c):
             self._start_transition(c, best_other(cost, c), t)
 
@@ -427,7 +460,7 @@ class Pipeline:
         dec.latent[lo:hi] = self.latents[lo:hi]
         dec.state[lo:hi] = dec.state[c]
         self.feet.copy_rows(c, slice(lo, hi))
-        for a in (b.hidden_in, b.ik_target, b.ik_weight):
+        for a in (b.hidden_in, b.rot6d, b.contacts, b.leg_goal, b.leg_weight, b.lock_weight):
             a[:, lo:hi] = a[:, c:c + 1]
 
     def _start_transition(self, c, n, t):
@@ -440,7 +473,8 @@ class Pipeline:
         self._recompute_transition(c, n, s0, T, t)
 
     def _recompute_transition(self, c, n, s0, T, t):
-        """Re-run the buffered frames s0..t along the transition (one batched decoder call)."""
+        """Re-run the buffered frames s0..t along the transition (one batched decoder call); their
+        poses are made when they are sent."""
         b = self.buffer
         frames = np.arange(s0, min(t, s0 + T - 1) + 1)
         K = len(frames)
@@ -451,15 +485,13 @@ class Pipeline:
         rc.latent[:K] = (1 - a) * self.latents[c] + a * self.latents[n]
         rc.hidden[0][:K] = (1 - a) * b.hidden_in[sl, c] + a * b.hidden_in[sl, n]
         rc.step()
-        self._forward(rc.rot6d[:K], b.waist_m[sl], b.anchor[sl])
-        a3 = a[:, :, None]
-        self._targets[:K] = (1 - a3) * b.ik_target[sl, c] + a3 * b.ik_target[sl, n]
-        self._weights[:K] = (1 - a) * b.ik_weight[sl, c] + a * b.ik_weight[sl, n]
-        self._post(K, b.wrists[sl], b.hand_m[sl], b.head_m[sl])
+        N, a3 = self.samples, a[:, :, None]
         b.override[sl] = True
-        b.out_positions[sl] = self._pos[:K]
-        b.out_local_rot[sl] = self._local[:K]
-        b.out_contacts[sl] = rc.contacts[:K]
+        b.trans_row[sl] = N
+        b.rot6d[sl, N] = rc.rot6d[:K]
+        b.contacts[sl, N] = rc.contacts[:K]
+        b.leg_goal[sl, N] = (1 - a3) * b.leg_goal[sl, c] + a3 * b.leg_goal[sl, n]
+        b.leg_weight[sl, N] = (1 - a) * b.lock_weight[sl, c] + a * b.lock_weight[sl, n]
 
     def _emit(self, o):
         if o < 0:
@@ -469,17 +501,38 @@ class Pipeline:
         p.frame = o
         p.transition = bool(b.override[s])
         if p.transition:
-            p.positions[:] = b.out_positions[s]
-            p.rotations[:] = b.out_local_rot[s]
-            p.contacts[:] = b.out_contacts[s]
+            row = int(b.trans_row[s])
             p.sample = self.trans[1] if self.trans else self.current
         else:
-            c = self._sample_at(o)
-            p.positions[:] = b.positions[s, c]
-            p.rotations[:] = b.local_rot[s, c]
-            p.contacts[:] = b.contacts[s, c]
-            p.sample = c
+            row = p.sample = self._sample_at(o)
+        if self.native:
+            self.native.ep_emit(self._frame_context, s, row)
+        else:
+            self.pose_from_buffer(o, row, p.positions, p.rotations)
+        p.contacts[:] = b.contacts[s, row]
         return p
+
+    def pose_from_buffer(self, frame, row, positions=None, rotations=None):
+        """The pose of pose row `row` (a sample, or N for a transition) of a buffered frame, made again
+        from what the buffer keeps: world positions [J,3] and local rotations [J,3,3], into the given
+        arrays or new ones."""
+        b = self.buffer
+        s = b.slot(frame)
+        if b.frame[s] != frame:
+            raise ValueError(f"frame {frame} is not in the look-ahead buffer")
+        positions = np.zeros((NUM_JOINTS, 3)) if positions is None else positions
+        rotations = np.zeros((NUM_JOINTS, 3, 3)) if rotations is None else rotations
+        if self.native:
+            a = native.addr
+            self.native.ep_row_pose(self._frame_context, a(b.rot6d[s, row]), a(b.leg_goal[s, row]), a(b.leg_weight[s, row]),
+                                    *(a(getattr(b, k)[s]) for k in _FRAME_INPUTS), a(rotations), a(self._emit_world),
+                                    a(positions))
+            return positions, rotations
+        self._forward(b.rot6d[s, row][None], b.waist_m[s], b.anchor[s])
+        self._targets[0], self._weights[0] = b.leg_goal[s, row], b.leg_weight[s, row]
+        self._post(1, b.wrists[s], b.hand_m[s], b.head_m[s])
+        positions[:], rotations[:] = self._pos[0], self._local[0]
+        return positions, rotations
 
     def _sample_at(self, o):
         """The sample that owns output frame o: before a running transition's first frame, its source."""

@@ -2,8 +2,9 @@
 
     python -m models.export [--ckpt .cache/train] [--out models]
 
-The decoder's GRU is written out as Gemm + Sigmoid/Tanh (DecoderStep): ONNX Runtime cannot quantize
-the ONNX GRU op and PyTorch has mis-exported nn.GRU before.
+Both are exported in inference form (models.nets.DecoderStep, AEStep): normalisation folded into the
+first layer, the decoder's GRU written out as Gemm + Sigmoid/Tanh with its two gates in one Gemm
+(ONNX Runtime cannot quantize the ONNX GRU op, and PyTorch has mis-exported nn.GRU before).
 """
 import argparse
 import json
@@ -15,7 +16,7 @@ import torch
 from edge.features import NUM_FEATURES
 from edge.modelfiles import write_manifest
 from edge.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS
-from models.nets import CVAE, HIDDEN, LATENT, DecoderStep, PoseAE
+from models.nets import CVAE, HIDDEN, LATENT, AEStep, DecoderStep, PoseAE
 
 
 def load_checkpoint(ckpt):
@@ -39,7 +40,7 @@ def export_decoder(cvae, path):
 
 
 def export_autoencoder(ae, path):
-    torch.onnx.export(ae, (torch.zeros(4, NUM_JOINTS * 3),), str(path), dynamo=False, external_data=False,
+    torch.onnx.export(AEStep(ae).eval(), (torch.zeros(4, NUM_JOINTS * 3),), str(path), dynamo=False, external_data=False,
                       opset_version=17, input_names=["positions"], output_names=["rot6d"],
                       dynamic_axes={"positions": {0: "N"}, "rot6d": {0: "N"}})
 

@@ -22,8 +22,8 @@ import numpy as np
 
 from edge.inference import make_session
 from edge.modelfiles import MANIFEST, ModelError, sha256
-from quantize.common import (MODELS, decoder_call_us, fp32_name, head_anchored_positions, int8_name, latents_for,
-                             mocap_windows, rollout)
+from quantize.common import (MODELS, autoencoder_call_us, decoder_call_us, fp32_name, head_anchored_positions,
+                             int8_name, latents_for, mocap_windows, rollout)
 
 CALIB_WINDOWS, CALIB_FRAMES, CALIB_LATENTS = 48, 120, 2
 VAL_WINDOWS, VAL_FRAMES, VAL_LATENTS = 48, 240, 2
@@ -34,10 +34,34 @@ def _quiet_quantizer_logs():
     logging.getLogger().setLevel(logging.ERROR)   # "please run pre-processing" goes through the root logger
 
 
+NORMALISED_INPUTS = ("features", "positions")     # the inputs models.nets normalises (decoder, autoencoder)
+
+
+def input_layers(path):
+    """Names of the Gemm/MatMul nodes that read a normalised model input (directly or through a Concat).
+
+    They stay fp32: the export folds the input normalisation into their weights (models.nets), which
+    scales each input column by 1/std. One per-channel int8 scale per output row cannot cover columns
+    that differ by 1000x; quantized, these layers doubled the decoder's closed-loop error."""
+    import onnx
+    g = onnx.load(str(path)).graph
+    inputs = {i.name for i in g.input} & set(NORMALISED_INPUTS)
+    made_by = {o: n for n in g.node for o in n.output}
+
+    def reads_input(name):
+        n = made_by.get(name)
+        return name in inputs or (n is not None and n.op_type == "Concat" and any(reads_input(i) for i in n.input))
+
+    return [n.name for n in g.node if n.op_type in ("Gemm", "MatMul") and reads_input(n.input[0])]
+
+
 def quantize_dynamic_model(src, dst):
     from onnxruntime.quantization import QuantType, quantize_dynamic
     _quiet_quantizer_logs()
-    quantize_dynamic(str(src), str(dst), weight_type=QuantType.QInt8, per_channel=True, reduce_range=False)
+    # quantize_dynamic first rewrites each Gemm as a MatMul named <gemm>_MatMul and matches that name.
+    keep = [n + suffix for n in input_layers(src) for suffix in ("", "_MatMul")]
+    quantize_dynamic(str(src), str(dst), weight_type=QuantType.QInt8, per_channel=True, reduce_range=False,
+                     nodes_to_exclude=keep)
 
 
 class _Reader:
@@ -61,7 +85,8 @@ def quantize_static_model(src, dst, batches):
         os.chdir(tmp)
         try:
             quantize_static(str(Path(cwd, src)), str(Path(cwd, dst)), _Reader(batches), quant_format=QuantFormat.QDQ,
-                            op_types_to_quantize=["Gemm", "MatMul"], per_channel=True, reduce_range=False,
+                            op_types_to_quantize=["Gemm", "MatMul"], nodes_to_exclude=input_layers(src),
+                            per_channel=True, reduce_range=False,
                             activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
                             calibrate_method=CalibrationMethod.MinMax)
         finally:
@@ -138,14 +163,17 @@ def read_manifest(folder):
     return json.loads(path.read_text())
 
 
-def add_to_manifest(folder, entries):
+def add_to_manifest(folder, entries, precisions=None):
     """Add or replace `entries` ({file name: extra fields}) in the manifest, keeping every other file entry
-    and all metadata as they are. sha256 and bytes are computed here. Written atomically."""
+    and all metadata as they are. sha256 and bytes are computed here. `precisions` ({precision: {model:
+    file}}) says which file each runtime precision opens. Written atomically."""
     folder = Path(folder)
     manifest = read_manifest(folder)
     for name, extra in entries.items():
         p = folder / name
         manifest["files"][name] = {"sha256": sha256(p), "bytes": p.stat().st_size, **extra}
+    if precisions:
+        manifest.setdefault("precisions", {}).update(precisions)
     tmp = folder / (MANIFEST + ".tmp")
     tmp.write_text(json.dumps(manifest, indent=2) + "\n")
     os.replace(tmp, folder / MANIFEST)
@@ -187,11 +215,13 @@ def build(folder, data=None, methods=("dynamic", "static"), log=print):
         train = mocap_windows(data, "train", CALIB_WINDOWS, CALIB_FRAMES, seed=11)
         val = mocap_windows(data, "val", VAL_WINDOWS, VAL_FRAMES, seed=12)
     report = {"methods_tried": list(methods), "selection": {}, "candidates": {}}
-    entries = {}
+    entries, runtime = {}, {}
+    call_us = {"decoder": decoder_call_us, "autoencoder": autoencoder_call_us}
     with tempfile.TemporaryDirectory(prefix="quantize-") as tmp:
         tmp = Path(tmp)
         for model in MODELS:
             src = folder / fp32_name(model)
+            report[f"{model}_fp32_call_us_n100"] = fp32_us = call_us[model](src, 100)["p50"]
             cands = {}
             for method in methods:
                 dst = tmp / f"{model}.{method}.onnx"
@@ -200,7 +230,8 @@ def build(folder, data=None, methods=("dynamic", "static"), log=print):
                 else:
                     calib = decoder_calibration(src, train) if model == "decoder" else autoencoder_calibration(train)
                     quantize_static_model(src, dst, calib)
-                cands[method] = {"bytes": dst.stat().st_size, "size_vs_fp32": dst.stat().st_size / src.stat().st_size}
+                cands[method] = {"bytes": dst.stat().st_size, "size_vs_fp32": dst.stat().st_size / src.stat().st_size,
+                                 "call_us_n100": call_us[model](dst, 100)["p50"]}
                 log(f"  {model} {method}: {cands[method]['bytes']:,} bytes ({cands[method]['size_vs_fp32']:.1%} of fp32)")
             if have_data:
                 ref = None
@@ -208,14 +239,11 @@ def build(folder, data=None, methods=("dynamic", "static"), log=print):
                     p = tmp / f"{model}.{method}.onnx"
                     if model == "decoder":
                         ref, m = measure_decoder(p, src, val, ref)
-                        m["call_us_n100"] = decoder_call_us(p, 100)["p50"]
                     else:
                         m = measure_autoencoder(p, src, val, manifest["plausibility_threshold_m"])
                     cands[method].update(m)
                     log(f"  {model} {method}: " + ", ".join(f"{k} {v:.4g}" for k, v in m.items()))
                 if model == "decoder":
-                    fp32_us = decoder_call_us(src, 100)["p50"]
-                    report["decoder_fp32_call_us_n100"] = fp32_us
                     report["decoder_fp32_val_mpjpe_no_ik_cm"] = measure_decoder(src, src, val, ref)[1]["val_mpjpe_no_ik_cm"]
                     ok = [k for k in methods if cands[k]["call_us_n100"] <= 1.1 * fp32_us] or list(methods)
                     chosen = min(ok, key=lambda k: cands[k]["fk_pos_dev_mean_cm"])
@@ -225,6 +253,13 @@ def build(folder, data=None, methods=("dynamic", "static"), log=print):
                     why = "smallest plausibility-score deviation from fp32 on val poses"
             else:
                 chosen, why = "dynamic", "no calibration data: dynamic is the only candidate"
+            # The int8 runtime uses this int8 file unless it is clearly slower than fp32 here (the same
+            # 10 % margin as above, so reruns decide alike): a 7-layer MLP as small as the autoencoder is
+            # all per-node overhead, and int8 adds quantize nodes.
+            int8_us = cands[chosen]["call_us_n100"]
+            runtime[model] = int8_name(model) if int8_us <= 1.1 * fp32_us else fp32_name(model)
+            report["selection"][model + "_runtime"] = {
+                "file": runtime[model], "why": f"int8 {int8_us:.1f} us vs fp32 {fp32_us:.1f} us per call at N=100"}
             report["candidates"][model] = cands
             report["selection"][model] = {"method": chosen, "why": why}
             log(f"  {model}: keeping {chosen} ({why})")
@@ -234,6 +269,7 @@ def build(folder, data=None, methods=("dynamic", "static"), log=print):
             os.replace(part, out)
             entries[int8_name(model)] = {"precision": "int8", "method": chosen, "source": fp32_name(model),
                                          "source_sha256": digests[fp32_name(model)]}
-    add_to_manifest(folder, entries)
+    add_to_manifest(folder, entries, {"int8": runtime})
+    report["precisions"] = {"int8": runtime}
     report["files"] = {k: read_manifest(folder)["files"][k] for k in entries}
     return report

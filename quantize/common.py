@@ -7,7 +7,7 @@ import time
 import numpy as np
 
 from edge import quat
-from edge.inference import Decoder, make_session
+from edge.inference import Autoencoder, Decoder, make_session
 from edge.skeleton import HEAD, NUM_JOINTS, NUM_PREDICTED, fk
 
 MODELS = ("decoder", "autoencoder")
@@ -71,6 +71,21 @@ def decoder_call_us(path, rows, frames=400, warmup=50):
     for i in range(frames):
         t0 = time.perf_counter_ns()
         dec.step()
+        out[i] = time.perf_counter_ns() - t0
+    out /= 1000.0
+    return {"p50": float(np.median(out)), "p99": float(np.percentile(out, 99))}
+
+
+def autoencoder_call_us(path, rows, frames=400, warmup=50):
+    """Median and p99 (microseconds) of one bare autoencoder call on `rows` rows (edge.inference.Autoencoder)."""
+    ae = Autoencoder(make_session(path), rows)
+    ae.inp[:] = np.random.default_rng(0).standard_normal(ae.inp.shape) * 0.3
+    for _ in range(warmup):
+        ae.run()
+    out = np.empty(frames)
+    for i in range(frames):
+        t0 = time.perf_counter_ns()
+        ae.run()
         out[i] = time.perf_counter_ns() - t0
     out /= 1000.0
     return {"p50": float(np.median(out)), "p99": float(np.percentile(out, 99))}

@@ -189,3 +189,20 @@ def test_frame_features_are_bit_identical_to_the_numpy_features_training_used():
         assert np.array_equal(got, want), t
         assert np.array_equal(got_points, points)
         assert np.array_equal(mats, quat.to_matrix(q))
+
+
+def test_switch_decision_matches_is_outlier_and_best_other():
+    from edge.pipeline import best_other, is_outlier
+    rng = np.random.default_rng(11)
+    for trial in range(3000):
+        N = int(rng.integers(2, 129))
+        cost = rng.gamma(2.0, 0.01, N)
+        if trial % 3 == 0:
+            cost = np.round(cost, 2)            # ties, in the median and at the minimum
+        c = int(rng.integers(N))
+        if trial % 5 == 0:
+            cost[c] += rng.uniform(0, 0.1)      # often an outlier
+        want = best_other(cost, c) if is_outlier(cost, c) else -1
+        assert lib.ep_switch_to(N, A(cost), c) == want, (N, c)
+    nan = np.array([0.1, np.nan, 5.0, 0.2])
+    assert not is_outlier(nan, 2) and lib.ep_switch_to(4, A(nan), 2) == -1

@@ -69,7 +69,7 @@ def run_forced_switch(take, lookahead, at, frames, transition=10):
         if pose is not None:
             out[pose.frame] = (pose.positions.copy(), pose.sample, pose.transition)
         if t == at:
-            own_new = pipe.buffer.positions[pipe.buffer.slot(at - 1), 3].copy()
+            own_new = pipe.pose_from_buffer(at - 1, 3)[0]
     return pipe, out, own_new
 
 

@@ -8,7 +8,7 @@ import pytest
 from edge import quat
 from edge.eval import evaluate
 from edge.features import sequence_features
-from edge.inference import Autoencoder, make_session
+from edge.inference import Autoencoder, make_session, model_files
 from edge.modelfiles import DEFAULT_DIR, ModelError, load_manifest, sha256, write_manifest
 from edge.pipeline import Pipeline
 from edge.plausibility import PlausibilityScorer
@@ -50,10 +50,11 @@ def test_int8_decoder_is_at_most_40_percent_of_fp32():
 
 def test_pipeline_loads_int8_models(take, manifest):
     pipe = Pipeline(samples=4, precision="int8")
-    assert set(pipe.manifest["paths"]) == set(INT8)
+    assert set(pipe.manifest["paths"]) == set(model_files("int8", manifest))
+    assert model_files("int8", manifest)[0] == INT8[0]      # the int8 decoder always; the autoencoder as measured
     for t in range(12):
         pipe.step(take.signals.slice(t, t + 1))
-    assert np.all(np.isfinite(pipe.buffer.positions))
+    assert np.all(np.isfinite(pipe.buffer.rot6d)) and np.all(np.isfinite(pipe.out.positions))
 
 
 def test_int8_decoder_tracks_fp32_in_closed_loop_on_the_sample(take, manifest):
@@ -104,8 +105,10 @@ def test_quantize_adds_int8_entries_keeps_everything_else_and_reruns_identically
     after = json.loads((model_copy / "manifest.json").read_text())
     for name in FP32:
         assert after["files"][name] == before["files"][name]
-    assert {k: v for k, v in after.items() if k != "files"} == {k: v for k, v in before.items() if k != "files"}
+    rest = lambda m: {k: v for k, v in m.items() if k not in ("files", "precisions")}    # noqa: E731
+    assert rest(after) == rest(before)
     assert all(n in after["files"] for n in INT8)
+    assert after["precisions"]["int8"]["decoder"] == INT8[0]        # which autoencoder: as measured
     load_manifest(model_copy, need=INT8)                       # verifies the sha256 of the new files
     build(model_copy, data=None, methods=("dynamic",), log=lambda *_: None)
     again = json.loads((model_copy / "manifest.json").read_text())

@@ -8,8 +8,10 @@ back to them, saying so once, when no compiler is available.
     EDGEPOSE_NATIVE=0     use numpy only
     CC=...                the compiler (default cc)
 
-The library is cached per source hash in $EDGEPOSE_CACHE or ~/.cache/edgepose, so an edited
-postproc.c rebuilds and a read-only install still works.
+The library is compiled for the CPU it runs on (-march=native, where the compiler accepts it:
+AVX-512 or NEON for the per-sample lanes) and cached per source, flags and CPU in $EDGEPOSE_CACHE or
+~/.cache/edgepose, so an edited postproc.c or another CPU sharing the cache rebuilds, and a read-only
+install still works.
 """
 import ctypes
 import hashlib
@@ -24,6 +26,9 @@ import numpy as np
 
 SOURCE = Path(__file__).with_name("postproc.c")
 CFLAGS = ("-O3", "-shared", "-fPIC", "-ffp-contract=off", "-fno-math-errno")
+# Tried in order: the first the compiler accepts is used. Either way results are bit-identical
+# (no fused multiply-adds, no reassociation); native only makes the lanes wider.
+ARCH_FLAGS = (("-march=native",), ())
 _lib = None
 _error = None
 
@@ -33,11 +38,22 @@ def _cache_dir():
     return Path(base) / "native"
 
 
+def _cpu_tag():
+    """What identifies this CPU for -march=native: the machine and /proc/cpuinfo's model and feature lines."""
+    try:
+        info = Path("/proc/cpuinfo").read_text(errors="replace").splitlines()
+    except OSError:
+        info = []
+    keys = ("model name", "flags", "Features", "CPU implementer", "CPU part")
+    seen = dict.fromkeys(line for line in info if line.split(":", 1)[0].strip() in keys)
+    return os.uname().machine + "\n" + "\n".join(seen)
+
+
 def build(force=False):
     """Compile postproc.c (if not cached) and return the library's path."""
     cc = shlex.split(os.environ.get("CC", "cc"))
     src = SOURCE.read_bytes()
-    tag = hashlib.sha1(src + " ".join(cc + list(CFLAGS)).encode() + os.uname().machine.encode()).hexdigest()[:12]
+    tag = hashlib.sha1(src + repr((cc, CFLAGS, ARCH_FLAGS)).encode() + _cpu_tag().encode()).hexdigest()[:12]
     out = _cache_dir() / f"postproc-{tag}.so"
     if out.exists() and not force:
         return out
@@ -45,13 +61,17 @@ def build(force=False):
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
     os.close(fd)
     try:
-        subprocess.run(cc + list(CFLAGS) + ["-o", tmp, str(SOURCE), "-lm"], check=True, capture_output=True,
-                       text=True, timeout=120)
+        for i, arch in enumerate(ARCH_FLAGS):
+            try:
+                subprocess.run(cc + list(CFLAGS) + list(arch) + ["-o", tmp, str(SOURCE), "-lm"], check=True,
+                               capture_output=True, text=True, timeout=120)
+                break
+            except subprocess.CalledProcessError as e:
+                if i == len(ARCH_FLAGS) - 1:
+                    raise OSError(f"{cc[0]} failed on {SOURCE.name}: {e.stderr.strip()[:400]}") from None
         os.replace(tmp, out)       # atomic: concurrent builders never load a half-written file
     except FileNotFoundError:
         raise OSError(f"no C compiler ({cc[0]}); install one (apt install gcc) or set CC") from None
-    except subprocess.CalledProcessError as e:
-        raise OSError(f"{cc[0]} failed on {SOURCE.name}: {e.stderr.strip()[:400]}") from None
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
@@ -60,6 +80,22 @@ def build(force=False):
 
 _P = ctypes.c_void_p
 _I = ctypes.c_int
+_D = ctypes.c_double
+
+
+class FrameContext(ctypes.Structure):
+    """Mirror of postproc.c's frame_context: what ep_frame_poses reads every frame without being told
+    (addresses of arrays the caller keeps alive, as ints)."""
+    _fields_ = ([(k, _I) for k in ("J", "head", "neck", "foot_ik", "arm_ik", "rot6d_stride")]
+                + [(k, _P) for k in ("parents", "chains", "ankles", "offsets", "poles", "rot6d", "contacts")]
+                + [("release_frames", _D), ("max_slip", _D)]
+                + [(k, _P) for k in ("lock_pos", "since", "lock_weight", "locked", "raw", "goals", "weights")]
+                + [("ring_rows", _I)]
+                + [(k, _P) for k in ("ring_waist", "ring_anchor", "ring_wrists", "ring_hand", "ring_head", "ring_rot6d",
+                                     "ring_contacts", "ring_goal", "ring_weight", "ring_lock_weight", "out_local",
+                                     "out_world", "out_pos")])
+
+
 _SIGNATURES = {
     "ep_forward": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _P, _I, _P, _P, _P],
     "ep_local_pose": [_I, _I, _P, _P, _I, _P, _P, _P],
@@ -67,7 +103,13 @@ _SIGNATURES = {
     "ep_foot_locks": [_I, _I, _P, _P, _I, _P, ctypes.c_double, ctypes.c_double, _P, _P, _P, _P, _P, _P],
     "ep_frame_features": [_P, _P, _P, ctypes.c_double, _P, _P, _P],
     "ep_post": [_I, _I, _P, _P, _P, _P, _P, _P, _I, _I, _P, _I, _P, _I, _P, _I, _I, _I, _P, _P, _P],
+    "ep_switch_to": [_I, _P, _I],
+    "ep_frame_poses": [ctypes.POINTER(FrameContext), _I, _I, _I, _I, _I, _D, _P, _P],
+    "ep_emit": [ctypes.POINTER(FrameContext), _I, _I],
+    "ep_row_pose": [ctypes.POINTER(FrameContext)] + [_P] * 11,
+    "ep_max_joints": [],
 }
+_RETURNS_INT = {"ep_switch_to", "ep_max_joints"}
 
 
 def load():
@@ -86,7 +128,12 @@ def load():
         return None
     for name, args in _SIGNATURES.items():
         fn = getattr(lib, name)
-        fn.argtypes, fn.restype = args, None
+        fn.argtypes, fn.restype = args, (_I if name in _RETURNS_INT else None)
+    from edge.skeleton import NUM_JOINTS
+    if lib.ep_max_joints() < NUM_JOINTS:
+        _error = f"postproc.c is built for at most {lib.ep_max_joints()} joints; the skeleton has {NUM_JOINTS}"
+        print(f"edgepose: compiled post-processing unavailable ({_error}); using numpy (slower)", file=sys.stderr)
+        return None
     _lib = lib
     return _lib
 

@@ -9,11 +9,17 @@
  *
  * Built with -ffp-contract=off so no multiply-add is fused: results then match numpy, and x86 and
  * ARM match each other.
+ *
+ * The per-sample loops (FK, limb IK, the plausibility score) run LANES samples side by side: each
+ * lane_* helper does one scalar operation for every lane, which the compiler turns into SIMD (2
+ * doubles on NEON and SSE2, 8 with AVX-512), and independent samples hide each other's latency. Each
+ * lane does exactly the one-sample arithmetic in the same order, and vector sqrt and division round
+ * like scalar ones, so the results are bit for bit those of a plain loop over samples. A short last
+ * block repeats its last sample in the spare lanes and stores only the real ones.
  */
 #include <math.h>
 #include <stdint.h>
 
-typedef double mat3[9];
 
 static void matmul3(const double *a, const double *b, double *out) {
     for (int i = 0; i < 3; i++)
@@ -21,20 +27,9 @@ static void matmul3(const double *a, const double *b, double *out) {
             out[i * 3 + k] = a[i * 3 + 0] * b[0 * 3 + k] + a[i * 3 + 1] * b[1 * 3 + k] + a[i * 3 + 2] * b[2 * 3 + k];
 }
 
-/* a^T b */
-static void matmul3_tn(const double *a, const double *b, double *out) {
-    for (int i = 0; i < 3; i++)
-        for (int k = 0; k < 3; k++)
-            out[i * 3 + k] = a[0 * 3 + i] * b[0 * 3 + k] + a[1 * 3 + i] * b[1 * 3 + k] + a[2 * 3 + i] * b[2 * 3 + k];
-}
-
 static void matvec3(const double *m, const double *v, double *out) {
     for (int i = 0; i < 3; i++)
         out[i] = m[i * 3 + 0] * v[0] + m[i * 3 + 1] * v[1] + m[i * 3 + 2] * v[2];
-}
-
-static void copy9(const double *src, double *dst) {
-    for (int i = 0; i < 9; i++) dst[i] = src[i];
 }
 
 static double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
@@ -47,161 +42,309 @@ static void cross3(const double *a, const double *b, double *out) {
 
 static double clamp(double x, double lo, double hi) { return x < lo ? lo : (x > hi ? hi : x); }
 
-/* edge.quat.matrix_from_6d on float32 input: numpy keeps float32 through the Gram-Schmidt. */
-static void matrix_from_6d_f32(const float *r6, double *m) {
-    float a0 = r6[0], a1 = r6[1], a2 = r6[2], b0 = r6[3], b1 = r6[4], b2 = r6[5];
-    float na = sqrtf(a0 * a0 + a1 * a1 + a2 * a2);
-    na = na > 1e-8f ? na : 1e-8f;
-    float x0 = a0 / na, x1 = a1 / na, x2 = a2 / na;
-    float d = x0 * b0 + x1 * b1 + x2 * b2;
-    b0 = b0 - d * x0;
-    b1 = b1 - d * x1;
-    b2 = b2 - d * x2;
-    float nb = sqrtf(b0 * b0 + b1 * b1 + b2 * b2);
-    nb = nb > 1e-8f ? nb : 1e-8f;
-    float y0 = b0 / nb, y1 = b1 / nb, y2 = b2 / nb;
-    float z0 = x1 * y2 - x2 * y1, z1 = x2 * y0 - x0 * y2, z2 = x0 * y1 - x1 * y0;
-    m[0] = x0; m[1] = y0; m[2] = z0;
-    m[3] = x1; m[4] = y1; m[5] = z1;
-    m[6] = x2; m[7] = y2; m[8] = z2;
-}
+/* ------------------------------------------------------------------ samples side by side (LANES) */
 
-/* The same in float64 (the plausibility score casts the autoencoder's output first). */
-static void matrix_from_6d_f64(const double *a, const double *bin, double *m) {
-    double na = sqrt(dot3(a, a));
-    na = na > 1e-8 ? na : 1e-8;
-    double x[3] = {a[0] / na, a[1] / na, a[2] / na};
-    double d = dot3(x, bin);
-    double b[3] = {bin[0] - d * x[0], bin[1] - d * x[1], bin[2] - d * x[2]};
-    double nb = sqrt(dot3(b, b));
-    nb = nb > 1e-8 ? nb : 1e-8;
-    double y[3] = {b[0] / nb, b[1] / nb, b[2] / nb}, z[3];
-    cross3(x, y, z);
-    for (int i = 0; i < 3; i++) {
-        m[i * 3 + 0] = x[i];
-        m[i * 3 + 1] = y[i];
-        m[i * 3 + 2] = z[i];
+#define LANES 8
+#define MAX_JOINTS 32                   /* the lane functions keep a whole skeleton on the stack */
+#define EACH for (int l = 0; l < LANES; l++)
+typedef double lane[LANES];             /* one value for each of LANES samples */
+
+int ep_max_joints(void) { return MAX_JOINTS; }
+
+/* dst[k][l] = src[row_l * stride + k] for k < n: row_l is r0 + l, or the block's last real row in a
+ * spare lane (nl real rows). stride 0 gives every lane the same values. */
+static inline void gather(lane *dst, int n, const double *src, int64_t stride, int r0, int nl) {
+    EACH {
+        const double *s = src + (int64_t)(r0 + (l < nl ? l : nl - 1)) * stride;
+        for (int k = 0; k < n; k++) dst[k][l] = s[k];
     }
 }
 
-/* edge.pipeline.Pipeline._forward: decoder 6D [R, (J-1)*6] float -> local rotations (root from root_m),
- * FK (edge.skeleton.fk, parents[j] < j) and the body translated so joint `head` sits at `anchor`. */
+static inline void scatter(lane *src, int n, double *dst, int64_t stride, int r0, int nl) {
+    for (int l = 0; l < nl; l++) {
+        double *d = dst + (int64_t)(r0 + l) * stride;
+        for (int k = 0; k < n; k++) d[k] = src[k][l];
+    }
+}
+
+static inline void lane_copy(lane *restrict dst, lane *restrict src, int n) {
+    for (int k = 0; k < n; k++) EACH dst[k][l] = src[k][l];
+}
+
+/* a b, 3x3 */
+static inline void lane_matmul3(lane *restrict a, lane *restrict b, lane *restrict out) {
+    for (int i = 0; i < 3; i++)
+        for (int k = 0; k < 3; k++)
+            EACH out[i * 3 + k][l] = a[i * 3 + 0][l] * b[0 * 3 + k][l] + a[i * 3 + 1][l] * b[1 * 3 + k][l] +
+                                     a[i * 3 + 2][l] * b[2 * 3 + k][l];
+}
+
+/* a^T b, 3x3 */
+static inline void lane_matmul3_tn(lane *restrict a, lane *restrict b, lane *restrict out) {
+    for (int i = 0; i < 3; i++)
+        for (int k = 0; k < 3; k++)
+            EACH out[i * 3 + k][l] = a[0 * 3 + i][l] * b[0 * 3 + k][l] + a[1 * 3 + i][l] * b[1 * 3 + k][l] +
+                                     a[2 * 3 + i][l] * b[2 * 3 + k][l];
+}
+
+/* m v for a vector shared by all lanes (a bone offset) */
+static inline void lane_matvec3_c(lane *restrict m, const double *v, lane *restrict out) {
+    for (int i = 0; i < 3; i++) EACH out[i][l] = m[i * 3 + 0][l] * v[0] + m[i * 3 + 1][l] * v[1] + m[i * 3 + 2][l] * v[2];
+}
+
+static inline void lane_matvec3(lane *restrict m, lane *restrict v, lane *restrict out) {
+    for (int i = 0; i < 3; i++)
+        EACH out[i][l] = m[i * 3 + 0][l] * v[0][l] + m[i * 3 + 1][l] * v[1][l] + m[i * 3 + 2][l] * v[2][l];
+}
+
+static inline void lane_dot3(lane *a, lane *b, lane out) {
+    EACH out[l] = a[0][l] * b[0][l] + a[1][l] * b[1][l] + a[2][l] * b[2][l];
+}
+
+static inline void lane_cross3(lane *a, lane *b, lane *restrict out) {
+    EACH {
+        out[0][l] = a[1][l] * b[2][l] - a[2][l] * b[1][l];
+        out[1][l] = a[2][l] * b[0][l] - a[0][l] * b[2][l];
+        out[2][l] = a[0][l] * b[1][l] - a[1][l] * b[0][l];
+    }
+}
+
+static inline void lane_sub3(lane *a, lane *b, lane *restrict out) {
+    for (int i = 0; i < 3; i++) EACH out[i][l] = a[i][l] - b[i][l];
+}
+
+/* edge.quat.matrix_from_6d on the decoder's float32 output (numpy keeps float32 through the
+ * Gram-Schmidt): 6 floats per lane, `stride` floats between lanes' rows. */
+static inline void lane_matrix_from_6d_f32(const float *r6, int64_t stride, int r0, int nl, lane *restrict m) {
+    float a0[LANES], a1[LANES], a2[LANES], b0[LANES], b1[LANES], b2[LANES];
+    EACH {
+        const float *q = r6 + (int64_t)(r0 + (l < nl ? l : nl - 1)) * stride;
+        a0[l] = q[0]; a1[l] = q[1]; a2[l] = q[2]; b0[l] = q[3]; b1[l] = q[4]; b2[l] = q[5];
+    }
+    EACH {
+        float na = sqrtf(a0[l] * a0[l] + a1[l] * a1[l] + a2[l] * a2[l]);
+        na = na > 1e-8f ? na : 1e-8f;
+        float x0 = a0[l] / na, x1 = a1[l] / na, x2 = a2[l] / na;
+        float d = x0 * b0[l] + x1 * b1[l] + x2 * b2[l];
+        float c0 = b0[l] - d * x0, c1 = b1[l] - d * x1, c2 = b2[l] - d * x2;
+        float nb = sqrtf(c0 * c0 + c1 * c1 + c2 * c2);
+        nb = nb > 1e-8f ? nb : 1e-8f;
+        float y0 = c0 / nb, y1 = c1 / nb, y2 = c2 / nb;
+        m[0][l] = x0; m[1][l] = y0; m[2][l] = x1 * y2 - x2 * y1;
+        m[3][l] = x1; m[4][l] = y1; m[5][l] = x2 * y0 - x0 * y2;
+        m[6][l] = x2; m[7][l] = y2; m[8][l] = x0 * y1 - x1 * y0;
+    }
+}
+
+/* The same in float64 (the plausibility score casts the autoencoder's output first). */
+static inline void lane_matrix_from_6d_f64(lane *a, lane *b, lane *restrict m) {
+    lane na, d, nb;
+    lane x[3], y[3], z[3], c[3];
+    lane_dot3(a, a, na);
+    EACH { na[l] = sqrt(na[l]); na[l] = na[l] > 1e-8 ? na[l] : 1e-8; }
+    for (int i = 0; i < 3; i++) EACH x[i][l] = a[i][l] / na[l];
+    lane_dot3(x, b, d);
+    for (int i = 0; i < 3; i++) EACH c[i][l] = b[i][l] - d[l] * x[i][l];
+    lane_dot3(c, c, nb);
+    EACH { nb[l] = sqrt(nb[l]); nb[l] = nb[l] > 1e-8 ? nb[l] : 1e-8; }
+    for (int i = 0; i < 3; i++) EACH y[i][l] = c[i][l] / nb[l];
+    lane_cross3(x, y, z);
+    for (int i = 0; i < 3; i++) EACH { m[i * 3 + 0][l] = x[i][l]; m[i * 3 + 1][l] = y[i][l]; m[i * 3 + 2][l] = z[i][l]; }
+}
+
+/* LANES poses side by side: local and world rotations and positions of every joint. */
+typedef struct {
+    lane L[MAX_JOINTS][9], W[MAX_JOINTS][9], P[MAX_JOINTS][3];
+} block;
+
+static void block_load(block *k, int r0, int nl, int J, const double *local, const double *world, const double *pos) {
+    for (int j = 0; j < J; j++) {
+        gather(k->L[j], 9, local + j * 9, (int64_t)J * 9, r0, nl);
+        gather(k->W[j], 9, world + j * 9, (int64_t)J * 9, r0, nl);
+        gather(k->P[j], 3, pos + j * 3, (int64_t)J * 3, r0, nl);
+    }
+}
+
+/* Any of local, world and pos may be NULL: not wanted (each store is memory traffic the frame pays for). */
+static void block_store(block *k, int r0, int nl, int J, double *local, double *world, double *pos) {
+    for (int j = 0; j < J; j++) {
+        if (local) scatter(k->L[j], 9, local + j * 9, (int64_t)J * 9, r0, nl);
+        if (world) scatter(k->W[j], 9, world + j * 9, (int64_t)J * 9, r0, nl);
+        if (pos) scatter(k->P[j], 3, pos + j * 3, (int64_t)J * 3, r0, nl);
+    }
+}
+
+/* Pipeline._forward on one block: 6D -> local rotations (root from root_m), FK (edge.skeleton.fk,
+ * parents[j] < j) and the body translated so joint `head` sits at `anchor`. */
+static void block_forward(block *k, int r0, int nl, int J, const int64_t *parents, const double *offsets, int head,
+                          const float *rot6d, int rot6d_stride, const double *root_m, int root_stride,
+                          const double *anchor, int anchor_stride) {
+    lane v[3], shift[3];
+    gather(k->L[0], 9, root_m, root_stride, r0, nl);
+    lane_copy(k->W[0], k->L[0], 9);
+    for (int i = 0; i < 3; i++) EACH k->P[0][i][l] = 0.0;
+    for (int j = 1; j < J; j++) {
+        int p = (int)parents[j];
+        lane_matrix_from_6d_f32(rot6d + (j - 1) * 6, rot6d_stride, r0, nl, k->L[j]);
+        lane_matmul3(k->W[p], k->L[j], k->W[j]);
+        lane_matvec3_c(k->W[p], offsets + j * 3, v);
+        for (int i = 0; i < 3; i++) EACH k->P[j][i][l] = k->P[p][i][l] + v[i][l];
+    }
+    gather(shift, 3, anchor, anchor_stride, r0, nl);
+    for (int i = 0; i < 3; i++) EACH shift[i][l] = shift[i][l] - k->P[head][i][l];
+    for (int j = 0; j < J; j++)
+        for (int i = 0; i < 3; i++) EACH k->P[j][i][l] += shift[i][l];
+}
+
+/* edge.pipeline.Pipeline._forward: decoder 6D [R, (J-1)*6] float -> local rotations, world rotations
+ * and positions [R,J,...] (see block_forward). */
 void ep_forward(int R, int J, const int64_t *parents, const double *offsets, int head,
                 const float *rot6d, int rot6d_stride, const double *root_m, int root_stride,
                 const double *anchor, int anchor_stride, double *local, double *world, double *pos) {
-    for (int r = 0; r < R; r++) {
-        double *L = local + (int64_t)r * J * 9, *W = world + (int64_t)r * J * 9, *P = pos + (int64_t)r * J * 3;
-        const float *r6 = rot6d + (int64_t)r * rot6d_stride;
-        copy9(root_m + (int64_t)r * root_stride, L);
-        for (int j = 1; j < J; j++) matrix_from_6d_f32(r6 + (j - 1) * 6, L + j * 9);
-        copy9(L, W);
-        P[0] = P[1] = P[2] = 0.0;
-        for (int j = 1; j < J; j++) {
-            int p = (int)parents[j];
-            double v[3];
-            matmul3(W + p * 9, L + j * 9, W + j * 9);
-            matvec3(W + p * 9, offsets + j * 3, v);
-            for (int i = 0; i < 3; i++) P[j * 3 + i] = P[p * 3 + i] + v[i];
-        }
-        const double *an = anchor + (int64_t)r * anchor_stride;
-        double shift[3] = {an[0] - P[head * 3], an[1] - P[head * 3 + 1], an[2] - P[head * 3 + 2]};
-        for (int j = 0; j < J; j++)
-            for (int i = 0; i < 3; i++) P[j * 3 + i] += shift[i];
+    block k;
+    for (int r0 = 0; r0 < R; r0 += LANES) {
+        int nl = R - r0 < LANES ? R - r0 : LANES;
+        block_forward(&k, r0, nl, J, parents, offsets, head, rot6d, rot6d_stride, root_m, root_stride, anchor,
+                      anchor_stride);
+        block_store(&k, r0, nl, J, local, world, pos);
     }
 }
 
 /* cos and sin of edge.ik._angle_between(u, v), an angle in [0, pi]: no acos needed downstream. */
-static void angle_between_cs(const double *u, const double *v, double *c, double *s) {
-    *c = clamp(dot3(u, v) / sqrt(dot3(u, u) * dot3(v, v) + 1e-18), -1.0, 1.0);
-    *s = sqrt(1.0 - *c * *c);
+static inline void lane_angle_between_cs(lane *u, lane *v, lane c, lane s) {
+    lane uv, uu, vv;
+    lane_dot3(u, v, uv);
+    lane_dot3(u, u, uu);
+    lane_dot3(v, v, vv);
+    EACH {
+        c[l] = clamp(uv[l] / sqrt(uu[l] * vv[l] + 1e-18), -1.0, 1.0);
+        s[l] = sqrt(1.0 - c[l] * c[l]);
+    }
 }
 
 /* edge.ik._normalize */
-static void normalize3(double *v) {
-    double n = sqrt(dot3(v, v));
-    n = n > 1e-9 ? n : 1e-9;
-    v[0] /= n; v[1] /= n; v[2] /= n;
+static inline void lane_normalize3(lane *v) {
+    lane n;
+    lane_dot3(v, v, n);
+    EACH {
+        n[l] = sqrt(n[l]);
+        n[l] = n[l] > 1e-9 ? n[l] : 1e-9;
+    }
+    for (int i = 0; i < 3; i++) EACH v[i][l] /= n[l];
 }
 
 /* edge.ik._axis_angle_matrix (Rodrigues), from the angle's cosine and sine */
-static void axis_angle_matrix_cs(const double *axis, double c, double s, double *m) {
-    double x = axis[0], y = axis[1], z = axis[2];
+static inline void lane_axis_angle_matrix_cs(lane *axis, lane c, lane s, lane *restrict m) {
     for (int i = 0; i < 3; i++)
-        for (int k = 0; k < 3; k++) m[i * 3 + k] = axis[i] * axis[k] * (1.0 - c);
-    m[0] += c; m[4] += c; m[8] += c;
-    m[1] -= s * z; m[3] += s * z;
-    m[2] += s * y; m[6] -= s * y;
-    m[5] -= s * x; m[7] += s * x;
+        for (int k = 0; k < 3; k++) EACH m[i * 3 + k][l] = axis[i][l] * axis[k][l] * (1.0 - c[l]);
+    EACH {
+        double x = axis[0][l], y = axis[1][l], z = axis[2][l];
+        m[0][l] += c[l]; m[4][l] += c[l]; m[8][l] += c[l];
+        m[1][l] -= s[l] * z; m[3][l] += s[l] * z;
+        m[2][l] += s[l] * y; m[6][l] -= s[l] * y;
+        m[5][l] -= s[l] * x; m[7][l] += s[l] * x;
+    }
 }
 
 /* edge.ik.two_bone_ik for one chain a -> b -> c: new world rotations of a and b. The same rotations,
  * with each angle difference's cosine and sine taken from the angles' own (cos(x - y) = cx cy + sx sy)
  * instead of acos, cos and sin: trigonometry was most of this function's time. */
-static void two_bone_ik(const double *a, const double *b, const double *c, const double *t, const double *a_rot,
-                        const double *b_rot, const double *pole, double *a_new, double *b_new) {
-    double ab[3], cb[3], ca[3], ta[3], nab[3];
-    for (int i = 0; i < 3; i++) {
-        ab[i] = b[i] - a[i];
-        cb[i] = c[i] - b[i];
-        ca[i] = c[i] - a[i];
-        ta[i] = t[i] - a[i];
-        nab[i] = -ab[i];
+static void lane_two_bone_ik(lane *a, lane *b, lane *c, lane *t, lane *a_rot, lane *b_rot, lane *pole,
+                             lane *a_new, lane *b_new) {
+    lane ab[3], cb[3], ca[3], ta[3], nab[3], axis0[3], bent[3], axis1[3];
+    lane_sub3(b, a, ab);
+    lane_sub3(c, b, cb);
+    lane_sub3(c, a, ca);
+    lane_sub3(t, a, ta);
+    for (int i = 0; i < 3; i++) EACH nab[i][l] = -ab[i][l];
+    lane lab, lcb, lat, c0, s0, c1, s1, c_at, s_at, c0t, s0t, c1t, s1t, ca0, sa0, ca1, sa1, straight;
+    lane_dot3(ab, ab, lab);
+    lane_dot3(cb, cb, lcb);
+    lane_dot3(ta, ta, lat);
+    EACH {
+        lab[l] = sqrt(lab[l]);
+        lcb[l] = sqrt(lcb[l]);
+        lat[l] = clamp(sqrt(lat[l]), 1e-4, (lab[l] + lcb[l]) * (1 - 1e-4));
     }
-    double lab = sqrt(dot3(ab, ab)), lcb = sqrt(dot3(cb, cb));
-    double lat = clamp(sqrt(dot3(ta, ta)), 1e-4, (lab + lcb) * (1 - 1e-4));
-    double c0, s0, c1, s1, c_at, s_at;                         /* ac_ab_0, ba_bc_0, ac_at_0 */
-    angle_between_cs(ca, ab, &c0, &s0);
-    angle_between_cs(nab, cb, &c1, &s1);
-    angle_between_cs(ca, ta, &c_at, &s_at);
-    double c0t = clamp((lcb * lcb - lab * lab - lat * lat) / (-2 * lab * lat), -1, 1);   /* ac_ab_1 */
-    double c1t = clamp((lat * lat - lab * lab - lcb * lcb) / (-2 * lab * lcb), -1, 1);   /* ba_bc_1 */
-    double s0t = sqrt(1.0 - c0t * c0t), s1t = sqrt(1.0 - c1t * c1t);
-    double axis0[3], axis1[3];
-    cross3(ca, ab, axis0);
-    if (dot3(axis0, axis0) < 1e-12) cross3(ca, pole, axis0);   /* straight chain: bend towards the pole */
-    normalize3(axis0);
-    cross3(ca, ta, axis1);
-    normalize3(axis1);
-    mat3 r0, r1, r2, r20, tmp;
-    axis_angle_matrix_cs(axis0, c0t * c0 + s0t * s0, s0t * c0 - c0t * s0, r0);
-    axis_angle_matrix_cs(axis0, c1t * c1 + s1t * s1, s1t * c1 - c1t * s1, r1);
-    axis_angle_matrix_cs(axis1, c_at, s_at, r2);
-    matmul3(r2, r0, r20);
-    matmul3(r20, a_rot, a_new);
-    matmul3(r1, b_rot, tmp);
-    matmul3(r20, tmp, b_new);
+    lane_angle_between_cs(ca, ab, c0, s0);                    /* ac_ab_0 */
+    lane_angle_between_cs(nab, cb, c1, s1);                   /* ba_bc_0 */
+    lane_angle_between_cs(ca, ta, c_at, s_at);                /* ac_at_0 */
+    EACH {
+        c0t[l] = clamp((lcb[l] * lcb[l] - lab[l] * lab[l] - lat[l] * lat[l]) / (-2 * lab[l] * lat[l]), -1, 1);
+        c1t[l] = clamp((lat[l] * lat[l] - lab[l] * lab[l] - lcb[l] * lcb[l]) / (-2 * lab[l] * lcb[l]), -1, 1);
+        s0t[l] = sqrt(1.0 - c0t[l] * c0t[l]);
+        s1t[l] = sqrt(1.0 - c1t[l] * c1t[l]);
+        ca0[l] = c0t[l] * c0[l] + s0t[l] * s0[l];
+        sa0[l] = s0t[l] * c0[l] - c0t[l] * s0[l];
+        ca1[l] = c1t[l] * c1[l] + s1t[l] * s1[l];
+        sa1[l] = s1t[l] * c1[l] - c1t[l] * s1[l];
+    }
+    lane_cross3(ca, ab, axis0);
+    lane_cross3(ca, pole, bent);                              /* straight chain: bend towards the pole */
+    lane_dot3(axis0, axis0, straight);
+    for (int i = 0; i < 3; i++) EACH axis0[i][l] = straight[l] < 1e-12 ? bent[i][l] : axis0[i][l];
+    lane_normalize3(axis0);
+    lane_cross3(ca, ta, axis1);
+    lane_normalize3(axis1);
+    lane r0[9], r1[9], r2[9], r20[9], tmp[9];
+    lane_axis_angle_matrix_cs(axis0, ca0, sa0, r0);
+    lane_axis_angle_matrix_cs(axis0, ca1, sa1, r1);
+    lane_axis_angle_matrix_cs(axis1, c_at, s_at, r2);
+    lane_matmul3(r2, r0, r20);
+    lane_matmul3(r20, a_rot, a_new);
+    lane_matmul3(r1, b_rot, tmp);
+    lane_matmul3(r20, tmp, b_new);
 }
 
-/* One chain of edge.ik.apply_limb_ik (with offsets) on one pose: ends moved `w` of the way to the
+/* One chain of edge.ik.apply_limb_ik (with offsets) on a block: ends moved `w` of the way to the
  * target, world rotations and positions of the chain updated, then the positions of the end joint's
- * children (the toes). pole in the mid joint's frame; end_rot the end joint's new world rotation. */
-static void solve_chain(double *L, double *W, double *P, int J, const int64_t *parents, const double *offsets,
-                        const int64_t *chain, const double *tg, double w, const double *pole_local,
-                        const double *end_rot) {
-    int ia = (int)chain[0], ib = (int)chain[1], ic = (int)chain[2];
-    double goal[3], pole[3], a[3], v[3];
-    for (int i = 0; i < 3; i++) {
-        goal[i] = P[ic * 3 + i] + w * (tg[i] - P[ic * 3 + i]);
-        a[i] = P[ia * 3 + i];
-    }
-    matvec3(W + ib * 9, pole_local, pole);
-    mat3 a_new, b_new, end;
-    copy9(end_rot, end);
-    two_bone_ik(P + ia * 3, P + ib * 3, P + ic * 3, goal, W + ia * 9, W + ib * 9, pole, a_new, b_new);
-    matmul3_tn(W + (int)parents[ia] * 9, a_new, L + ia * 9);
-    matmul3_tn(a_new, b_new, L + ib * 9);
-    matmul3_tn(b_new, end, L + ic * 9);
-    copy9(a_new, W + ia * 9);
-    copy9(b_new, W + ib * 9);
-    copy9(end, W + ic * 9);
-    matvec3(a_new, offsets + ib * 3, v);
-    for (int i = 0; i < 3; i++) P[ib * 3 + i] = a[i] + v[i];
-    matvec3(b_new, offsets + ic * 3, v);
-    for (int i = 0; i < 3; i++) P[ic * 3 + i] = P[ib * 3 + i] + v[i];
+ * children (the toes). pole in the mid joint's frame; end_rot the end joint's new world rotation
+ * (rows end_stride apart; NULL: keep the end joint's own). Targets tg rows tg_stride apart; w rows
+ * w_stride apart (NULL: weight w_const). */
+static void block_chain(block *k, int r0, int nl, int J, const int64_t *parents, const double *offsets,
+                        const int64_t *chain, const double *tg, int64_t tg_stride, const double *w, int64_t w_stride,
+                        double w_const, const double *pole_local, const double *end_rot, int64_t end_stride) {
+    int ia = (int)chain[0], ib = (int)chain[1], ic = (int)chain[2], ip = (int)parents[ia];
+    lane goal[3], wt[1], pole[3], v[3], end[9], a_new[9], b_new[9];
+    gather(goal, 3, tg, tg_stride, r0, nl);
+    if (w) gather(wt, 1, w, w_stride, r0, nl);
+    else EACH wt[0][l] = w_const;
+    for (int i = 0; i < 3; i++) EACH goal[i][l] = k->P[ic][i][l] + wt[0][l] * (goal[i][l] - k->P[ic][i][l]);
+    if (end_rot) gather(end, 9, end_rot, end_stride, r0, nl);
+    else lane_copy(end, k->W[ic], 9);
+    lane_matvec3_c(k->W[ib], pole_local, pole);
+    lane_two_bone_ik(k->P[ia], k->P[ib], k->P[ic], goal, k->W[ia], k->W[ib], pole, a_new, b_new);
+    lane_matmul3_tn(k->W[ip], a_new, k->L[ia]);
+    lane_matmul3_tn(a_new, b_new, k->L[ib]);
+    lane_matmul3_tn(b_new, end, k->L[ic]);
+    lane_copy(k->W[ia], a_new, 9);
+    lane_copy(k->W[ib], b_new, 9);
+    lane_copy(k->W[ic], end, 9);
+    lane_matvec3_c(a_new, offsets + ib * 3, v);
+    for (int i = 0; i < 3; i++) EACH k->P[ib][i][l] = k->P[ia][i][l] + v[i][l];
+    lane_matvec3_c(b_new, offsets + ic * 3, v);
+    for (int i = 0; i < 3; i++) EACH k->P[ic][i][l] = k->P[ib][i][l] + v[i][l];
     for (int j = ic + 1; j < J; j++) {
         if (parents[j] != ic) continue;
-        matvec3(W + ic * 9, offsets + j * 3, v);
-        for (int i = 0; i < 3; i++) P[j * 3 + i] = P[ic * 3 + i] + v[i];
+        lane_matvec3_c(end, offsets + j * 3, v);
+        for (int i = 0; i < 3; i++) EACH k->P[j][i][l] = k->P[ic][i][l] + v[i][l];
+    }
+}
+
+/* Pipeline._post on one block (see ep_post): every array is the whole batch's, read at the block's rows. */
+static void block_post(block *k, int r0, int nl, int J, const int64_t *parents, const double *offsets,
+                       const int64_t *chains, const double *poles, const double *foot_goals, const double *foot_weights,
+                       int foot_ik, int arm_ik, const double *wrists, int wrists_stride, const double *hand_m,
+                       int hand_stride, const double *head_m, int head_stride, int neck, int head) {
+    for (int c = 0; c < 2; c++)
+        block_chain(k, r0, nl, J, parents, offsets, chains + c * 3, foot_goals + c * 3, 6, foot_ik ? foot_weights + c : 0,
+                    2, 0.0, poles + c * 3, 0, 0);
+    for (int c = 2; c < 4; c++)
+        block_chain(k, r0, nl, J, parents, offsets, chains + c * 3, wrists + (c - 2) * 3, wrists_stride, 0, 0,
+                    arm_ik ? 1.0 : 0.0, poles + c * 3, arm_ik ? hand_m + (c - 2) * 9 : 0, hand_stride);
+    if (arm_ik) {
+        gather(k->W[head], 9, head_m, head_stride, r0, nl);
+        lane_matmul3_tn(k->W[neck], k->W[head], k->L[head]);
     }
 }
 
@@ -213,20 +356,13 @@ void ep_post(int R, int J, const int64_t *parents, const double *offsets, const 
              const double *poles, const double *foot_goals, const double *foot_weights, int foot_ik, int arm_ik,
              const double *wrists, int wrists_stride, const double *hand_m, int hand_stride, const double *head_m,
              int head_stride, int neck, int head, double *local, double *world, double *pos) {
-    for (int r = 0; r < R; r++) {
-        double *L = local + (int64_t)r * J * 9, *W = world + (int64_t)r * J * 9, *P = pos + (int64_t)r * J * 3;
-        for (int k = 0; k < 2; k++)
-            solve_chain(L, W, P, J, parents, offsets, chains + k * 3, foot_goals + ((int64_t)r * 2 + k) * 3,
-                        foot_ik ? foot_weights[(int64_t)r * 2 + k] : 0.0, poles + k * 3, W + chains[k * 3 + 2] * 9);
-        for (int k = 2; k < 4; k++)
-            solve_chain(L, W, P, J, parents, offsets, chains + k * 3, wrists + (int64_t)r * wrists_stride + (k - 2) * 3,
-                        arm_ik ? 1.0 : 0.0, poles + k * 3,
-                        arm_ik ? hand_m + (int64_t)r * hand_stride + (k - 2) * 9 : W + chains[k * 3 + 2] * 9);
-        if (arm_ik) {
-            const double *hm = head_m + (int64_t)r * head_stride;
-            copy9(hm, W + head * 9);
-            matmul3_tn(W + neck * 9, hm, L + head * 9);
-        }
+    block k;
+    for (int r0 = 0; r0 < R; r0 += LANES) {
+        int nl = R - r0 < LANES ? R - r0 : LANES;
+        block_load(&k, r0, nl, J, local, world, pos);
+        block_post(&k, r0, nl, J, parents, offsets, chains, poles, foot_goals, foot_weights, foot_ik, arm_ik, wrists,
+                   wrists_stride, hand_m, hand_stride, head_m, head_stride, neck, head);
+        block_store(&k, r0, nl, J, local, world, pos);
     }
 }
 
@@ -256,62 +392,162 @@ void ep_local_pose(int B, int J, const double *pos, const double *pelvis, int pe
  * pelvis, and the mean distance to the input's leg joints legs [2,4]. */
 void ep_leg_error(int B, int J, const float *ae_out, int rot_dim, const int64_t *leg_rows, const int64_t *legs,
                   const double *offsets, const double *local, const double *root_local, double *err) {
-    for (int r = 0; r < B; r++) {
-        const float *o = ae_out + (int64_t)r * rot_dim;
-        const double *Lr = local + (int64_t)r * J * 3;
-        double total = 0.0;
+    for (int r0 = 0; r0 < B; r0 += LANES) {
+        int nl = B - r0 < LANES ? B - r0 : LANES;
+        lane total, d2;
+        EACH total[l] = 0.0;
         for (int s = 0; s < 2; s++) {
-            mat3 rot, next, leg;
-            double base[3] = {Lr[0], Lr[1], Lr[2]}, v[3];
-            copy9(root_local + (int64_t)r * 9, rot);
+            lane rot[9], next[9], leg[9], base[3], joint[3], v[3], a6[6];
+            gather(rot, 9, root_local, 9, r0, nl);
+            gather(base, 3, local, (int64_t)J * 3, r0, nl);
             for (int k = 0; k < 4; k++) {
-                matvec3(rot, offsets + legs[s * 4 + k] * 3, v);
-                double d2 = 0.0;
-                for (int i = 0; i < 3; i++) {
-                    base[i] = base[i] + v[i];
-                    double d = base[i] - Lr[legs[s * 4 + k] * 3 + i];
-                    d2 += d * d;
-                }
-                total += sqrt(d2);
+                int jk = (int)legs[s * 4 + k];
+                lane_matvec3_c(rot, offsets + jk * 3, v);
+                gather(joint, 3, local + jk * 3, (int64_t)J * 3, r0, nl);
+                EACH d2[l] = 0.0;
+                for (int i = 0; i < 3; i++)
+                    EACH {
+                        base[i][l] = base[i][l] + v[i][l];
+                        double d = base[i][l] - joint[i][l];
+                        d2[l] += d * d;
+                    }
+                EACH total[l] += sqrt(d2[l]);
                 if (k < 3) {
-                    const float *r6 = o + leg_rows[s * 3 + k] * 6;
-                    double a6[6];
-                    for (int i = 0; i < 6; i++) a6[i] = (double)r6[i];
-                    matrix_from_6d_f64(a6, a6 + 3, leg);
-                    matmul3(rot, leg, next);
-                    copy9(next, rot);
+                    const float *r6 = ae_out + leg_rows[s * 3 + k] * 6;
+                    EACH {
+                        const float *q = r6 + (int64_t)(r0 + (l < nl ? l : nl - 1)) * rot_dim;
+                        for (int i = 0; i < 6; i++) a6[i][l] = (double)q[i];
+                    }
+                    lane_matrix_from_6d_f64(a6, a6 + 3, leg);
+                    lane_matmul3(rot, leg, next);
+                    lane_copy(rot, next, 9);
                 }
             }
         }
-        err[r] = total / 8.0;
+        EACH total[l] = total[l] / 8.0;
+        scatter(&total, 1, err, 1, r0, nl);
     }
 }
 
-/* edge.ik.FootLock.update for B samples and F feet, and the foot goals the pipeline hands the leg IK:
- * each foot's ankle drawn towards its lock by the lock's weight (edge.pipeline.Pipeline.step).
- * State arrays are FootLock's (locked and raw are numpy bools); goal [B,F,3] out. */
+/* edge.ik.FootLock.update for foot i (state arrays FootLock's; locked and raw are numpy bools) at
+ * this ankle position, and the foot goal the pipeline hands the leg IK: the ankle drawn towards its
+ * lock by the lock's weight (edge.pipeline.Pipeline._foot_goals). */
+static void foot_lock(int i, int contact, const double *ankle, double release_frames, double max_slip,
+                      double *lock_pos, uint8_t *locked, uint8_t *raw, double *since, double *weight, double *goal) {
+    double *lock = lock_pos + (int64_t)i * 3;
+    double d[3] = {ankle[0] - lock[0], ankle[1] - lock[1], ankle[2] - lock[2]};
+    int slipped = locked[i] && sqrt(dot3(d, d)) > max_slip;
+    int start = contact && !locked[i] && (!raw[i] || weight[i] == 0.0);
+    if (start)
+        for (int k = 0; k < 3; k++) lock[k] = ankle[k] + weight[i] * (lock[k] - ankle[k]);
+    locked[i] = (locked[i] && contact && !slipped) || start;
+    raw[i] = contact;
+    since[i] = locked[i] ? 0.0 : since[i] + 1.0;
+    double x = clamp(since[i] / release_frames, 0.0, 1.0);
+    weight[i] = locked[i] ? 1.0 : 1.0 - x * x * (3 - 2 * x);
+    for (int k = 0; k < 3; k++) goal[(int64_t)i * 3 + k] = (lock[k] - ankle[k]) * weight[i] + ankle[k];
+}
+
+/* FootLock.update for B samples and F feet from the decoder's contacts [B,F] and the FK ankles. */
 void ep_foot_locks(int B, int F, const float *contacts, const double *pos, int J, const int64_t *ankles,
                    double release_frames, double max_slip, double *lock_pos, uint8_t *locked, uint8_t *raw,
                    double *since, double *weight, double *goal) {
-    for (int r = 0; r < B; r++) {
-        for (int f = 0; f < F; f++) {
-            int i = r * F + f;
-            const double *ankle = pos + ((int64_t)r * J + ankles[f]) * 3;
-            double *lock = lock_pos + (int64_t)i * 3;
-            int contact = contacts[i] > 0.5f;
-            double d[3] = {ankle[0] - lock[0], ankle[1] - lock[1], ankle[2] - lock[2]};
-            int slipped = locked[i] && sqrt(dot3(d, d)) > max_slip;
-            int start = contact && !locked[i] && (!raw[i] || weight[i] == 0.0);
-            if (start)
-                for (int k = 0; k < 3; k++) lock[k] = ankle[k] + weight[i] * (lock[k] - ankle[k]);
-            locked[i] = (locked[i] && contact && !slipped) || start;
-            raw[i] = contact;
-            since[i] = locked[i] ? 0.0 : since[i] + 1.0;
-            double x = clamp(since[i] / release_frames, 0.0, 1.0);
-            weight[i] = locked[i] ? 1.0 : 1.0 - x * x * (3 - 2 * x);
-            for (int k = 0; k < 3; k++) goal[(int64_t)i * 3 + k] = (lock[k] - ankle[k]) * weight[i] + ankle[k];
+    for (int r = 0; r < B; r++)
+        for (int f = 0; f < F; f++)
+            foot_lock(r * F + f, contacts[r * F + f] > 0.5f, pos + ((int64_t)r * J + ankles[f]) * 3, release_frames,
+                      max_slip, lock_pos, locked, raw, since, weight, goal);
+}
+
+/* ------------------------------------------------------------------ the live frame in one call */
+
+/* What stays the same from frame to frame: the skeleton, the pipeline's buffers, FootLock's state and
+ * the look-ahead ring (edge.pipeline.Pipeline builds one; field order matches its ctypes mirror,
+ * native.FrameContext). */
+typedef struct {
+    int J, head, neck, foot_ik, arm_ik, rot6d_stride;
+    const int64_t *parents, *chains, *ankles;
+    const double *offsets, *poles;
+    const float *rot6d, *contacts;            /* the decoder's outputs, [rows,...] */
+    double release_frames, max_slip;
+    double *lock_pos, *since, *lock_weight;
+    uint8_t *locked, *raw;
+    double *goals, *weights;                  /* leg IK goals [rows,2,3] and weights [rows,2], out */
+    /* edge.pipeline.LookaheadBuffer's arrays, [slots, ...] with ring_rows pose rows (samples + 1) per
+     * slot: the frame's tracker inputs, and what it keeps of each row's pose. */
+    int ring_rows;
+    const double *ring_waist, *ring_anchor, *ring_wrists, *ring_hand, *ring_head;   /* [3,3] [3] [2,3] [2,3,3] [3,3] */
+    float *ring_rot6d, *ring_contacts;        /* [rows, rot6d_stride], [rows, 2] */
+    double *ring_goal, *ring_weight, *ring_lock_weight;     /* [rows,2,3], [rows,2], [rows - 1,2] */
+    double *out_local, *out_world, *out_pos;  /* ep_emit's pose [J,3,3], scratch [J,3,3], [J,3] */
+} frame_context;
+
+static void copy_f32(float *dst, const float *src, int64_t n) { for (int64_t i = 0; i < n; i++) dst[i] = src[i]; }
+static void copy_f64(double *dst, const double *src, int64_t n) { for (int64_t i = 0; i < n; i++) dst[i] = src[i]; }
+
+/* Pipeline.step between the decoder and the criteria, for R rows: N samples and, when R = N + 1,
+ * the transition row from sample c to sample n at blend weight a. Per block of LANES rows, kept on
+ * the stack throughout: _forward; the samples' foot locks (_foot_goals: goals drawn by the locks, IK
+ * weight 1); the transition row's goals and weights blended from c's and n's (c, n < N, so their
+ * blocks came first or are this one); _post. The tracker inputs are ring slot `slot`'s, shared by
+ * every row; world rotations and positions [R,J,...] go to world and pos (world skipped when NULL).
+ * Then what the ring keeps of each row goes to slot `slot`: the decoder's 6D and contacts, the leg
+ * IK's goals and weights, and the samples' lock weights. */
+void ep_frame_poses(const frame_context *x, int slot, int R, int N, int c, int n, double a, double *world,
+                    double *pos) {
+    block k;
+    int J = x->J, S = x->ring_rows;
+    const double *root_m = x->ring_waist + slot * 9, *anchor = x->ring_anchor + slot * 3;
+    const double *wrists = x->ring_wrists + slot * 6, *hand_m = x->ring_hand + slot * 18, *head_m = x->ring_head + slot * 9;
+    for (int r0 = 0; r0 < R; r0 += LANES) {
+        int nl = R - r0 < LANES ? R - r0 : LANES;
+        block_forward(&k, r0, nl, J, x->parents, x->offsets, x->head, x->rot6d, x->rot6d_stride, root_m, 0, anchor, 0);
+        if (x->foot_ik) {
+            for (int l = 0; l < nl && r0 + l < N; l++)
+                for (int f = 0; f < 2; f++) {
+                    int i = (r0 + l) * 2 + f;
+                    double ankle[3] = {k.P[x->ankles[f]][0][l], k.P[x->ankles[f]][1][l], k.P[x->ankles[f]][2][l]};
+                    foot_lock(i, x->contacts[i] > 0.5f, ankle, x->release_frames, x->max_slip, x->lock_pos, x->locked,
+                              x->raw, x->since, x->lock_weight, x->goals);
+                    x->weights[i] = 1.0;
+                }
+            if (R > N && r0 + nl > N)
+                for (int f = 0; f < 2; f++) {
+                    for (int i = 0; i < 3; i++)
+                        x->goals[(N * 2 + f) * 3 + i] = (1 - a) * x->goals[(c * 2 + f) * 3 + i] + a * x->goals[(n * 2 + f) * 3 + i];
+                    x->weights[N * 2 + f] = (1 - a) * x->lock_weight[c * 2 + f] + a * x->lock_weight[n * 2 + f];
+                }
         }
+        block_post(&k, r0, nl, J, x->parents, x->offsets, x->chains, x->poles, x->goals, x->weights, x->foot_ik,
+                   x->arm_ik, wrists, 0, hand_m, 0, head_m, 0, x->neck, x->head);
+        block_store(&k, r0, nl, J, 0, world, pos);
     }
+    int64_t row0 = (int64_t)slot * S;
+    copy_f32(x->ring_rot6d + row0 * x->rot6d_stride, x->rot6d, (int64_t)R * x->rot6d_stride);
+    copy_f32(x->ring_contacts + row0 * 2, x->contacts, (int64_t)R * 2);
+    copy_f64(x->ring_goal + row0 * 6, x->goals, (int64_t)R * 6);
+    copy_f64(x->ring_weight + row0 * 2, x->weights, (int64_t)R * 2);
+    copy_f64(x->ring_lock_weight + (int64_t)slot * (S - 1) * 2, x->lock_weight, (int64_t)N * 2);
+}
+
+/* One row's pose again from what the look-ahead buffer keeps of it: its decoder 6D (float), its leg
+ * goals [2,3] and IK weights [2], and its frame's tracker inputs; block_forward then block_post, so
+ * the result is bit for bit the row's pose in ep_frame_poses. world is scratch [J,3,3]. */
+void ep_row_pose(const frame_context *x, const float *rot6d, const double *goals, const double *weights,
+                 const double *root_m, const double *anchor, const double *wrists, const double *hand_m,
+                 const double *head_m, double *local, double *world, double *pos) {
+    block k;
+    block_forward(&k, 0, 1, x->J, x->parents, x->offsets, x->head, rot6d, 0, root_m, 0, anchor, 0);
+    block_post(&k, 0, 1, x->J, x->parents, x->offsets, x->chains, x->poles, goals, weights, x->foot_ik, x->arm_ik,
+               wrists, 0, hand_m, 0, head_m, 0, x->neck, x->head);
+    block_store(&k, 0, 1, x->J, local, world, pos);
+}
+
+/* Pipeline._emit: ep_row_pose of row `row` of ring slot `slot`, into out_local and out_pos. */
+void ep_emit(const frame_context *x, int slot, int row) {
+    int64_t r = (int64_t)slot * x->ring_rows + row;
+    ep_row_pose(x, x->ring_rot6d + r * x->rot6d_stride, x->ring_goal + r * 6, x->ring_weight + r * 2,
+                x->ring_waist + slot * 9, x->ring_anchor + slot * 3, x->ring_wrists + slot * 6, x->ring_hand + slot * 18,
+                x->ring_head + slot * 9, x->out_local, x->out_world, x->out_pos);
 }
 
 /* edge.quat.rotate, in its order of operations: t = 2 (u x v); v + w t + u x t. */
@@ -367,4 +603,50 @@ void ep_frame_features(const double *in, const double *offsets, const double *pr
     quat_to_matrix(hand_rot, mats + 9);
     quat_to_matrix(hand_rot + 4, mats + 18);
     quat_to_matrix(head_rot, mats + 27);
+}
+
+/* The k-th smallest of x[0..n) (x is reordered): Hoare's quickselect. */
+static double kth_smallest(double *x, int n, int k) {
+    int lo = 0, hi = n - 1;
+    while (lo < hi) {
+        double pivot = x[(lo + hi) / 2];
+        int i = lo, j = hi;
+        while (i <= j) {
+            while (x[i] < pivot) i++;
+            while (x[j] > pivot) j--;
+            if (i <= j) {
+                double t = x[i]; x[i] = x[j]; x[j] = t;
+                i++; j--;
+            }
+        }
+        if (k <= j) hi = j;
+        else if (k >= i) lo = i;
+        else break;
+    }
+    return x[k];
+}
+
+/* edge.pipeline.is_outlier and best_other in one call (SSI eq. 2, 3.2.2): the sample to switch to
+ * from c, or -1 when c's cost is not an outlier (or a cost is NaN, where numpy's test is false too).
+ * N <= 1024. */
+int ep_switch_to(int N, const double *cost, int c) {
+    double x[1024], lo = cost[0];
+    if (N < 2 || N > 1024) return -1;
+    for (int i = 0; i < N; i++) {
+        if (cost[i] != cost[i]) return -1;
+        lo = cost[i] < lo ? cost[i] : lo;
+        x[i] = cost[i];
+    }
+    int k = N / 2;
+    double median = kth_smallest(x, N, k);
+    if (N % 2 == 0) {                       /* the mean of the two middle values, as np.median */
+        double below = x[0];
+        for (int i = 1; i < k; i++) below = x[i] > below ? x[i] : below;
+        median = (below + median) / 2.0;
+    }
+    if (!(cost[c] - lo > 2.0 * (median - lo))) return -1;
+    int best = -1;
+    for (int i = 0; i < N; i++)
+        if (i != c && (best < 0 || cost[i] < cost[best])) best = i;
+    return best;
 }
