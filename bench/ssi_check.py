@@ -13,6 +13,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from edge.eval import evaluate
+from edge.inference import DEFAULT_PRECISION
 from edge.study import run_study
 
 
@@ -24,6 +25,7 @@ def main():
     ap.add_argument("--out", default="out/ssi_check")
     ap.add_argument("--skip-study", action="store_true")
     ap.add_argument("--models", help="model folder to check (default: the shipped models/)")
+    ap.add_argument("--precision", choices=("fp32", "int8"), default=DEFAULT_PRECISION)
     a = ap.parse_args()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -33,7 +35,7 @@ def main():
         if path.exists():
             runs[name] = json.loads(path.read_text())
             continue
-        runs[name] = evaluate([a.data], "val", samples=n, no_ssi=no_ssi, seed=0, models=a.models)
+        runs[name] = evaluate([a.data], "val", samples=n, no_ssi=no_ssi, seed=0, models=a.models, precision=a.precision)
         path.write_text(json.dumps(runs[name], indent=2) + "\n")
     n1, ssi, base = runs["n1"], runs["ssi"], runs["no_ssi"]
     rows = [
@@ -52,7 +54,8 @@ def main():
         if path.exists():
             study = json.loads(path.read_text())
         else:
-            study = run_study([a.data], "high-kick", [1, 10, 100], a.runs, split="val", models=a.models)
+            study = run_study([a.data], "high-kick", [1, 10, 100], a.runs, split="val", models=a.models,
+                              precision=a.precision)
             path.write_text(json.dumps(study, indent=2) + "\n")
         err = {r["samples"]: r["mean"] for r in study["results"]}
         rows.append(("high-kick N=10 <= 0.6 x N=1", err[10], 0.6 * err[1]))

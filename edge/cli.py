@@ -3,6 +3,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from edge.inference import DEFAULT_PRECISION
 from edge.modelfiles import ModelError
 
 
@@ -15,7 +16,7 @@ def main(argv=None):
     ev.add_argument("--split", choices=("train", "val"), help="filter a folder by its MANIFEST.tsv")
     ev.add_argument("--samples", type=int, default=1, help="latent samples N (1 = plain CVAE at the prior mean)")
     ev.add_argument("--no-ssi", action="store_true", help="keep the starting sample for the whole clip")
-    ev.add_argument("--precision", choices=("fp32", "int8"), default="fp32")
+    ev.add_argument("--precision", choices=("fp32", "int8"), default=DEFAULT_PRECISION)
     ev.add_argument("--max-frames", type=int, default=None, help="evaluate at most this many frames per clip")
     ev.add_argument("--json", required=True, help="write the metrics here")
     ev.add_argument("--dump", help="write one .npz per clip (gt_pos, pred_pos) into this folder")

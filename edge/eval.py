@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from edge.bvh import BvhError
+from edge.inference import DEFAULT_PRECISION
 from edge.features import head_joint, wrist_joints
 from edge.pipeline import Pipeline
 from edge.plausibility import PlausibilityScorer
@@ -52,7 +53,7 @@ def run_take(pipe, take, max_frames=None):
     return run
 
 
-def evaluate(paths, split=None, samples=1, no_ssi=False, precision="fp32", max_frames=None, dump=None,
+def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECISION, max_frames=None, dump=None,
              models=None, seed=0, lookahead=None, ik=True, log=print):
     files = find_clips(paths, split)
     if not files:

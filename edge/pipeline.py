@@ -27,7 +27,7 @@ from edge import native, quat
 from edge.criteria import Composite, FrameContext, Plausibility
 from edge.features import body_points, features, heading
 from edge.ik import FootLock, apply_limb_ik, smoothstep
-from edge.inference import Autoencoder, Decoder, open_models
+from edge.inference import DEFAULT_PRECISION, Autoencoder, Decoder, open_models
 from edge.plausibility import PlausibilityScorer
 from edge.signals import EYE_OFFSET, GRIP_OFFSET
 from edge.skeleton import ANKLES, HEAD, JOINT, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, PELVIS_TO_HEAD, TOES, fk
@@ -128,7 +128,7 @@ class LookaheadBuffer:
 
 
 class Pipeline:
-    def __init__(self, models=None, samples=1, seed=0, fps=60.0, body_scale=1.0, precision="fp32", threads=1,
+    def __init__(self, models=None, samples=1, seed=0, fps=60.0, body_scale=1.0, precision=DEFAULT_PRECISION, threads=1,
                  lookahead=None, transition=10, ssi=True, criteria=None, foot_ik=True, arm_ik=True,
                  use_native=True):
         if not 1 <= samples <= 128:

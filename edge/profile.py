@@ -53,6 +53,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from edge.inference import DEFAULT_PRECISION
+
 LADDER = (1, 2, 4, 8, 16, 24, 32, 48, 64, 96, 128)
 SAMPLE = Path(__file__).resolve().parent.parent / "samples" / "cmu_09_12_walk.npz"
 CGROUP_V1 = Path("/sys/fs/cgroup/cpu")
@@ -65,7 +67,7 @@ def add_arguments(p):
     p.add_argument("--hz", type=float, default=60.0, help="frame rate (default 60)")
     p.add_argument("--samples", default="auto", help="N, or 'auto' to find the largest N that fits")
     p.add_argument("--frames", type=int, default=3000, help="real-time frames in the measured run (default 3000)")
-    p.add_argument("--precision", choices=("fp32", "int8"), default="fp32")
+    p.add_argument("--precision", choices=("fp32", "int8"), default=DEFAULT_PRECISION)
     p.add_argument("--models", help="model folder (default: the shipped models/)")
     p.add_argument("--period-ms", type=float, default=10.0, help="CFS period for the quota (default 10 ms)")
     p.add_argument("--probe-frames", type=int, default=600, help="real-time frames per N while searching (auto)")
@@ -522,11 +524,11 @@ def main(args):
     if args.hz <= 0 or args.frames < 1:
         print("edge profile: --hz and --frames must be positive", file=sys.stderr)
         return 2
+    from edge.inference import model_files
     from edge.modelfiles import DEFAULT_DIR, ModelError, load_manifest
-    suffix = "" if args.precision == "fp32" else f".{args.precision}"
     try:                                      # fail early, with the fix, before any cgroup is made
-        load_manifest(Path(args.models) if args.models else DEFAULT_DIR,
-                      need=(f"decoder{suffix}.onnx", f"autoencoder{suffix}.onnx"))
+        folder = Path(args.models) if args.models else DEFAULT_DIR
+        load_manifest(folder, need=model_files(args.precision, load_manifest(folder, need=())))
     except ModelError as e:
         print(f"edge profile: {e}", file=sys.stderr)
         return 2

@@ -15,6 +15,7 @@ import numpy as np
 from edge.bvh import BvhError
 from edge.criteria import CollisionAvoid, Plausibility, TargetHit
 from edge.eval import run_take
+from edge.inference import DEFAULT_PRECISION
 from edge.pipeline import Pipeline
 from edge.progress import Progress
 from edge.skeleton import JOINT
@@ -48,7 +49,8 @@ def obstacle_for(take):
     return take.gt_pos[mid, JOINT["l_knee"]] + 0.25 * left, 0.12
 
 
-def run_study(paths, task, samples_list, runs, split=None, models=None, max_clips=None, log=print):
+def run_study(paths, task, samples_list, runs, split=None, models=None, max_clips=None, log=print,
+              precision=DEFAULT_PRECISION):
     takes = []
     for f in find_clips(paths, split):
         try:
@@ -68,7 +70,7 @@ def run_study(paths, task, samples_list, runs, split=None, models=None, max_clip
             values, gt_values = [], []
             for r in range(runs):
                 for take in takes:
-                    value, gt_value = _one(take, task, n, r, models)
+                    value, gt_value = _one(take, task, n, r, models, precision)
                     values += value
                     gt_values += gt_value
                     bar.update()
@@ -81,8 +83,8 @@ def run_study(paths, task, samples_list, runs, split=None, models=None, max_clip
     return {"task": task, "unit": unit, "clips": [t.name for t in takes], "results": results}
 
 
-def _one(take, task, n, seed, models):
-    pipe = Pipeline(models, samples=n, seed=seed, criteria=[])
+def _one(take, task, n, seed, models, precision=DEFAULT_PRECISION):
+    pipe = Pipeline(models, samples=n, seed=seed, criteria=[], precision=precision)
     pipe.criteria.criteria.append(Plausibility(pipe.scorer))
     if task == "avoid":
         center, radius = obstacle_for(take)

@@ -18,7 +18,7 @@
     [runtime]
     samples = 16                      # latent samples N (1..128); with adaptive N, the most it runs
     adaptive = true                   # lower N when frames run late, raise it again when there is slack
-    precision = "fp32"                # or "int8" (models/*.int8.onnx)
+    precision = "int8"                # or "fp32"
     lookahead = 10                    # SSI look-ahead in frames
     hz = 60
     lost_after_ms = 250
@@ -33,6 +33,7 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from edge.inference import DEFAULT_PRECISION
 from firmware_bridge.transports.base import TransportError, parse_url
 
 
@@ -59,7 +60,7 @@ class Config:
     bvh: str = ""
     samples: int = 16
     adaptive: bool = True
-    precision: str = "fp32"
+    precision: str = DEFAULT_PRECISION
     lookahead: int = 10
     hz: float = 60.0
     lost_after: float = 0.25
@@ -165,7 +166,7 @@ def from_dict(raw, where="config"):
     cfg.adaptive = rt.get("adaptive", True)
     if not isinstance(cfg.adaptive, bool):
         raise ConfigError(f"{where}: [runtime] adaptive must be true or false, got {cfg.adaptive!r}")
-    cfg.precision = rt.get("precision", "fp32")
+    cfg.precision = rt.get("precision", DEFAULT_PRECISION)
     if cfg.precision not in ("fp32", "int8"):
         raise ConfigError(f"{where}: [runtime] precision must be \"fp32\" or \"int8\", got {cfg.precision!r}")
     cfg.calibration = rt.get("calibration", "")

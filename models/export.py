@@ -69,7 +69,8 @@ def main():
     ap.add_argument("--out", default="models")
     a = ap.parse_args()
     export_all(a.ckpt, a.out)
-    print(f"wrote {a.out}/decoder.onnx, {a.out}/autoencoder.onnx, {a.out}/manifest.json")
+    print(f"wrote {a.out}/decoder.onnx, {a.out}/autoencoder.onnx, {a.out}/manifest.json; "
+          f"now build the int8 models the runtime defaults to: python -m quantize --models {a.out}")
 
 
 if __name__ == "__main__":

@@ -29,13 +29,13 @@ def test_corrupt_model_file_is_refused_with_a_clear_message(model_copy):
     data[len(data) // 2] ^= 0xFF
     (model_copy / "decoder.onnx").write_bytes(bytes(data))
     with pytest.raises(ModelError, match="corrupt or altered"):
-        load_models(model_copy)
+        load_models(model_copy, precision="fp32")
 
 
 def test_missing_model_file_is_refused_with_a_clear_message(model_copy):
     (model_copy / "autoencoder.onnx").unlink()
     with pytest.raises(ModelError, match="missing"):
-        load_models(model_copy)
+        load_models(model_copy, precision="fp32")
 
 
 def test_missing_manifest_says_how_to_make_one(tmp_path):
@@ -51,7 +51,7 @@ def test_model_that_is_not_onnx_fails_at_load(model_copy):
     info.pop("files")
     write_manifest(model_copy, ["decoder.onnx", "autoencoder.onnx"], info)
     with pytest.raises(ModelError, match="cannot load model"):
-        load_models(model_copy)
+        load_models(model_copy, precision="fp32")
 
 
 def _sample_features(T=300):
@@ -110,7 +110,7 @@ def test_written_out_gru_cell_matches_torch_gru(torch):
 
 def test_onnx_autoencoder_matches_pytorch(torch):
     _, ae = _torch_models(torch)
-    _, _, onnx_ae = load_models()
+    _, _, onnx_ae = load_models(precision="fp32")
     x = np.random.default_rng(0).standard_normal((64, 63)).astype(np.float32) * 0.3
     with torch.no_grad():
         ref = ae(torch.from_numpy(x)).numpy()

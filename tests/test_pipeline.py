@@ -61,7 +61,8 @@ class ForcedSwitch:
 def run_forced_switch(take, lookahead, at, frames, transition=10):
     """Run with a switch forced at frame `at`; returns the pipeline, {frame: (positions, sample, in
     transition)} and sample 3's own pose at frame at-1 as the buffer held it at the switch."""
-    pipe = Pipeline(samples=6, lookahead=lookahead, transition=transition, criteria=[])
+    # fp32: a recomputed frame then matches the live one exactly (int8's per-batch activation scales do not)
+    pipe = Pipeline(samples=6, lookahead=lookahead, transition=transition, criteria=[], precision="fp32")
     pipe.criteria.criteria.append(ForcedSwitch(pipe, at=at))
     out, own_new = {}, None
     for t in range(frames):
@@ -114,9 +115,12 @@ def test_ring_buffer_memory_is_fixed_over_20000_frames(take):
 
 # ------------------------------------------------------------------ adaptive N
 
-def test_changing_n_leaves_the_shown_sample_untouched(take):
+# int8 quantizes the decoder's activations per call, over the whole batch: a row's output depends on
+# the other rows by a little, so with int8 a change of N moves the shown sample by millimetres.
+@pytest.mark.parametrize("precision,tol", [("fp32", 1e-5), ("int8", 0.01)])
+def test_changing_n_leaves_the_shown_sample_untouched(take, precision, tol):
     """Without SSI the shown sample is sample 0: lowering and raising N around it must not move it."""
-    fixed, adaptive = Pipeline(samples=16, ssi=False), Pipeline(samples=16, ssi=False)
+    fixed, adaptive = (Pipeline(samples=16, ssi=False, precision=precision) for _ in range(2))
     plan = {50: 4, 120: 16, 180: 1}
     live = []
     for t in range(240):
@@ -127,7 +131,7 @@ def test_changing_n_leaves_the_shown_sample_untouched(take):
         live.append(adaptive.samples)
         if a is not None:
             assert a.frame == b.frame and a.sample == b.sample == 0
-            assert np.allclose(a.positions, b.positions, atol=1e-5)
+            assert np.allclose(a.positions, b.positions, atol=tol)
     assert (live[49], live[50], live[119], live[120], live[-1]) == (16, 4, 4, 16, 1)
     assert adaptive.decoder.rows == 2 and adaptive.autoencoder.rows == 1
 

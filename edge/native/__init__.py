@@ -69,6 +69,7 @@ def build(force=False):
             except subprocess.CalledProcessError as e:
                 if i == len(ARCH_FLAGS) - 1:
                     raise OSError(f"{cc[0]} failed on {SOURCE.name}: {e.stderr.strip()[:400]}") from None
+        out.with_suffix(".flags").write_text(" ".join(CFLAGS + arch) + "\n")   # what `python -m edge.native` reports
         os.replace(tmp, out)       # atomic: concurrent builders never load a half-written file
     except FileNotFoundError:
         raise OSError(f"no C compiler ({cc[0]}); install one (apt install gcc) or set CC") from None
@@ -136,6 +137,14 @@ def load():
         return None
     _lib = lib
     return _lib
+
+
+def build_flags():
+    """The compiler flags the cached library was built with ('' when unknown)."""
+    try:
+        return build().with_suffix(".flags").read_text().strip()
+    except OSError:
+        return ""
 
 
 def why_unavailable():

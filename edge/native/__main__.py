@@ -8,4 +8,4 @@ lib = native.load()
 if lib is None:
     print(f"compiled core unavailable: {native.why_unavailable()}; the pipeline will use numpy (slower)")
     sys.exit(1)
-print(f"compiled core ready: {native.build()}")
+print(f"compiled core ready: {native.build()} ({native.build_flags() or 'flags unknown'})")
