@@ -10,6 +10,7 @@ microseconds and the pipeline / decoder ratio.
   pipeline_fp32, pipeline_int8   the pipeline with fp32 and with int8 models (speed-up = fp32 / int8)
   decoder_ort, decoder_torch     one bare decoder step on the pipeline's rows in ONNX Runtime, and in
                                  PyTorch eager run per frame as research code runs it (bench/reference.py)
+  decoder_ort_int8               the same bare step with the int8 decoder
   pipeline_reference             the fp32 pipeline with its decoders swapped for that PyTorch eager step
   pipeline_numpy                 the fp32 pipeline without the compiled core (edge/native): numpy only
 Each is warmed, then all take turns in --blocks blocks of --frames / --blocks calls (the order
@@ -48,6 +49,7 @@ RATIOS = {
     "pipeline_reference_over_ours": ("pipeline_reference", "pipeline_fp32"),
     "pipeline_over_decoder": ("pipeline_fp32", "decoder_ort"),
     "compiled_core_speedup": ("pipeline_numpy", "pipeline_fp32"),
+    "decoder_int8_speedup": ("decoder_ort", "decoder_ort_int8"),
 }
 
 
@@ -118,7 +120,7 @@ def compare(a, frames, ns):
     from reference import TorchDecoder, load_step, max_abs_diff, reference_pipeline
 
     model = load_step()
-    manifest, session, _ = open_models()
+    manifest, session, _ = open_models(precision="fp32")
     diff = max_abs_diff(session, model, manifest)
     print(f"PyTorch vs ONNX decoder step, same inputs: max abs diff {diff:.2e} (tolerance {PARITY_TOL:.0e})")
     if not diff < PARITY_TOL:
@@ -127,7 +129,7 @@ def compare(a, frames, ns):
     print(f"\np50 per frame in microseconds, one core; ratio p50/p50 [min, max over {a.blocks} blocks of {per_block}]")
     print(f"{'N':>4} {'fp32 pipe':>10} {'int8 pipe':>10} {'speed-up fp32/int8':>20} "
           f"{'ORT dec':>8} {'torch dec':>10} {'torch/ORT':>18} {'ref pipe':>9} {'ref/ours':>18} {'pipe/dec':>20} "
-          f"{'numpy pipe':>11} {'numpy/ours':>18}")
+          f"{'numpy pipe':>11} {'numpy/ours':>18} {'int8 dec':>9} {'dec fp32/int8':>18}")
     rows = []
     for n in ns:
         pipes = {"pipeline_fp32": Pipeline(samples=n, precision="fp32"),
@@ -139,6 +141,7 @@ def compare(a, frames, ns):
         ours, m = pipes["pipeline_fp32"], pipes["pipeline_fp32"].manifest
         dims = ours.rows, m["latent"], m["hidden"], m["features"]
         decoders = {"decoder_ort": primed(Decoder(ours.decoder.session, *dims), ours.decoder),
+                    "decoder_ort_int8": primed(Decoder(pipes["pipeline_int8"].decoder.session, *dims), ours.decoder),
                     "decoder_torch": primed(TorchDecoder(model, *dims), ours.decoder)}
         for dec in decoders.values():
             for _ in range(WARMUP):
@@ -155,7 +158,8 @@ def compare(a, frames, ns):
         print(f"{n:>4} {us['pipeline_fp32']:>10} {us['pipeline_int8']:>10} {rs['int8_speedup']:>20} "
               f"{us['decoder_ort']:>8} {us['decoder_torch']:>10} {rs['decoder_torch_over_ort']:>18} "
               f"{us['pipeline_reference']:>9} {rs['pipeline_reference_over_ours']:>18} {rs['pipeline_over_decoder']:>20} "
-              f"{us['pipeline_numpy']:>11} {rs['compiled_core_speedup']:>18}")
+              f"{us['pipeline_numpy']:>11} {rs['compiled_core_speedup']:>18} {us['decoder_ort_int8']:>9} "
+              f"{rs['decoder_int8_speedup']:>18}")
     method = {
         "cores": 1, "warmup_calls": WARMUP, "blocks": a.blocks, "calls_per_block": per_block,
         "schedule": "all contestants in one process, taking turns block by block in rotating order",

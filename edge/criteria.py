@@ -19,6 +19,7 @@ class FrameContext:
     world_rot: np.ndarray       # [N,J,3,3], or None unless a criterion sets needs_world_rot
     pelvis_rot: np.ndarray      # [N,3,3] each sample's pelvis rotation
     imu: dict = field(default_factory=dict)  # joint index -> measured world rotation [3,3] (extra trackers)
+    ae_ready: object = None     # the PlausibilityScorer whose buffers already hold these poses (the pipeline's C call)
 
 
 class Plausibility:
@@ -29,6 +30,8 @@ class Plausibility:
         self.scorer, self.weight = scorer, weight
 
     def cost(self, ctx):
+        if ctx.ae_ready is self.scorer:
+            return self.scorer.error_of_prepared(len(ctx.positions))
         return self.scorer.lower_body_error(ctx.positions, ctx.pelvis_rot)
 
 

@@ -72,6 +72,11 @@ class Decoder:
         """The GRU state the next step reads (after a step: the state it wrote)."""
         return self.hidden[self._cur]
 
+    @property
+    def last_read(self):
+        """Which of `hidden` the last recurrent step read (its input; the step wrote the other)."""
+        return 1 - self._cur
+
     def reset(self):
         self.hidden[0][:] = 0
         self.hidden[1][:] = 0

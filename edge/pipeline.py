@@ -187,7 +187,6 @@ class Pipeline:
                 self._addr[k] = native.addr(getattr(self, k))
             for k in ("lock_pos", "locked", "raw", "since_release", "weight"):     # FootLock's state
                 self._addr[k] = native.addr(getattr(self.feet, k))
-            self._addr["contacts"] = native.addr(self.decoder.contacts)
             # One frame's tracker signals in, and what ep_frame_features makes of them.
             self._frame_in = np.zeros(25)
             self._in = {k: self._frame_in[i:j].reshape(shape) for k, i, j, shape in (
@@ -203,19 +202,46 @@ class Pipeline:
             self._slot_addr = {k: (native.addr(getattr(b, k)), getattr(b, k).strides[0])
                                for k in _FRAME_INPUTS + ("cost",)}
             self._emit_world = np.zeros((NUM_JOINTS, 3, 3))
-            self._addr["rot6d"] = native.addr(self.decoder.rot6d)
             a, f = self._addr, self.feet
             ctx = native.FrameContext(NUM_JOINTS, HEAD, NECK, int(foot_ik), int(arm_ik), self.decoder.rot6d.shape[1],
-                                      a["parents"], a["chains"], a["ankles"], a["offsets"], a["poles"], a["rot6d"],
-                                      a["contacts"], f.release_frames, f.max_slip, a["lock_pos"], a["since_release"],
+                                      a["parents"], a["chains"], a["ankles"], a["offsets"], a["poles"], None,
+                                      None, f.release_frames, f.max_slip, a["lock_pos"], a["since_release"],
                                       a["weight"], a["locked"], a["raw"], a["_targets"], a["_weights"], N + 1,
                                       *(native.addr(getattr(b, k)) for k in _FRAME_INPUTS + _RING_ROWS))
+            # The same call fills the plausibility scorer's autoencoder input when the default criterion is there.
+            self._ae_ready = self.scorer if any(isinstance(c, Plausibility) and c.scorer is self.scorer
+                                                for c in self.criteria.criteria) and self.scorer.buffers() else None
+            if self._ae_ready:
+                ctx.ae_in, ctx.ae_local, ctx.ae_root_local = self.scorer.buffers()
+            ctx.frame_in, ctx.frame_offsets, ctx.prev = a["_frame_in"], a["_frame_offsets"], a["_prev"]
+            ctx.fps, ctx.ring_features = fps, native.addr(b.features)
+            ctx.ring_hidden, ctx.hidden = native.addr(b.hidden_in), b.hidden_in.shape[2]
             self._frame_context = ctypes.pointer(ctx)
+            self._bind_decoder()
         self.out = Pose()
         if self.native:
-            ctx.out_local, ctx.out_world, ctx.out_pos = (native.addr(v) for v in (self.out.rotations, self._emit_world,
-                                                                                  self.out.positions))
+            ctx.out_local, ctx.out_world, ctx.out_pos, ctx.out_contacts = (
+                native.addr(v) for v in (self.out.rotations, self._emit_world, self.out.positions, self.out.contacts))
         self.reset()
+
+    @property
+    def decoder(self):
+        return self._decoder
+
+    @decoder.setter
+    def decoder(self, dec):
+        """A decoder may be swapped in after construction (bench/reference.py runs a PyTorch one): the
+        compiled core then reads and writes the new one's buffers."""
+        self._decoder = dec
+        if getattr(self, "_frame_context", None) is not None:
+            self._bind_decoder()
+
+    def _bind_decoder(self):
+        dec, ctx = self._decoder, self._frame_context.contents
+        self._addr["rot6d"], self._addr["contacts"] = native.addr(dec.rot6d), native.addr(dec.contacts)
+        ctx.rot6d, ctx.contacts, ctx.rot6d_stride = self._addr["rot6d"], self._addr["contacts"], dec.rot6d.shape[1]
+        ctx.dec_features, ctx.dec_rows = native.addr(dec.features), dec.capacity
+        self._hidden_addr = [native.addr(h) for h in dec.hidden]
 
     # ------------------------------------------------------------------ state
     def reset(self):
@@ -242,8 +268,13 @@ class Pipeline:
         s = b.slot(t)
         b.frame[s] = t
         b.override[s] = False
-        if self.native:
-            points, feat, m = self._frame_inputs_native(sig)
+        dec = self.decoder
+        if self.native:             # features and tracker matrices, into slot s and the decoder, in one call
+            v = self._in
+            v["head_pos"][:], v["head_rot"][:] = sig.head_pos[0], sig.head_rot[0]
+            v["hand_pos"][:], v["hand_rot"][:], v["waist_rot"][:] = sig.hand_pos[0], sig.hand_rot[0], sig.waist_rot[0]
+            self.native.ep_frame_inputs(self._frame_context, s, self._prev_points is None)
+            self._prev_points = self._prev
         else:
             points, waist_rot = body_points(sig, self.body_scale)
             points, waist_rot = points[0], waist_rot[0]
@@ -253,13 +284,13 @@ class Pipeline:
             q = self._quats                      # waist, hands, head: one to_matrix call
             q[0], q[1:3], q[3] = waist_rot, sig.hand_rot[0], sig.head_rot[0]
             m = quat.to_matrix(q)
-        b.features[s] = feat
-        b.anchor[s] = points[0]
-        b.wrists[s] = points[1:3]
-        b.waist_m[s], b.hand_m[s], b.head_m[s] = m[0], m[1:3], m[3]
-        dec = self.decoder
-        dec.features[:] = feat
-        b.hidden_in[s, :N] = dec.state[:N]
+            b.features[s] = feat
+            b.anchor[s] = points[0]
+            b.wrists[s] = points[1:3]
+            b.waist_m[s], b.hand_m[s], b.head_m[s] = m[0], m[1:3], m[3]
+            dec.features[:] = feat
+        if not self.native:
+            b.hidden_in[s, :N] = dec.state[:N]      # (the compiled core copies it after the step)
         live = self.trans is not None and t <= self.trans_end
         if live:
             c, n, s0, T = self.trans
@@ -274,7 +305,8 @@ class Pipeline:
         rows = N + 1 if live else N
         if self.native:             # _forward, _foot_goals, the blend, _post and the ring copies below in one call
             self.native.ep_frame_poses(self._frame_context, s, rows, N, *((c, n, float(a)) if live else (0, 0, 0.0)),
-                                       self._addr["_world"] if self.criteria.needs_world_rot else None, self._addr["_pos"])
+                                       self._addr["_world"] if self.criteria.needs_world_rot else None, self._addr["_pos"],
+                                       self._hidden_addr[dec.last_read])
         else:
             self._forward(dec.rot6d[:rows], b.waist_m[s], b.anchor[s])
             if self.foot_ik:
@@ -295,7 +327,8 @@ class Pipeline:
         # Judge frame t, the newest, and decide (3.2.4: detection at t + tau relative to the output).
         if N > 1:
             world = self._world[:N] if self.criteria.needs_world_rot else None
-            ctx = FrameContext(t, self._pos[:N], world, self._pelvis[s][:N])
+            ctx = FrameContext(t, self._pos[:N], world, self._pelvis[s][:N],
+                               ae_ready=self._ae_ready if self.native else None)
             b.cost[s, :N] = self.criteria.cost(ctx)
         if self._pending is not None:
             self._apply_samples(t, s)
@@ -509,7 +542,7 @@ class Pipeline:
             self.native.ep_emit(self._frame_context, s, row)
         else:
             self.pose_from_buffer(o, row, p.positions, p.rotations)
-        p.contacts[:] = b.contacts[s, row]
+            p.contacts[:] = b.contacts[s, row]
         return p
 
     def pose_from_buffer(self, frame, row, positions=None, rotations=None):

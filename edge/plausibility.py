@@ -68,10 +68,22 @@ class PlausibilityScorer:
         return np.sqrt(np.einsum("...i,...i->...", d, d)).mean(axis=(1, 2))
 
     def _lower_body_error_native(self, B, world_pos, pelvis_rot_m):
-        lib, ae, a = self._native, self.autoencoder, self._a
         pelvis, stride = native.rows(pelvis_rot_m, 2)
-        lib.ep_local_pose(B, NUM_JOINTS, native.addr(world_pos), pelvis, stride, a["local"], a["inp"], a["root_local"])
+        a = self._a
+        self._native.ep_local_pose(B, NUM_JOINTS, native.addr(world_pos), pelvis, stride, a["local"], a["inp"],
+                                   a["root_local"])
+        return self.error_of_prepared(B)
+
+    def error_of_prepared(self, B):
+        """lower_body_error of B poses whose character-frame positions someone else has already put in
+        this scorer's buffers (the pipeline's one C call per frame does, into `buffers()`)."""
+        lib, ae, a = self._native, self.autoencoder, self._a
         ae.run()
         lib.ep_leg_error(B, NUM_JOINTS, a["out"], ae.out.shape[1], a["leg_rows"], a["legs"], a["offsets"], a["local"],
                          a["root_local"], a["err"])
         return self._err[:B]
+
+    def buffers(self):
+        """Addresses of (autoencoder input, character-frame positions, pelvis rotations) to prepare, or None."""
+        a = self._a
+        return (a["inp"], a["local"], a["root_local"]) if self._native else None

@@ -206,3 +206,17 @@ def test_switch_decision_matches_is_outlier_and_best_other():
         assert lib.ep_switch_to(N, A(cost), c) == want, (N, c)
     nan = np.array([0.1, np.nan, 5.0, 0.2])
     assert not is_outlier(nan, 2) and lib.ep_switch_to(4, A(nan), 2) == -1
+
+
+def test_a_decoder_swapped_in_after_construction_is_the_one_the_compiled_core_reads():
+    """bench/reference.py swaps in a PyTorch decoder; the C calls must follow (not the freed buffers)."""
+    from edge.inference import Decoder
+    take = from_sample(SAMPLE)
+    plain, swapped = Pipeline(samples=4, precision="fp32"), Pipeline(samples=4, precision="fp32")
+    m = swapped.manifest
+    swapped.decoder = Decoder(swapped.decoder.session, swapped.rows, m["latent"], m["hidden"], m["features"])
+    swapped.decoder.latent[:4] = swapped.latents
+    for t in range(60):
+        a, b = plain.step(take.signals.slice(t, t + 1)), swapped.step(take.signals.slice(t, t + 1))
+        if a is not None:
+            assert np.array_equal(a.positions, b.positions)

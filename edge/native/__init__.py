@@ -94,7 +94,10 @@ class FrameContext(ctypes.Structure):
                 + [("ring_rows", _I)]
                 + [(k, _P) for k in ("ring_waist", "ring_anchor", "ring_wrists", "ring_hand", "ring_head", "ring_rot6d",
                                      "ring_contacts", "ring_goal", "ring_weight", "ring_lock_weight", "out_local",
-                                     "out_world", "out_pos")])
+                                     "out_world", "out_pos", "ae_in", "ae_local", "ae_root_local", "frame_in",
+                                     "frame_offsets", "prev")]
+                + [("fps", _D), ("ring_features", _P), ("dec_features", _P), ("dec_rows", _I), ("ring_hidden", _P),
+                   ("hidden", _I), ("out_contacts", _P)])
 
 
 _SIGNATURES = {
@@ -105,8 +108,9 @@ _SIGNATURES = {
     "ep_frame_features": [_P, _P, _P, ctypes.c_double, _P, _P, _P],
     "ep_post": [_I, _I, _P, _P, _P, _P, _P, _P, _I, _I, _P, _I, _P, _I, _P, _I, _I, _I, _P, _P, _P],
     "ep_switch_to": [_I, _P, _I],
-    "ep_frame_poses": [ctypes.POINTER(FrameContext), _I, _I, _I, _I, _I, _D, _P, _P],
+    "ep_frame_poses": [ctypes.POINTER(FrameContext), _I, _I, _I, _I, _I, _D, _P, _P, _P],
     "ep_emit": [ctypes.POINTER(FrameContext), _I, _I],
+    "ep_frame_inputs": [ctypes.POINTER(FrameContext), _I, _I],
     "ep_row_pose": [ctypes.POINTER(FrameContext)] + [_P] * 11,
     "ep_max_joints": [],
 }

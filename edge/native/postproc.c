@@ -92,6 +92,11 @@ static inline void lane_matvec3_c(lane *restrict m, const double *v, lane *restr
     for (int i = 0; i < 3; i++) EACH out[i][l] = m[i * 3 + 0][l] * v[0] + m[i * 3 + 1][l] * v[1] + m[i * 3 + 2][l] * v[2];
 }
 
+/* m v for a matrix shared by all lanes */
+static inline void lane_matvec3_c_t(const double *m, lane *restrict v, lane *restrict out) {
+    for (int i = 0; i < 3; i++) EACH out[i][l] = m[i * 3 + 0] * v[0][l] + m[i * 3 + 1] * v[1][l] + m[i * 3 + 2] * v[2][l];
+}
+
 static inline void lane_matvec3(lane *restrict m, lane *restrict v, lane *restrict out) {
     for (int i = 0; i < 3; i++)
         EACH out[i][l] = m[i * 3 + 0][l] * v[0][l] + m[i * 3 + 1][l] * v[1][l] + m[i * 3 + 2][l] * v[2][l];
@@ -369,13 +374,21 @@ void ep_post(int R, int J, const int64_t *parents, const double *offsets, const 
 /* edge.plausibility.local_pose: world positions [B,J,3] and pelvis rotations (rows pelvis_stride
  * apart) -> positions in the character frame (float64 `local`, and float for the autoencoder's
  * input) and the pelvis rotation in it. */
+/* The transpose of edge.plausibility.yaw_matrix of a pelvis rotation R. */
+static void yaw_transpose(const double *R, double *yt) {
+    double theta = atan2(R[2], R[8]), c = cos(theta), s = sin(theta);
+    /* yaw = [[c,0,s],[0,1,0],[-s,0,c]] */
+    yt[0] = c; yt[1] = 0.0; yt[2] = -s;
+    yt[3] = 0.0; yt[4] = 1.0; yt[5] = 0.0;
+    yt[6] = s; yt[7] = 0.0; yt[8] = c;
+}
+
 void ep_local_pose(int B, int J, const double *pos, const double *pelvis, int pelvis_stride, double *local,
                    float *ae_in, double *root_local) {
     for (int r = 0; r < B; r++) {
         const double *P = pos + (int64_t)r * J * 3, *R = pelvis + (int64_t)r * pelvis_stride;
-        double theta = atan2(R[2], R[8]), c = cos(theta), s = sin(theta);
-        /* yaw = [[c,0,s],[0,1,0],[-s,0,c]]; we apply its transpose */
-        double yt[9] = {c, 0.0, -s, 0.0, 1.0, 0.0, s, 0.0, c};
+        double yt[9];
+        yaw_transpose(R, yt);
         double *Lr = local + (int64_t)r * J * 3;
         float *A = ae_in + (int64_t)r * J * 3;
         for (int j = 0; j < J; j++) {
@@ -475,10 +488,26 @@ typedef struct {
     /* edge.pipeline.LookaheadBuffer's arrays, [slots, ...] with ring_rows pose rows (samples + 1) per
      * slot: the frame's tracker inputs, and what it keeps of each row's pose. */
     int ring_rows;
-    const double *ring_waist, *ring_anchor, *ring_wrists, *ring_hand, *ring_head;   /* [3,3] [3] [2,3] [2,3,3] [3,3] */
+    double *ring_waist, *ring_anchor, *ring_wrists, *ring_hand, *ring_head;   /* [3,3] [3] [2,3] [2,3,3] [3,3] */
     float *ring_rot6d, *ring_contacts;        /* [rows, rot6d_stride], [rows, 2] */
     double *ring_goal, *ring_weight, *ring_lock_weight;     /* [rows,2,3], [rows,2], [rows - 1,2] */
     double *out_local, *out_world, *out_pos;  /* ep_emit's pose [J,3,3], scratch [J,3,3], [J,3] */
+    /* edge.plausibility.PlausibilityScorer's buffers, filled for the N samples when ae_in is not NULL:
+     * the autoencoder's input [N,J*3] float, the positions in the character frame [N,J,3] and the
+     * pelvis rotation in it [N,3,3] (ep_local_pose's outputs). */
+    float *ae_in;
+    double *ae_local, *ae_root_local;
+    /* ep_frame_inputs: this frame's tracker signals [25] and ep_frame_features' offsets [4,3], last
+     * frame's points [4,3] (updated), the frame rate; the features go to the ring [slots,24] and to
+     * every one of the decoder's dec_rows input rows. */
+    const double *frame_in, *frame_offsets;
+    double *prev, fps;
+    float *ring_features, *dec_features;
+    int dec_rows;
+    /* the GRU state each sample's step read, kept for a transition's recompute: [slots, ring_rows - 1, hidden] */
+    float *ring_hidden;
+    int hidden;
+    double *out_contacts;                     /* ep_emit's foot contacts [2] */
 } frame_context;
 
 static void copy_f32(float *dst, const float *src, int64_t n) { for (int64_t i = 0; i < n; i++) dst[i] = src[i]; }
@@ -491,13 +520,17 @@ static void copy_f64(double *dst, const double *src, int64_t n) { for (int64_t i
  * blocks came first or are this one); _post. The tracker inputs are ring slot `slot`'s, shared by
  * every row; world rotations and positions [R,J,...] go to world and pos (world skipped when NULL).
  * Then what the ring keeps of each row goes to slot `slot`: the decoder's 6D and contacts, the leg
- * IK's goals and weights, and the samples' lock weights. */
+ * IK's goals and weights, the samples' lock weights, and the GRU state their step read (hidden_read,
+ * the decoder's input buffer, which its step does not write). */
 void ep_frame_poses(const frame_context *x, int slot, int R, int N, int c, int n, double a, double *world,
-                    double *pos) {
+                    double *pos, const float *hidden_read) {
     block k;
     int J = x->J, S = x->ring_rows;
     const double *root_m = x->ring_waist + slot * 9, *anchor = x->ring_anchor + slot * 3;
     const double *wrists = x->ring_wrists + slot * 6, *hand_m = x->ring_hand + slot * 18, *head_m = x->ring_head + slot * 9;
+    double yt[9], root_local[9];        /* every sample's pelvis is the waist's rotation: one yaw for all */
+    yaw_transpose(root_m, yt);
+    matmul3(yt, root_m, root_local);
     for (int r0 = 0; r0 < R; r0 += LANES) {
         int nl = R - r0 < LANES ? R - r0 : LANES;
         block_forward(&k, r0, nl, J, x->parents, x->offsets, x->head, x->rot6d, x->rot6d_stride, root_m, 0, anchor, 0);
@@ -520,6 +553,22 @@ void ep_frame_poses(const frame_context *x, int slot, int R, int N, int c, int n
         block_post(&k, r0, nl, J, x->parents, x->offsets, x->chains, x->poles, x->goals, x->weights, x->foot_ik,
                    x->arm_ik, wrists, 0, hand_m, 0, head_m, 0, x->neck, x->head);
         block_store(&k, r0, nl, J, 0, world, pos);
+        int ns = N - r0 < nl ? N - r0 : nl;     /* sample rows in this block (not the transition row) */
+        if (x->ae_in && ns > 0) {                /* ep_local_pose on the block, for the plausibility score */
+            lane rel[3], loc[3];
+            for (int j = 0; j < J; j++) {
+                EACH {
+                    rel[0][l] = k.P[j][0][l] - k.P[0][0][l] * 1.0;
+                    rel[1][l] = k.P[j][1][l] - k.P[0][1][l] * 0.0;
+                    rel[2][l] = k.P[j][2][l] - k.P[0][2][l] * 1.0;
+                }
+                lane_matvec3_c_t(yt, rel, loc);
+                scatter(loc, 3, x->ae_local + j * 3, (int64_t)J * 3, r0, ns);
+                for (int l = 0; l < ns; l++)
+                    for (int i = 0; i < 3; i++) x->ae_in[((int64_t)(r0 + l) * J + j) * 3 + i] = (float)loc[i][l];
+            }
+            for (int l = 0; l < ns; l++) copy_f64(x->ae_root_local + (int64_t)(r0 + l) * 9, root_local, 9);
+        }
     }
     int64_t row0 = (int64_t)slot * S;
     copy_f32(x->ring_rot6d + row0 * x->rot6d_stride, x->rot6d, (int64_t)R * x->rot6d_stride);
@@ -527,6 +576,7 @@ void ep_frame_poses(const frame_context *x, int slot, int R, int N, int c, int n
     copy_f64(x->ring_goal + row0 * 6, x->goals, (int64_t)R * 6);
     copy_f64(x->ring_weight + row0 * 2, x->weights, (int64_t)R * 2);
     copy_f64(x->ring_lock_weight + (int64_t)slot * (S - 1) * 2, x->lock_weight, (int64_t)N * 2);
+    copy_f32(x->ring_hidden + (int64_t)slot * (S - 1) * x->hidden, hidden_read, (int64_t)N * x->hidden);
 }
 
 /* One row's pose again from what the look-ahead buffer keeps of it: its decoder 6D (float), its leg
@@ -542,9 +592,12 @@ void ep_row_pose(const frame_context *x, const float *rot6d, const double *goals
     block_store(&k, 0, 1, x->J, local, world, pos);
 }
 
-/* Pipeline._emit: ep_row_pose of row `row` of ring slot `slot`, into out_local and out_pos. */
+/* Pipeline._emit: ep_row_pose of row `row` of ring slot `slot`, into out_local and out_pos, and its
+ * foot contacts into out_contacts. */
 void ep_emit(const frame_context *x, int slot, int row) {
     int64_t r = (int64_t)slot * x->ring_rows + row;
+    x->out_contacts[0] = x->ring_contacts[r * 2];
+    x->out_contacts[1] = x->ring_contacts[r * 2 + 1];
     ep_row_pose(x, x->ring_rot6d + r * x->rot6d_stride, x->ring_goal + r * 6, x->ring_weight + r * 2,
                 x->ring_waist + slot * 9, x->ring_anchor + slot * 3, x->ring_wrists + slot * 6, x->ring_hand + slot * 18,
                 x->ring_head + slot * 9, x->out_local, x->out_world, x->out_pos);
@@ -649,4 +702,21 @@ int ep_switch_to(int N, const double *cost, int c) {
     for (int i = 0; i < N; i++)
         if (i != c && (best < 0 || cost[i] < cost[best])) best = i;
     return best;
+}
+
+/* Pipeline._frame_inputs_native for the live frame, straight into ring slot `slot` and the decoder's
+ * input: ep_frame_features (first: no previous frame, velocity 0), then the points, features and
+ * tracker matrices where Pipeline.step keeps them. */
+void ep_frame_inputs(const frame_context *x, int slot, int first) {
+    double points[12], mats[36];
+    float feat[24];
+    ep_frame_features(x->frame_in, x->frame_offsets, first ? points : x->prev, x->fps, points, feat, mats);
+    copy_f64(x->prev, points, 12);
+    copy_f64(x->ring_anchor + slot * 3, points, 3);
+    copy_f64(x->ring_wrists + slot * 6, points + 3, 6);
+    copy_f64(x->ring_waist + slot * 9, mats, 9);
+    copy_f64(x->ring_hand + slot * 18, mats + 9, 18);
+    copy_f64(x->ring_head + slot * 9, mats + 27, 9);
+    copy_f32(x->ring_features + slot * 24, feat, 24);
+    for (int r = 0; r < x->dec_rows; r++) copy_f32(x->dec_features + (int64_t)r * 24, feat, 24);
 }
