@@ -398,9 +398,13 @@ def micro_stages(pipe, feeder, reps=300):
         pipe._post(N, b.wrists[s], b.hand_m[s], b.head_m[s])
 
     def selection():
-        cost = b.cost[s].copy() if N > 1 else np.zeros(1)
-        if N > 1 and is_outlier(cost, pipe.current):
-            best_other(cost, pipe.current)
+        if N > 1 and pipe.native:            # the live decision: ep_switch_to on the slot's costs
+            c0, cs = pipe._slot_addr["cost"]
+            pipe.native.ep_switch_to(N, c0 + s * cs, pipe.current)
+        elif N > 1:
+            cost = b.cost[s].copy()
+            if is_outlier(cost, pipe.current):
+                best_other(cost, pipe.current)
         pipe._emit(max(pipe.t - pipe.lookahead, 0))
 
     out = {"features": timed(feat), "decoder": timed(dec.step),
@@ -486,10 +490,13 @@ STAGE_METHODS = {
     "features": "micro-timed after the run, thread CPU time: edge.features.body_points + features "
                 "(Pipeline._frame_inputs_native with the compiled core)",
     "decoder": "micro-timed, thread CPU time: pipe.decoder.step() (N+1 rows, IOBinding)",
-    "fk": "micro-timed, thread CPU time: pipe._forward (6D -> matrices, FK, hang from the head)",
+    "fk": "micro-timed, thread CPU time: pipe._forward (6D -> matrices, FK, hang from the head); the live frame "
+          "runs FK, foot locks and IK in one call (ep_frame_poses), so fk + ik overstate it a little",
     "ik": "micro-timed, thread CPU time: pipe._foot_goals + pipe._post (foot locks, batched leg+arm IK)",
-    "autoencoder": "micro-timed, thread CPU time: pipe.scorer.lower_body_error on pipe._pos[:N] (N>1 only)",
-    "selection": "micro-timed, thread CPU time: is_outlier + best_other + pipe._emit",
+    "autoencoder": "micro-timed, thread CPU time: pipe.scorer.lower_body_error on pipe._pos[:N] (N>1 only; "
+                   "the live frame prepares the autoencoder's input inside ep_frame_poses)",
+    "selection": "micro-timed, thread CPU time: the SSI outlier test / best-other choice (ep_switch_to with the "
+                 "compiled core) + pipe._emit (the shown row's pose made again from the ring)",
     "transition_recompute": "micro-timed, thread CPU time: pipe._recompute_transition (only on an SSI switch)",
 }
 

@@ -132,3 +132,17 @@ def test_quantize_refuses_an_fp32_file_that_does_not_match_the_manifest(model_co
         f.write(b"\0")
     with pytest.raises(ModelError, match="does not match"):
         build(model_copy, data=None, methods=("dynamic",), log=lambda *_: None)
+
+
+def test_the_layers_that_read_normalised_inputs_stay_fp32_in_the_int8_builds():
+    """The export folds the input normalisation into the first layers (1/std per input column); per-channel
+    int8 cannot hold columns 1000x apart, so quantize leaves those layers fp32."""
+    pytest.importorskip("onnx", reason="reading the graphs needs the onnx package")
+    import onnx
+    from quantize.build import input_layers
+    assert input_layers(DEFAULT_DIR / "decoder.onnx") == ["/fc/Gemm"]
+    assert input_layers(DEFAULT_DIR / "autoencoder.onnx") == ["/net/net.0/Gemm"]
+    int8 = onnx.load(str(DEFAULT_DIR / INT8[0])).graph
+    kept = [n for n in int8.node if n.name.startswith("/fc/")]
+    assert kept and all(n.op_type in ("Gemm", "MatMul", "Add", "FusedGemm") for n in kept)
+    assert any(n.op_type in ("DynamicQuantizeMatMul", "MatMulInteger", "MatMulIntegerToFloat") for n in int8.node)
