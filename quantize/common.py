@@ -2,13 +2,13 @@
 
 numpy + onnxruntime only (the mocap windows come from models.dataset, which needs no torch).
 """
-import time
 
 import numpy as np
 
 from edge import quat
 from edge.inference import Autoencoder, Decoder, make_session
 from edge.skeleton import HEAD, NUM_JOINTS, NUM_PREDICTED, fk
+from edge.timing import time_calls
 
 MODELS = ("decoder", "autoencoder")
 
@@ -58,37 +58,28 @@ def head_anchored_positions(rot6d, root_rot):
     return pos - pos[..., HEAD:HEAD + 1, :]
 
 
+def _call_us(call, frames, warmup):
+    """Median and p99 (microseconds) of `call()`, after `warmup` calls, on whatever CPU the caller is pinned to."""
+    for _ in range(warmup):
+        call()
+    us = time_calls(lambda i: call(), frames)
+    return {"p50": float(np.median(us)), "p99": float(np.percentile(us, 99))}
+
+
 def decoder_call_us(path, rows, frames=400, warmup=50):
-    """Median and p99 (microseconds) of one bare decoder step on `rows` rows, through the runtime's
-    IOBinding path (edge.inference.Decoder), on whatever CPU the caller is pinned to."""
+    """One bare decoder step on `rows` rows, through the runtime's IOBinding path (edge.inference.Decoder)."""
     dec = Decoder(make_session(path), rows, 30, 128, 24)
     rng = np.random.default_rng(0)
     dec.features[:] = rng.standard_normal(dec.features.shape) * 0.3
     dec.latent[:] = rng.standard_normal(dec.latent.shape)
-    for _ in range(warmup):
-        dec.step()
-    out = np.empty(frames)
-    for i in range(frames):
-        t0 = time.perf_counter_ns()
-        dec.step()
-        out[i] = time.perf_counter_ns() - t0
-    out /= 1000.0
-    return {"p50": float(np.median(out)), "p99": float(np.percentile(out, 99))}
+    return _call_us(dec.step, frames, warmup)
 
 
 def autoencoder_call_us(path, rows, frames=400, warmup=50):
-    """Median and p99 (microseconds) of one bare autoencoder call on `rows` rows (edge.inference.Autoencoder)."""
+    """One bare autoencoder call on `rows` rows (edge.inference.Autoencoder)."""
     ae = Autoencoder(make_session(path), rows)
     ae.inp[:] = np.random.default_rng(0).standard_normal(ae.inp.shape) * 0.3
-    for _ in range(warmup):
-        ae.run()
-    out = np.empty(frames)
-    for i in range(frames):
-        t0 = time.perf_counter_ns()
-        ae.run()
-        out[i] = time.perf_counter_ns() - t0
-    out /= 1000.0
-    return {"p50": float(np.median(out)), "p99": float(np.percentile(out, 99))}
+    return _call_us(ae.run, frames, warmup)
 
 
 def pin_one_core():

@@ -220,3 +220,15 @@ def test_a_decoder_swapped_in_after_construction_is_the_one_the_compiled_core_re
         a, b = plain.step(take.signals.slice(t, t + 1)), swapped.step(take.signals.slice(t, t + 1))
         if a is not None:
             assert np.array_equal(a.positions, b.positions)
+
+
+def test_the_live_frame_inputs_land_in_the_ring_bit_identical_to_the_numpy_path():
+    take = from_sample(SAMPLE)
+    pipes = [Pipeline(samples=8, use_native=u, precision="fp32") for u in (True, False)]
+    for t in range(40):
+        for p in pipes:
+            p.step(take.signals.slice(t, t + 1))
+        a, b = (p.buffer for p in pipes)
+        for k in ("features", "anchor", "wrists", "waist_m", "hand_m", "head_m", "hidden_in"):
+            assert np.array_equal(getattr(a, k), getattr(b, k)), k
+        assert np.array_equal(pipes[0].decoder.features, pipes[1].decoder.features)
