@@ -21,7 +21,7 @@ from pathlib import Path
 import can
 import numpy as np
 
-from edge import quat
+from edge import native, quat
 from edge.skeleton import fk
 from firmware_bridge import config as config_mod
 from firmware_bridge.listen import Listener
@@ -195,6 +195,9 @@ def board_config(session, devices, can_channel, samples, lookahead, bvh, adaptiv
 def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=None, bvh=None, status=None,
            models=None, adaptive=False):
     faults = faults or {}
+    # Build the compiled core (first use: seconds of cc) before the clock starts, or a real-time replay
+    # begins seconds behind its own devices and the synchroniser starts on a backlog.
+    native.load()
     clock = SimClock(realtime=(speed == "realtime"))
     folder = tempfile.mkdtemp(prefix="edgepose-sim-")
     devices = {"headset": SerialDevice("headset", session.headset, folder)}
