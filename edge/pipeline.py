@@ -1,12 +1,16 @@
 """The one per-frame path from tracker signals to a full-body pose, with SSI.
 
-`edge eval` (and later `edge run` and `edge replay`) drive this object; they differ only in where
-frames come from and where poses go. Per frame t:
+`edge eval`, `edge run` and `edge replay` drive this object; they differ only in where frames come
+from and where poses go. Per frame t:
 
   body points -> features -> decoder (N samples + a transition row, one batched call)
   -> FK hung from the tracked head -> foot-contact locks and leg IK, arm IK -> FK
   -> criteria on frame t (plausibility, targets, obstacles, extra IMUs) -> SSI decision at t
-  -> output frame t - tau from the look-ahead ring buffer.
+  -> output frame t - tau, its pose made again from what the look-ahead ring buffer keeps.
+
+With the compiled core that is five C calls around the two ONNX Runtime calls (ep_frame_inputs,
+ep_frame_poses, ep_leg_error after the autoencoder, ep_switch_to, ep_emit); the numpy stages in this
+file are the reference they are tested against and the fallback without a compiler.
 
 SSI (section 3.2): every sample keeps its latent for the whole run; when the current sample's cost
 is an outlier at the look-ahead frame, the best other sample is chosen and the output moves to it
@@ -174,55 +178,59 @@ class Pipeline:
         self._toe_offsets = OFFSETS[TOES][:, :, None]
         # Every sample's pelvis is the waist IMU's rotation: a read-only [N,3,3] view of slot s's.
         self._pelvis = [np.broadcast_to(self.buffer.waist_m[k], (N, 3, 3)) for k in range(lookahead + 1)]
-        # The compiled core (edge/native) runs the frame features, _forward, the foot locks and _post when
-        # a C compiler is there (and the scorer the plausibility score); numpy is the reference and fallback.
+        self.out = Pose()
+        # The compiled core (edge/native) runs the whole frame around the two ONNX calls when a C
+        # compiler is there; the numpy stages below are the reference and the fallback.
         self.native = native.load() if use_native else None
         if self.native:
-            # Arrays the C calls read by address; held here so they live as long as the pipeline.
-            self._c = {"parents": np.ascontiguousarray(PARENTS, np.int64), "offsets": OFFSETS,
-                       "chains": np.ascontiguousarray(LIMB_CHAINS, np.int64), "poles": LIMB_POLES,
-                       "ankles": np.ascontiguousarray(ANKLES, np.int64)}
-            self._addr = {k: native.addr(v) for k, v in self._c.items()}
-            for k in ("_local", "_world", "_pos", "_targets", "_weights"):
-                self._addr[k] = native.addr(getattr(self, k))
-            for k in ("lock_pos", "locked", "raw", "since_release", "weight"):     # FootLock's state
-                self._addr[k] = native.addr(getattr(self.feet, k))
-            # One frame's tracker signals in, and what ep_frame_features makes of them.
-            self._frame_in = np.zeros(25)
-            self._in = {k: self._frame_in[i:j].reshape(shape) for k, i, j, shape in (
-                ("head_pos", 0, 3, (3,)), ("head_rot", 3, 7, (4,)), ("hand_pos", 7, 13, (2, 3)),
-                ("hand_rot", 13, 21, (2, 4)), ("waist_rot", 21, 25, (4,)))}
-            self._frame_offsets = np.concatenate([EYE_OFFSET[None], GRIP_OFFSET, (PELVIS_TO_HEAD * body_scale)[None]])
-            self._points, self._prev = np.zeros((4, 3)), np.zeros((4, 3))
-            self._feat32, self._mats = np.zeros(24, np.float32), np.zeros((4, 3, 3))
-            for k in ("_frame_in", "_frame_offsets", "_points", "_prev", "_feat32", "_mats"):
-                self._addr[k] = native.addr(getattr(self, k))
-            # The live frame reads ring-buffer slot s: (base address, bytes per slot) of each input.
-            b = self.buffer
-            self._slot_addr = {k: (native.addr(getattr(b, k)), getattr(b, k).strides[0])
-                               for k in _FRAME_INPUTS + ("cost",)}
-            self._emit_world = np.zeros((NUM_JOINTS, 3, 3))
-            a, f = self._addr, self.feet
-            ctx = native.FrameContext(NUM_JOINTS, HEAD, NECK, int(foot_ik), int(arm_ik), self.decoder.rot6d.shape[1],
-                                      a["parents"], a["chains"], a["ankles"], a["offsets"], a["poles"], None,
-                                      None, f.release_frames, f.max_slip, a["lock_pos"], a["since_release"],
-                                      a["weight"], a["locked"], a["raw"], a["_targets"], a["_weights"], N + 1,
-                                      *(native.addr(getattr(b, k)) for k in _FRAME_INPUTS + _RING_ROWS))
-            # The same call fills the plausibility scorer's autoencoder input when the default criterion is there.
-            self._ae_ready = self.scorer if any(isinstance(c, Plausibility) and c.scorer is self.scorer
-                                                for c in self.criteria.criteria) and self.scorer.buffers() else None
-            if self._ae_ready:
-                ctx.ae_in, ctx.ae_local, ctx.ae_root_local = self.scorer.buffers()
-            ctx.frame_in, ctx.frame_offsets, ctx.prev = a["_frame_in"], a["_frame_offsets"], a["_prev"]
-            ctx.fps, ctx.ring_features = fps, native.addr(b.features)
-            ctx.ring_hidden, ctx.hidden = native.addr(b.hidden_in), b.hidden_in.shape[2]
-            self._frame_context = ctypes.pointer(ctx)
-            self._bind_decoder()
-        self.out = Pose()
-        if self.native:
-            ctx.out_local, ctx.out_world, ctx.out_pos, ctx.out_contacts = (
-                native.addr(v) for v in (self.out.rotations, self._emit_world, self.out.positions, self.out.contacts))
+            self._setup_native(fps, body_scale, foot_ik, arm_ik)
         self.reset()
+
+    def _setup_native(self, fps, body_scale, foot_ik, arm_ik):
+        """Addresses the C calls use every frame, found once: the skeleton, the scratch rows, FootLock's
+        state, the ring buffer and the output pose (native.FrameContext), and the decoder's buffers."""
+        N, b = self.max_samples, self.buffer
+        # Arrays the C calls read by address; held here so they live as long as the pipeline.
+        self._c = {"parents": np.ascontiguousarray(PARENTS, np.int64), "offsets": OFFSETS,
+                   "chains": np.ascontiguousarray(LIMB_CHAINS, np.int64), "poles": LIMB_POLES,
+                   "ankles": np.ascontiguousarray(ANKLES, np.int64)}
+        self._addr = {k: native.addr(v) for k, v in self._c.items()}
+        for k in ("_local", "_world", "_pos", "_targets", "_weights"):
+            self._addr[k] = native.addr(getattr(self, k))
+        for k in ("lock_pos", "locked", "raw", "since_release", "weight"):     # FootLock's state
+            self._addr[k] = native.addr(getattr(self.feet, k))
+        # One frame's tracker signals in, and what ep_frame_features makes of them.
+        self._frame_in = np.zeros(25)
+        self._in = {k: self._frame_in[i:j].reshape(shape) for k, i, j, shape in (
+            ("head_pos", 0, 3, (3,)), ("head_rot", 3, 7, (4,)), ("hand_pos", 7, 13, (2, 3)),
+            ("hand_rot", 13, 21, (2, 4)), ("waist_rot", 21, 25, (4,)))}
+        self._frame_offsets = np.concatenate([EYE_OFFSET[None], GRIP_OFFSET, (PELVIS_TO_HEAD * body_scale)[None]])
+        self._points, self._prev = np.zeros((4, 3)), np.zeros((4, 3))
+        self._feat32, self._mats = np.zeros(24, np.float32), np.zeros((4, 3, 3))
+        for k in ("_frame_in", "_frame_offsets", "_points", "_prev", "_feat32", "_mats"):
+            self._addr[k] = native.addr(getattr(self, k))
+        # The live frame reads ring-buffer slot s: (base address, bytes per slot) of each input.
+        self._slot_addr = {k: (native.addr(getattr(b, k)), getattr(b, k).strides[0])
+                           for k in _FRAME_INPUTS + ("cost",)}
+        self._emit_world = np.zeros((NUM_JOINTS, 3, 3))
+        a, f = self._addr, self.feet
+        ctx = native.FrameContext(NUM_JOINTS, HEAD, NECK, int(foot_ik), int(arm_ik), self.decoder.rot6d.shape[1],
+                                  a["parents"], a["chains"], a["ankles"], a["offsets"], a["poles"], None,
+                                  None, f.release_frames, f.max_slip, a["lock_pos"], a["since_release"],
+                                  a["weight"], a["locked"], a["raw"], a["_targets"], a["_weights"], N + 1,
+                                  *(native.addr(getattr(b, k)) for k in _FRAME_INPUTS + _RING_ROWS))
+        # The same call fills the plausibility scorer's autoencoder input when the default criterion is there.
+        self._ae_ready = self.scorer if any(isinstance(c, Plausibility) and c.scorer is self.scorer
+                                            for c in self.criteria.criteria) and self.scorer.buffers() else None
+        if self._ae_ready:
+            ctx.ae_in, ctx.ae_local, ctx.ae_root_local = self.scorer.buffers()
+        ctx.frame_in, ctx.frame_offsets, ctx.prev = a["_frame_in"], a["_frame_offsets"], a["_prev"]
+        ctx.fps, ctx.ring_features = fps, native.addr(b.features)
+        ctx.ring_hidden, ctx.hidden = native.addr(b.hidden_in), b.hidden_in.shape[2]
+        self._frame_context = ctypes.pointer(ctx)
+        self._bind_decoder()
+        ctx.out_local, ctx.out_world, ctx.out_pos, ctx.out_contacts = (
+            native.addr(v) for v in (self.out.rotations, self._emit_world, self.out.positions, self.out.contacts))
 
     @property
     def decoder(self):
@@ -289,7 +297,6 @@ class Pipeline:
             b.wrists[s] = points[1:3]
             b.waist_m[s], b.hand_m[s], b.head_m[s] = m[0], m[1:3], m[3]
             dec.features[:] = feat
-        if not self.native:
             b.hidden_in[s, :N] = dec.state[:N]      # (the compiled core copies it after the step)
         live = self.trans is not None and t <= self.trans_end
         if live:

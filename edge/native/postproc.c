@@ -1,5 +1,10 @@
-/* The pipeline's per-sample post-processing in C: 6D -> rotation, FK hung from the head, two-bone
- * limb IK, and the plausibility score around the autoencoder (SSI 3.1, 3.2.1).
+/* The pipeline's per-frame work in C, everything around the decoder and autoencoder calls: the frame's
+ * features, 6D -> rotation, FK hung from the head, foot locks, two-bone limb IK, the plausibility
+ * score around the autoencoder (SSI 3.1, 3.2.1), the SSI outlier test (3.2.2) and the look-ahead ring.
+ *
+ * The live frame is five calls (edge.pipeline.Pipeline.step): ep_frame_inputs, ep_frame_poses,
+ * ep_leg_error, ep_switch_to, ep_emit; they read the pipeline's buffers through one frame_context.
+ * The other functions are the same stages on arbitrary rows (a recomputed transition, the tests).
  *
  * Each function is the loop form of a numpy reference in edge/ (named in its comment) and is tested
  * against it (tests/test_native.py). Python's per-call overhead, not arithmetic, is what the numpy
