@@ -74,6 +74,7 @@ def main(argv=None):
     rp.add_argument("--adaptive", action="store_true",
                     help="let the deadline watchdog lower and raise N, as edge run does (--samples is the most)")
     rp.add_argument("--lookahead", type=int, default=10)
+    rp.add_argument("--precision", choices=("fp32", "int8"), default=DEFAULT_PRECISION)
     rp.add_argument("--seconds", type=float, default=None)
     rp.add_argument("--bvh", help="record the output as BVH here")
     rp.add_argument("--models")

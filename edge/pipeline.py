@@ -311,9 +311,9 @@ class Pipeline:
         # that is free) and lock weights.
         rows = N + 1 if live else N
         if self.native:             # _forward, _foot_goals, the blend, _post and the ring copies below in one call
+            world = self._addr["_world"] if self.criteria.needs_world_rot else None
             self.native.ep_frame_poses(self._frame_context, s, rows, N, *((c, n, float(a)) if live else (0, 0, 0.0)),
-                                       self._addr["_world"] if self.criteria.needs_world_rot else None, self._addr["_pos"],
-                                       self._hidden_addr[dec.last_read])
+                                       world, self._addr["_pos"], self._hidden_addr[dec.last_read])
         else:
             self._forward(dec.rot6d[:rows], b.waist_m[s], b.anchor[s])
             if self.foot_ik:
@@ -564,9 +564,9 @@ class Pipeline:
         rotations = np.zeros((NUM_JOINTS, 3, 3)) if rotations is None else rotations
         if self.native:
             a = native.addr
-            self.native.ep_row_pose(self._frame_context, a(b.rot6d[s, row]), a(b.leg_goal[s, row]), a(b.leg_weight[s, row]),
-                                    *(a(getattr(b, k)[s]) for k in _FRAME_INPUTS), a(rotations), a(self._emit_world),
-                                    a(positions))
+            rows = (a(getattr(b, k)[s, row]) for k in ("rot6d", "leg_goal", "leg_weight"))
+            self.native.ep_row_pose(self._frame_context, *rows, *(a(getattr(b, k)[s]) for k in _FRAME_INPUTS),
+                                    a(rotations), a(self._emit_world), a(positions))
             return positions, rotations
         self._forward(b.rot6d[s, row][None], b.waist_m[s], b.anchor[s])
         self._targets[0], self._weights[0] = b.leg_goal[s, row], b.leg_weight[s, row]

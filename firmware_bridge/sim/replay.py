@@ -22,6 +22,7 @@ import can
 import numpy as np
 
 from edge import native, quat
+from edge.inference import DEFAULT_PRECISION
 from edge.skeleton import fk
 from firmware_bridge import config as config_mod
 from firmware_bridge.listen import Listener
@@ -174,7 +175,7 @@ def score(inbox, metrics, ticks_by_us, replug):
             replug[1] = f.t
 
 
-def board_config(session, devices, can_channel, samples, lookahead, bvh, adaptive=False):
+def board_config(session, devices, can_channel, samples, lookahead, bvh, adaptive=False, precision=DEFAULT_PRECISION):
     place = session.meta.get("placement") or placement(session.transports)
     pairs = lambda ids, names: ",".join(f"{k}:{v}" for k, v in ids.items() if v in names)
     trackers = []
@@ -188,12 +189,12 @@ def board_config(session, devices, can_channel, samples, lookahead, bvh, adaptiv
         "headset": {"url": f"serial://{devices['headset'].path}?role=headset"},
         "trackers": trackers,
         "output": {"pose_stream": "headset", **({"bvh": bvh} if bvh else {})},
-        "runtime": {"samples": samples, "lookahead": lookahead, "adaptive": adaptive},
+        "runtime": {"samples": samples, "lookahead": lookahead, "adaptive": adaptive, "precision": precision},
     }, "replay")
 
 
 def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=None, bvh=None, status=None,
-           models=None, adaptive=False):
+           models=None, adaptive=False, precision=DEFAULT_PRECISION):
     faults = faults or {}
     # Build the compiled core (first use: seconds of cc) before the clock starts, or a real-time replay
     # begins seconds behind its own devices and the synchroniser starts on a backlog.
@@ -215,7 +216,7 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
         return open_configured(url)
 
     try:
-        cfg = board_config(session, devices, can_channel, samples, lookahead, bvh, adaptive)
+        cfg = board_config(session, devices, can_channel, samples, lookahead, bvh, adaptive, precision)
         if models:
             cfg.models = models
         service = Service(cfg, clock=clock, status=status, opener=opener)
@@ -332,7 +333,7 @@ def report(session, summary, m, service, ear, opened, errors, faults, speed, dur
                         "synchroniser interpolating one headset period back) are reported apart",
         "lookahead_ms": 1000.0 * service.pipeline.lookahead / hz,
         "sync_delay_ms": 1000.0 * service.cfg.sync_latency, "ssi_switches": service.pipeline.switch_count,
-        "samples": service.pipeline.samples, "samples_max": summary["samples_max"],
+        "samples": service.pipeline.samples, "samples_max": summary["samples_max"], "precision": service.cfg.precision,
         "samples_changes": summary["samples_changes"], "frame_ms": summary["frame_ms"], "reopens": summary["reopens"],
         "output_errors": summary["output_errors"], "resume_after_replug_s": resume_s,
         "missing_output_frames": int(len(seen) and (seen[-1] - seen[0] + 1 - len(seen))),
@@ -421,7 +422,7 @@ def main(args):
         return 2
     samples = 32 if args.samples == "auto" else int(args.samples)
     result = replay(session, args.speed, samples, args.lookahead, args.seconds, faults, args.bvh, sys.stderr,
-                    args.models, adaptive=args.adaptive or args.samples == "auto")
+                    args.models, adaptive=args.adaptive or args.samples == "auto", precision=args.precision)
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
     keys = ("frames_in", "frames_out", "poses_decoded", "packets_corrupt", "packets_lost", "tracker_lost_events",
