@@ -41,9 +41,7 @@ LIMB_CHAINS = np.array([[JOINT[f"{s}_{a}"], JOINT[f"{s}_{b}"], JOINT[f"{s}_{c}"]
                         for a, b, c in (("hip", "knee", "ankle"), ("shoulder", "elbow", "wrist")) for s in "lr"])
 LIMB_POLES = np.array([[0.0, 0.0, 1.0]] * 2 + [[0.0, 0.0, -1.0]] * 2)   # knees bend forward, elbows back
 NECK = JOINT["neck"]
-_FRAME_INPUTS = ("waist_m", "anchor", "wrists", "hand_m", "head_m")    # ep_frame_poses' per-frame inputs, in order
-# What the ring keeps of each row, in frame_context's order (postproc.c).
-_RING_ROWS = ("rot6d", "contacts", "leg_goal", "leg_weight", "lock_weight")
+_FRAME_INPUTS = ("waist_m", "anchor", "wrists", "hand_m", "head_m")    # a frame's inputs to FK and IK, in ep_row_pose's order
 SWITCH_HISTORY = 10_000     # switches kept in Pipeline.switches (hours of a take; edge eval reads them per take)
 
 
@@ -179,6 +177,7 @@ class Pipeline:
         # Every sample's pelvis is the waist IMU's rotation: a read-only [N,3,3] view of slot s's.
         self._pelvis = [np.broadcast_to(self.buffer.waist_m[k], (N, 3, 3)) for k in range(lookahead + 1)]
         self.out = Pose()
+        self._ae_ready = None       # the scorer whose input the compiled core prepares (see _setup_native)
         # The compiled core (edge/native) runs the whole frame around the two ONNX calls when a C
         # compiler is there; the numpy stages below are the reference and the fallback.
         self.native = native.load() if use_native else None
@@ -188,7 +187,7 @@ class Pipeline:
 
     def _setup_native(self, fps, body_scale, foot_ik, arm_ik):
         """Addresses the C calls use every frame, found once: the skeleton, the scratch rows, FootLock's
-        state, the ring buffer and the output pose (native.FrameContext), and the decoder's buffers."""
+        state, the ring buffer and the output pose (native.CoreContext), and the decoder's buffers."""
         N, b = self.max_samples, self.buffer
         # Arrays the C calls read by address; held here so they live as long as the pipeline.
         self._c = {"parents": np.ascontiguousarray(PARENTS, np.int64), "offsets": OFFSETS,
@@ -209,28 +208,30 @@ class Pipeline:
         self._feat32, self._mats = np.zeros(24, np.float32), np.zeros((4, 3, 3))
         for k in ("_frame_in", "_frame_offsets", "_points", "_prev", "_feat32", "_mats"):
             self._addr[k] = native.addr(getattr(self, k))
-        # The live frame reads ring-buffer slot s: (base address, bytes per slot) of each input.
-        self._slot_addr = {k: (native.addr(getattr(b, k)), getattr(b, k).strides[0])
-                           for k in _FRAME_INPUTS + ("cost",)}
+        # The SSI decision reads ring-buffer slot s's costs: (base address, bytes per slot).
+        self._cost_addr = (native.addr(b.cost), b.cost.strides[0])
         self._emit_world = np.zeros((NUM_JOINTS, 3, 3))
-        a, f = self._addr, self.feet
-        ctx = native.FrameContext(NUM_JOINTS, HEAD, NECK, int(foot_ik), int(arm_ik), self.decoder.rot6d.shape[1],
-                                  a["parents"], a["chains"], a["ankles"], a["offsets"], a["poles"], None,
-                                  None, f.release_frames, f.max_slip, a["lock_pos"], a["since_release"],
-                                  a["weight"], a["locked"], a["raw"], a["_targets"], a["_weights"], N + 1,
-                                  *(native.addr(getattr(b, k)) for k in _FRAME_INPUTS + _RING_ROWS))
         # The same call fills the plausibility scorer's autoencoder input when the default criterion is there.
-        self._ae_ready = self.scorer if any(isinstance(c, Plausibility) and c.scorer is self.scorer
-                                            for c in self.criteria.criteria) and self.scorer.buffers() else None
-        if self._ae_ready:
-            ctx.ae_in, ctx.ae_local, ctx.ae_root_local = self.scorer.buffers()
-        ctx.frame_in, ctx.frame_offsets, ctx.prev = a["_frame_in"], a["_frame_offsets"], a["_prev"]
-        ctx.fps, ctx.ring_features = fps, native.addr(b.features)
-        ctx.ring_hidden, ctx.hidden = native.addr(b.hidden_in), b.hidden_in.shape[2]
-        self._frame_context = ctypes.pointer(ctx)
+        ae = self.scorer.buffers() if any(isinstance(c, Plausibility) and c.scorer is self.scorer
+                                          for c in self.criteria.criteria) else None
+        self._ae_ready = self.scorer if ae else None
+        a, f, out = self._addr, self.feet, self.out
+        ring = {f"ring_{k}": native.addr(getattr(b, v)) for k, v in (
+            ("waist", "waist_m"), ("anchor", "anchor"), ("wrists", "wrists"), ("hand", "hand_m"), ("head", "head_m"),
+            ("rot6d", "rot6d"), ("contacts", "contacts"), ("goal", "leg_goal"), ("weight", "leg_weight"),
+            ("lock_weight", "lock_weight"), ("features", "features"), ("hidden", "hidden_in"))}
+        ctx = native.CoreContext(
+            J=NUM_JOINTS, head=HEAD, neck=NECK, foot_ik=int(foot_ik), arm_ik=int(arm_ik),
+            parents=a["parents"], chains=a["chains"], ankles=a["ankles"], offsets=a["offsets"], poles=a["poles"],
+            release_frames=f.release_frames, max_slip=f.max_slip, lock_pos=a["lock_pos"], since=a["since_release"],
+            lock_weight=a["weight"], locked=a["locked"], raw=a["raw"], goals=a["_targets"], weights=a["_weights"],
+            ring_rows=N + 1, hidden=b.hidden_in.shape[2], **ring,
+            out_local=native.addr(out.rotations), out_world=native.addr(self._emit_world),
+            out_pos=native.addr(out.positions), out_contacts=native.addr(out.contacts),
+            frame_in=a["_frame_in"], frame_offsets=a["_frame_offsets"], prev=a["_prev"], fps=fps,
+            **(dict(zip(("ae_in", "ae_local", "ae_root_local"), ae)) if ae else {}))
+        self._core = ctypes.pointer(ctx)
         self._bind_decoder()
-        ctx.out_local, ctx.out_world, ctx.out_pos, ctx.out_contacts = (
-            native.addr(v) for v in (self.out.rotations, self._emit_world, self.out.positions, self.out.contacts))
 
     @property
     def decoder(self):
@@ -241,11 +242,11 @@ class Pipeline:
         """A decoder may be swapped in after construction (bench/reference.py runs a PyTorch one): the
         compiled core then reads and writes the new one's buffers."""
         self._decoder = dec
-        if getattr(self, "_frame_context", None) is not None:
+        if getattr(self, "_core", None) is not None:
             self._bind_decoder()
 
     def _bind_decoder(self):
-        dec, ctx = self._decoder, self._frame_context.contents
+        dec, ctx = self._decoder, self._core.contents
         self._addr["rot6d"], self._addr["contacts"] = native.addr(dec.rot6d), native.addr(dec.contacts)
         ctx.rot6d, ctx.contacts, ctx.rot6d_stride = self._addr["rot6d"], self._addr["contacts"], dec.rot6d.shape[1]
         ctx.dec_features, ctx.dec_rows = native.addr(dec.features), dec.capacity
@@ -278,10 +279,8 @@ class Pipeline:
         b.override[s] = False
         dec = self.decoder
         if self.native:             # features and tracker matrices, into slot s and the decoder, in one call
-            v = self._in
-            v["head_pos"][:], v["head_rot"][:] = sig.head_pos[0], sig.head_rot[0]
-            v["hand_pos"][:], v["hand_rot"][:], v["waist_rot"][:] = sig.hand_pos[0], sig.hand_rot[0], sig.waist_rot[0]
-            self.native.ep_frame_inputs(self._frame_context, s, self._prev_points is None)
+            self._load_frame_in(sig)
+            self.native.ep_frame_inputs(self._core, s, self._prev_points is None)
             self._prev_points = self._prev
         else:
             points, waist_rot = body_points(sig, self.body_scale)
@@ -310,10 +309,11 @@ class Pipeline:
         # locks: it blends the two samples' foot goals (not lock positions, which are stale for a foot
         # that is free) and lock weights.
         rows = N + 1 if live else N
+        keep_world = self.criteria.needs_world_rot      # every joint's world rotation, only for a criterion that asks
         if self.native:             # _forward, _foot_goals, the blend, _post and the ring copies below in one call
-            world = self._addr["_world"] if self.criteria.needs_world_rot else None
-            self.native.ep_frame_poses(self._frame_context, s, rows, N, *((c, n, float(a)) if live else (0, 0, 0.0)),
-                                       world, self._addr["_pos"], self._hidden_addr[dec.last_read])
+            self.native.ep_frame_poses(self._core, s, rows, N, *((c, n, float(a)) if live else (0, 0, 0.0)),
+                                       self._addr["_world"] if keep_world else None, self._addr["_pos"],
+                                       self._hidden_addr[dec.last_read])
         else:
             self._forward(dec.rot6d[:rows], b.waist_m[s], b.anchor[s])
             if self.foot_ik:
@@ -333,9 +333,8 @@ class Pipeline:
 
         # Judge frame t, the newest, and decide (3.2.4: detection at t + tau relative to the output).
         if N > 1:
-            world = self._world[:N] if self.criteria.needs_world_rot else None
-            ctx = FrameContext(t, self._pos[:N], world, self._pelvis[s][:N],
-                               ae_ready=self._ae_ready if self.native else None)
+            ctx = FrameContext(t, self._pos[:N], self._world[:N] if keep_world else None, self._pelvis[s][:N],
+                               ae_ready=self._ae_ready)
             b.cost[s, :N] = self.criteria.cost(ctx)
         if self._pending is not None:
             self._apply_samples(t, s)
@@ -348,18 +347,20 @@ class Pipeline:
         """body_points, heading, features and the tracker matrices of one frame in one C call
         (bit-identical to the numpy path; tests/test_native.py). Returns (points [4,3], features
         [24] float32, matrices [4,3,3]: waist, hands, head)."""
-        v, a = self._in, self._addr
-        v["head_pos"][:] = sig.head_pos[0]
-        v["head_rot"][:] = sig.head_rot[0]
-        v["hand_pos"][:] = sig.hand_pos[0]
-        v["hand_rot"][:] = sig.hand_rot[0]
-        v["waist_rot"][:] = sig.waist_rot[0]
+        a = self._addr
+        self._load_frame_in(sig)
         first = self._prev_points is None       # the first frame's velocity is zero: prev = points
         self.native.ep_frame_features(a["_frame_in"], a["_frame_offsets"], a["_points" if first else "_prev"],
                                       self.fps, a["_points"], a["_feat32"], a["_mats"])
         np.copyto(self._prev, self._points)
         self._prev_points = self._prev
         return self._points, self._feat32, self._mats
+
+    def _load_frame_in(self, sig):
+        """One frame of Signals into _frame_in, the C calls' input layout."""
+        v = self._in
+        v["head_pos"][:], v["head_rot"][:] = sig.head_pos[0], sig.head_rot[0]
+        v["hand_pos"][:], v["hand_rot"][:], v["waist_rot"][:] = sig.hand_pos[0], sig.hand_rot[0], sig.waist_rot[0]
 
     def set_samples(self, n):
         """Adaptive N: run the first n (1..max_samples) samples, each keeping its own latent.
@@ -382,25 +383,19 @@ class Pipeline:
         return out
 
     # ------------------------------------------------------------------ stages
-    def _forward(self, rot6d, waist_m, anchor, slot=None):
+    def _forward(self, rot6d, waist_m, anchor):
         """6D -> local rotations, FK with the waist IMU as root, body hung from the tracked head.
 
-        waist_m [3,3] or per row [R,3,3]; anchor (the tracked head joint) [3] or [R,3]. `slot`: they
-        are the live decoder's rows and ring-buffer slot `slot`'s inputs (addresses known without
-        asking numpy). Writes the scratch rows _local, _world, _pos.
+        waist_m [3,3] or per row [R,3,3]; anchor (the tracked head joint) [3] or [R,3]. Writes the
+        scratch rows _local, _world, _pos. (The live frame runs this, _foot_goals and _post as one C
+        call, ep_frame_poses; these stages serve the numpy path, pose_from_buffer and the stage timings.)
         """
         R = len(rot6d)
         if self.native:
             a = self._addr
-            if slot is not None:        # the live frame: shared waist and head rows from buffer slot `slot`
-                (w0, ws), (h0, hs) = self._slot_addr["waist_m"], self._slot_addr["anchor"]
-                r6, r6_stride = a["rot6d"], rot6d.shape[1]
-                root, root_stride = w0 + slot * ws, 0
-                head, head_stride = h0 + slot * hs, 0
-            else:
-                r6, r6_stride = native.rows(rot6d, 1, np.float32)
-                root, root_stride = native.rows(waist_m, 2)
-                head, head_stride = native.rows(anchor, 1)
+            r6, r6_stride = native.rows(rot6d, 1, np.float32)
+            root, root_stride = native.rows(waist_m, 2)
+            head, head_stride = native.rows(anchor, 1)
             self.native.ep_forward(R, NUM_JOINTS, a["parents"], a["offsets"], HEAD, r6, r6_stride, root, root_stride,
                                    head, head_stride, a["_local"], a["_world"], a["_pos"])
             return
@@ -414,8 +409,7 @@ class Pipeline:
         """Update the N samples' foot-contact locks from the decoder's contacts and the FK ankles; each
         sample's foot goal (in _targets) is where its lock draws the ankle, so the leg IK runs at weight 1.
         Returns (goals [N,2,3], lock weights [N,2])."""
-        goal = self._targets[:N]
-        pos = self._pos
+        goal, pos = self._targets[:N], self._pos
         if self.native:
             a, f = self._addr, self.feet
             self.native.ep_foot_locks(N, 2, a["contacts"], a["_pos"], NUM_JOINTS, a["ankles"], f.release_frames,
@@ -431,24 +425,19 @@ class Pipeline:
         self._weights[:N] = 1.0
         return goal, w
 
-    def _post(self, rows, wrists, hand_m, head_m, slot=None):
+    def _post(self, rows, wrists, hand_m, head_m):
         """Leg IK to the foot locks and arm IK to the controllers in one batched call, head to the headset.
 
-        wrists [2,3], hand_m [2,3,3], head_m [3,3], or the same per row; `slot` as in _forward. Updates
-        rotations and positions in place (the IK moves knees, ankles, toes, elbows and wrists; nothing else).
+        wrists [2,3], hand_m [2,3,3], head_m [3,3], or the same per row. Updates rotations and positions
+        in place (the IK moves knees, ankles, toes, elbows and wrists; nothing else).
         """
         if not (self.foot_ik or self.arm_ik):
             return
         if self.native:
             a = self._addr
-            if slot is not None:        # the live frame: buffer slot `slot`, shared by every row
-                sa = self._slot_addr
-                wr, hm, hd = (sa[k][0] + slot * sa[k][1] for k in ("wrists", "hand_m", "head_m"))
-                wr_stride = hm_stride = hd_stride = 0
-            else:
-                wr, wr_stride = native.rows(wrists, 2)
-                hm, hm_stride = native.rows(hand_m, 3)
-                hd, hd_stride = native.rows(head_m, 2)
+            wr, wr_stride = native.rows(wrists, 2)
+            hm, hm_stride = native.rows(hand_m, 3)
+            hd, hd_stride = native.rows(head_m, 2)
             self.native.ep_post(rows, NUM_JOINTS, a["parents"], a["offsets"], a["chains"], a["poles"], a["_targets"],
                                 a["_weights"], int(self.foot_ik), int(self.arm_ik), wr, wr_stride, hm, hm_stride,
                                 hd, hd_stride, NECK, HEAD, a["_local"], a["_world"], a["_pos"])
@@ -469,7 +458,7 @@ class Pipeline:
     def _maybe_switch(self, t, s):
         c = self.current
         if self.native:             # is_outlier and best_other in one call
-            c0, cs = self._slot_addr["cost"]
+            c0, cs = self._cost_addr
             n = self.native.ep_switch_to(self.samples, c0 + s * cs, c)
             if n >= 0:
                 self._start_transition(c, n, t)
@@ -546,7 +535,7 @@ class Pipeline:
         else:
             row = p.sample = self._sample_at(o)
         if self.native:
-            self.native.ep_emit(self._frame_context, s, row)
+            self.native.ep_emit(self._core, s, row)
         else:
             self.pose_from_buffer(o, row, p.positions, p.rotations)
             p.contacts[:] = b.contacts[s, row]
@@ -565,7 +554,7 @@ class Pipeline:
         if self.native:
             a = native.addr
             rows = (a(getattr(b, k)[s, row]) for k in ("rot6d", "leg_goal", "leg_weight"))
-            self.native.ep_row_pose(self._frame_context, *rows, *(a(getattr(b, k)[s]) for k in _FRAME_INPUTS),
+            self.native.ep_row_pose(self._core, *rows, *(a(getattr(b, k)[s]) for k in _FRAME_INPUTS),
                                     a(rotations), a(self._emit_world), a(positions))
             return positions, rotations
         self._forward(b.rot6d[s, row][None], b.waist_m[s], b.anchor[s])

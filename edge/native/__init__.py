@@ -84,8 +84,8 @@ _I = ctypes.c_int
 _D = ctypes.c_double
 
 
-class FrameContext(ctypes.Structure):
-    """Mirror of postproc.c's frame_context: what ep_frame_poses reads every frame without being told
+class CoreContext(ctypes.Structure):
+    """Mirror of postproc.c's core_context: what ep_frame_poses reads every frame without being told
     (addresses of arrays the caller keeps alive, as ints)."""
     _fields_ = ([(k, _I) for k in ("J", "head", "neck", "foot_ik", "arm_ik", "rot6d_stride")]
                 + [(k, _P) for k in ("parents", "chains", "ankles", "offsets", "poles", "rot6d", "contacts")]
@@ -104,14 +104,14 @@ _SIGNATURES = {
     "ep_forward": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _P, _I, _P, _P, _P],
     "ep_local_pose": [_I, _I, _P, _P, _I, _P, _P, _P],
     "ep_leg_error": [_I, _I, _P, _I, _P, _P, _P, _P, _P, _P],
-    "ep_foot_locks": [_I, _I, _P, _P, _I, _P, ctypes.c_double, ctypes.c_double, _P, _P, _P, _P, _P, _P],
-    "ep_frame_features": [_P, _P, _P, ctypes.c_double, _P, _P, _P],
+    "ep_foot_locks": [_I, _I, _P, _P, _I, _P, _D, _D, _P, _P, _P, _P, _P, _P],
+    "ep_frame_features": [_P, _P, _P, _D, _P, _P, _P],
     "ep_post": [_I, _I, _P, _P, _P, _P, _P, _P, _I, _I, _P, _I, _P, _I, _P, _I, _I, _I, _P, _P, _P],
     "ep_switch_to": [_I, _P, _I],
-    "ep_frame_poses": [ctypes.POINTER(FrameContext), _I, _I, _I, _I, _I, _D, _P, _P, _P],
-    "ep_emit": [ctypes.POINTER(FrameContext), _I, _I],
-    "ep_frame_inputs": [ctypes.POINTER(FrameContext), _I, _I],
-    "ep_row_pose": [ctypes.POINTER(FrameContext)] + [_P] * 11,
+    "ep_frame_poses": [ctypes.POINTER(CoreContext), _I, _I, _I, _I, _I, _D, _P, _P, _P],
+    "ep_emit": [ctypes.POINTER(CoreContext), _I, _I],
+    "ep_frame_inputs": [ctypes.POINTER(CoreContext), _I, _I],
+    "ep_row_pose": [ctypes.POINTER(CoreContext)] + [_P] * 11,
     "ep_max_joints": [],
 }
 _RETURNS_INT = {"ep_switch_to", "ep_max_joints"}

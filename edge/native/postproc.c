@@ -3,7 +3,7 @@
  * score around the autoencoder (SSI 3.1, 3.2.1), the SSI outlier test (3.2.2) and the look-ahead ring.
  *
  * The live frame is five calls (edge.pipeline.Pipeline.step): ep_frame_inputs, ep_frame_poses,
- * ep_leg_error, ep_switch_to, ep_emit; they read the pipeline's buffers through one frame_context.
+ * ep_leg_error, ep_switch_to, ep_emit; they read the pipeline's buffers through one core_context.
  * The other functions are the same stages on arbitrary rows (a recomputed transition, the tests).
  *
  * Each function is the loop form of a numpy reference in edge/ (named in its comment) and is tested
@@ -93,19 +93,15 @@ static inline void lane_matmul3_tn(lane *restrict a, lane *restrict b, lane *res
 }
 
 /* m v for a vector shared by all lanes (a bone offset) */
-static inline void lane_matvec3_c(lane *restrict m, const double *v, lane *restrict out) {
+static inline void lane_matvec3_shared_v(lane *restrict m, const double *v, lane *restrict out) {
     for (int i = 0; i < 3; i++) EACH out[i][l] = m[i * 3 + 0][l] * v[0] + m[i * 3 + 1][l] * v[1] + m[i * 3 + 2][l] * v[2];
 }
 
 /* m v for a matrix shared by all lanes */
-static inline void lane_matvec3_c_t(const double *m, lane *restrict v, lane *restrict out) {
+static inline void lane_matvec3_shared_m(const double *m, lane *restrict v, lane *restrict out) {
     for (int i = 0; i < 3; i++) EACH out[i][l] = m[i * 3 + 0] * v[0][l] + m[i * 3 + 1] * v[1][l] + m[i * 3 + 2] * v[2][l];
 }
 
-static inline void lane_matvec3(lane *restrict m, lane *restrict v, lane *restrict out) {
-    for (int i = 0; i < 3; i++)
-        EACH out[i][l] = m[i * 3 + 0][l] * v[0][l] + m[i * 3 + 1][l] * v[1][l] + m[i * 3 + 2][l] * v[2][l];
-}
 
 static inline void lane_dot3(lane *a, lane *b, lane out) {
     EACH out[l] = a[0][l] * b[0][l] + a[1][l] * b[1][l] + a[2][l] * b[2][l];
@@ -197,7 +193,7 @@ static void block_forward(block *k, int r0, int nl, int J, const int64_t *parent
         int p = (int)parents[j];
         lane_matrix_from_6d_f32(rot6d + (j - 1) * 6, rot6d_stride, r0, nl, k->L[j]);
         lane_matmul3(k->W[p], k->L[j], k->W[j]);
-        lane_matvec3_c(k->W[p], offsets + j * 3, v);
+        lane_matvec3_shared_v(k->W[p], offsets + j * 3, v);
         for (int i = 0; i < 3; i++) EACH k->P[j][i][l] = k->P[p][i][l] + v[i][l];
     }
     gather(shift, 3, anchor, anchor_stride, r0, nl);
@@ -322,7 +318,7 @@ static void block_chain(block *k, int r0, int nl, int J, const int64_t *parents,
     for (int i = 0; i < 3; i++) EACH goal[i][l] = k->P[ic][i][l] + wt[0][l] * (goal[i][l] - k->P[ic][i][l]);
     if (end_rot) gather(end, 9, end_rot, end_stride, r0, nl);
     else lane_copy(end, k->W[ic], 9);
-    lane_matvec3_c(k->W[ib], pole_local, pole);
+    lane_matvec3_shared_v(k->W[ib], pole_local, pole);
     lane_two_bone_ik(k->P[ia], k->P[ib], k->P[ic], goal, k->W[ia], k->W[ib], pole, a_new, b_new);
     lane_matmul3_tn(k->W[ip], a_new, k->L[ia]);
     lane_matmul3_tn(a_new, b_new, k->L[ib]);
@@ -330,13 +326,13 @@ static void block_chain(block *k, int r0, int nl, int J, const int64_t *parents,
     lane_copy(k->W[ia], a_new, 9);
     lane_copy(k->W[ib], b_new, 9);
     lane_copy(k->W[ic], end, 9);
-    lane_matvec3_c(a_new, offsets + ib * 3, v);
+    lane_matvec3_shared_v(a_new, offsets + ib * 3, v);
     for (int i = 0; i < 3; i++) EACH k->P[ib][i][l] = k->P[ia][i][l] + v[i][l];
-    lane_matvec3_c(b_new, offsets + ic * 3, v);
+    lane_matvec3_shared_v(b_new, offsets + ic * 3, v);
     for (int i = 0; i < 3; i++) EACH k->P[ic][i][l] = k->P[ib][i][l] + v[i][l];
     for (int j = ic + 1; j < J; j++) {
         if (parents[j] != ic) continue;
-        lane_matvec3_c(end, offsets + j * 3, v);
+        lane_matvec3_shared_v(end, offsets + j * 3, v);
         for (int i = 0; i < 3; i++) EACH k->P[j][i][l] = k->P[ic][i][l] + v[i][l];
     }
 }
@@ -420,7 +416,7 @@ void ep_leg_error(int B, int J, const float *ae_out, int rot_dim, const int64_t 
             gather(base, 3, local, (int64_t)J * 3, r0, nl);
             for (int k = 0; k < 4; k++) {
                 int jk = (int)legs[s * 4 + k];
-                lane_matvec3_c(rot, offsets + jk * 3, v);
+                lane_matvec3_shared_v(rot, offsets + jk * 3, v);
                 gather(joint, 3, local + jk * 3, (int64_t)J * 3, r0, nl);
                 EACH d2[l] = 0.0;
                 for (int i = 0; i < 3; i++)
@@ -480,7 +476,7 @@ void ep_foot_locks(int B, int F, const float *contacts, const double *pos, int J
 
 /* What stays the same from frame to frame: the skeleton, the pipeline's buffers, FootLock's state and
  * the look-ahead ring (edge.pipeline.Pipeline builds one; field order matches its ctypes mirror,
- * native.FrameContext). */
+ * native.CoreContext). */
 typedef struct {
     int J, head, neck, foot_ik, arm_ik, rot6d_stride;
     const int64_t *parents, *chains, *ankles;
@@ -513,7 +509,7 @@ typedef struct {
     float *ring_hidden;
     int hidden;
     double *out_contacts;                     /* ep_emit's foot contacts [2] */
-} frame_context;
+} core_context;
 
 static void copy_f32(float *dst, const float *src, int64_t n) { for (int64_t i = 0; i < n; i++) dst[i] = src[i]; }
 static void copy_f64(double *dst, const double *src, int64_t n) { for (int64_t i = 0; i < n; i++) dst[i] = src[i]; }
@@ -527,7 +523,7 @@ static void copy_f64(double *dst, const double *src, int64_t n) { for (int64_t i
  * Then what the ring keeps of each row goes to slot `slot`: the decoder's 6D and contacts, the leg
  * IK's goals and weights, the samples' lock weights, and the GRU state their step read (hidden_read,
  * the decoder's input buffer, which its step does not write). */
-void ep_frame_poses(const frame_context *x, int slot, int R, int N, int c, int n, double a, double *world,
+void ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n, double a, double *world,
                     double *pos, const float *hidden_read) {
     block k;
     int J = x->J, S = x->ring_rows;
@@ -567,7 +563,7 @@ void ep_frame_poses(const frame_context *x, int slot, int R, int N, int c, int n
                     rel[1][l] = k.P[j][1][l] - k.P[0][1][l] * 0.0;
                     rel[2][l] = k.P[j][2][l] - k.P[0][2][l] * 1.0;
                 }
-                lane_matvec3_c_t(yt, rel, loc);
+                lane_matvec3_shared_m(yt, rel, loc);
                 scatter(loc, 3, x->ae_local + j * 3, (int64_t)J * 3, r0, ns);
                 for (int l = 0; l < ns; l++)
                     for (int i = 0; i < 3; i++) x->ae_in[((int64_t)(r0 + l) * J + j) * 3 + i] = (float)loc[i][l];
@@ -587,7 +583,7 @@ void ep_frame_poses(const frame_context *x, int slot, int R, int N, int c, int n
 /* One row's pose again from what the look-ahead buffer keeps of it: its decoder 6D (float), its leg
  * goals [2,3] and IK weights [2], and its frame's tracker inputs; block_forward then block_post, so
  * the result is bit for bit the row's pose in ep_frame_poses. world is scratch [J,3,3]. */
-void ep_row_pose(const frame_context *x, const float *rot6d, const double *goals, const double *weights,
+void ep_row_pose(const core_context *x, const float *rot6d, const double *goals, const double *weights,
                  const double *root_m, const double *anchor, const double *wrists, const double *hand_m,
                  const double *head_m, double *local, double *world, double *pos) {
     block k;
@@ -599,7 +595,7 @@ void ep_row_pose(const frame_context *x, const float *rot6d, const double *goals
 
 /* Pipeline._emit: ep_row_pose of row `row` of ring slot `slot`, into out_local and out_pos, and its
  * foot contacts into out_contacts. */
-void ep_emit(const frame_context *x, int slot, int row) {
+void ep_emit(const core_context *x, int slot, int row) {
     int64_t r = (int64_t)slot * x->ring_rows + row;
     x->out_contacts[0] = x->ring_contacts[r * 2];
     x->out_contacts[1] = x->ring_contacts[r * 2 + 1];
@@ -712,7 +708,7 @@ int ep_switch_to(int N, const double *cost, int c) {
 /* Pipeline._frame_inputs_native for the live frame, straight into ring slot `slot` and the decoder's
  * input: ep_frame_features (first: no previous frame, velocity 0), then the points, features and
  * tracker matrices where Pipeline.step keeps them. */
-void ep_frame_inputs(const frame_context *x, int slot, int first) {
+void ep_frame_inputs(const core_context *x, int slot, int first) {
     double points[12], mats[36];
     float feat[24];
     ep_frame_features(x->frame_in, x->frame_offsets, first ? points : x->prev, x->fps, points, feat, mats);
