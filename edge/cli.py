@@ -23,6 +23,10 @@ def main(argv=None):
     ev.add_argument("--models", help="model folder (default: the shipped models/)")
     ev.add_argument("--seed", type=int, default=0)
     ev.add_argument("--no-ik", action="store_true", help="skip foot-contact and arm IK (the bare network)")
+    ev.add_argument("--trackers", default="none",
+                    help="extra IMUs worn besides the waist, synthesised from the clip with IMU noise: none (default), "
+                         "all, or a list of chest,l_thigh,r_thigh,l_shin,r_shin,l_foot,r_foot")
+    ev.add_argument("--faults", choices=("disconnect",), help="DragPoser's faulty-sensor protocol on the extra trackers")
     ev.add_argument("--lookahead", type=int, default=None, help="SSI look-ahead tau in frames (default 10 for N>1, 0 for N=1)")
     ev.add_argument("--report", help="also draw the report (PNGs, GIF, index.html) into this folder (needs the [viz] extra; "
                                      "dumps into REPORT/dump unless --dump is given)")
@@ -76,6 +80,9 @@ def main(argv=None):
     rp.add_argument("--lookahead", type=int, default=10)
     rp.add_argument("--precision", choices=("fp32", "int8"), default=DEFAULT_PRECISION)
     rp.add_argument("--seconds", type=float, default=None)
+    rp.add_argument("--trackers", default=None,
+                    help="extra IMUs on the simulated hub and CAN besides the waist: none, all, or a list such as "
+                         "l_shin,r_shin (default l_foot,r_foot: the CAN foot trackers; a recording keeps its own)")
     rp.add_argument("--bvh", help="record the output as BVH here")
     rp.add_argument("--models")
     rp.add_argument("--report", help="also draw the report (latency, tracker health) into this folder ([viz] extra)")

@@ -8,7 +8,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from edge.skeleton import JOINT
+from edge import native
+from edge.physics import ANKLE_HEIGHT, FLOAT_M, INTERSECT_M, LEG_SEGMENTS, foot_height, leg_gap
+from edge.skeleton import ANKLES, FEET, JOINT, NUM_JOINTS, TOE_HEIGHT
 
 
 @dataclass
@@ -20,6 +22,9 @@ class FrameContext:
     pelvis_rot: np.ndarray      # [N,3,3] each sample's pelvis rotation
     imu: dict = field(default_factory=dict)  # joint index -> measured world rotation [3,3] (extra trackers)
     ae_ready: object = None     # the PlausibilityScorer whose buffers already hold these poses (the pipeline's C call)
+    contacts: np.ndarray = None     # [N,2] each sample's foot-contact probabilities (the decoder's)
+    floor_lift: np.ndarray = None   # [N,2] how far the floor clamp lifted each sample's feet (m)
+    imu_weight: dict = field(default_factory=dict)  # joint index -> the IMU's presence flag (0..1)
 
 
 class Plausibility:
@@ -33,6 +38,37 @@ class Plausibility:
         if ctx.ae_ready is self.scorer:
             return self.scorer.error_of_prepared(len(ctx.positions))
         return self.scorer.lower_body_error(ctx.positions, ctx.pelvis_rot)
+
+
+class PhysicalPlausibility:
+    """SSI 3.2 and 5.3's constraints as a cost in metres: how far the floor had to lift the sample's
+    feet (its raw legs went into the floor), how far its thigh and shin segments come inside 10 cm of
+    the other leg's (legs through each other), and how far above 5 cm a foot is while the sample says
+    it is in contact (contact without support). Batched over samples; the compiled core's
+    ep_physical_cost computes the same when it is there."""
+    name = "physical"
+
+    def __init__(self, weight=1.0, floor=1.0, legs=1.0, support=1.0, use_native=True):
+        self.weight, self.floor, self.legs, self.support = weight, floor, legs, support
+        self._native = native.load() if use_native else None
+        self._segs = np.ascontiguousarray(LEG_SEGMENTS.reshape(-1), np.int64)
+        self._feet = np.ascontiguousarray(np.concatenate([FEET, ANKLES]), np.int64)
+        self._out = np.zeros(128)
+
+    def cost(self, ctx):
+        N, pos = len(ctx.positions), ctx.positions
+        lift = np.zeros((N, 2)) if ctx.floor_lift is None else ctx.floor_lift
+        contacts = np.zeros((N, 2), np.float32) if ctx.contacts is None else ctx.contacts
+        if (self._native and N <= len(self._out) and pos.flags.c_contiguous and lift.flags.c_contiguous
+                and contacts.dtype == np.float32 and contacts.flags.c_contiguous and pos.shape[1] == NUM_JOINTS):
+            a = native.addr
+            self._native.ep_physical_cost(N, NUM_JOINTS, a(pos), a(contacts), a(lift), a(self._segs), a(self._feet),
+                                          INTERSECT_M, FLOAT_M, TOE_HEIGHT, ANKLE_HEIGHT, self.floor, self.legs,
+                                          self.support, a(self._out))
+            return self._out[:N]
+        legs = np.maximum(INTERSECT_M - leg_gap(pos), 0.0)
+        support = ((contacts > 0.5) * np.maximum(foot_height(pos) - FLOAT_M, 0.0)).sum(-1)
+        return self.floor * lift.sum(-1) + self.legs * legs + self.support * support
 
 
 class TargetHit:
@@ -76,6 +112,7 @@ class SensorAgreement:
     constraint losses): mean rotation angle (radians) between each sample's joint and the measurement."""
     name = "sensors"
     needs_world_rot = True      # the pipeline stores every joint's world rotation only when asked
+    needs_imu = True            # ... and hands it the frame's extra IMUs (edge.imus), weighted by presence
 
     def __init__(self, weight=1.0):
         self.weight = weight
@@ -85,9 +122,10 @@ class SensorAgreement:
             return np.zeros(len(ctx.positions))
         joints = np.fromiter(ctx.imu.keys(), dtype=int)
         measured = np.stack([ctx.imu[j] for j in joints])                     # [K,3,3]
+        w = np.array([ctx.imu_weight.get(j, 1.0) for j in joints])            # a fading IMU counts less
         rel = np.swapaxes(ctx.world_rot[:, joints], -1, -2) @ measured         # [N,K,3,3]
         trace = np.trace(rel, axis1=-2, axis2=-1)
-        return np.arccos(np.clip((trace - 1) / 2, -1, 1)).mean(-1)
+        return (np.arccos(np.clip((trace - 1) / 2, -1, 1)) * w).sum(-1) / max(w.sum(), 1e-9)
 
 
 class Composite:
@@ -100,6 +138,11 @@ class Composite:
     def needs_world_rot(self):
         """Whether any criterion reads FrameContext.world_rot (the pipeline then stores it)."""
         return any(getattr(c, "needs_world_rot", False) for c in self.criteria)
+
+    @property
+    def needs_imu(self):
+        """Whether any criterion reads FrameContext.imu (the pipeline then fills it)."""
+        return any(getattr(c, "needs_imu", False) for c in self.criteria)
 
     def cost(self, ctx):
         if len(self.criteria) == 1 and self.criteria[0].weight == 1.0:

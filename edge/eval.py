@@ -8,12 +8,15 @@ from pathlib import Path
 import numpy as np
 
 from edge.bvh import BvhError
+from edge.contacts import contact_labels
+from edge.imus import IMU_LOCATIONS, ImuNoise, dragposer_drops, mask
 from edge.inference import DEFAULT_PRECISION
 from edge.features import head_joint, wrist_joints
 from edge.pipeline import Pipeline
 from edge.plausibility import PlausibilityScorer
 from edge.progress import Progress
-from edge.skeleton import JOINT_NAMES, PARENTS
+from edge.signals import wear
+from edge.skeleton import FEET, JOINT_NAMES, PARENTS
 from edge.takes import find_clips, load_take
 from edge import metrics
 
@@ -29,13 +32,18 @@ class TakeRun:
     sample: np.ndarray      # [T] the sample shown (the target sample during a transition)
     transition: np.ndarray  # [T] frame was part of a sample transition
     cost: np.ndarray        # [T,N] every sample's selection cost when the frame was judged (N>1)
+    samples: np.ndarray = None  # [T,N,J,3] every sample's pose of the frame (N>1, with keep_samples)
 
 
-def run_take(pipe, take, max_frames=None):
-    """Feed a take frame by frame through the pipeline. Output frame o arrives tau frames after input o."""
+def run_take(pipe, take, max_frames=None, keep_samples=False, signals=None):
+    """Feed a take (or these signals of it) frame by frame through the pipeline. Output frame o arrives
+    tau frames after input o."""
+    signals = take.signals if signals is None else signals
     T = take.frames if max_frames is None else min(take.frames, max_frames)
+    N = pipe.samples
     run = TakeRun(np.zeros((T, len(JOINT_NAMES), 3)), np.zeros((T, 3, 3)), np.zeros((T, 2)),
-                  np.zeros(T, np.int16), np.zeros(T, bool), np.zeros((T, pipe.samples), np.float32))
+                  np.zeros(T, np.int16), np.zeros(T, bool), np.zeros((T, N), np.float32),
+                  np.zeros((T, N, len(JOINT_NAMES), 3), np.float32) if keep_samples and N > 1 else None)
 
     def keep(pose):
         f = pose.frame
@@ -44,8 +52,10 @@ def run_take(pipe, take, max_frames=None):
 
     pipe.reset()
     for t in range(T):
-        pose = pipe.step(take.signals.slice(t, t + 1))
+        pose = pipe.step(signals.slice(t, t + 1))
         run.cost[t] = pipe.buffer.cost[pipe.buffer.slot(t)]
+        if run.samples is not None:         # frame t's poses of every sample, after IK
+            run.samples[t] = pipe._pos[:N]
         if pose is not None:
             keep(pose)
     for pose in pipe.flush():
@@ -53,13 +63,32 @@ def run_take(pipe, take, max_frames=None):
     return run
 
 
+def take_signals(take, trackers, faults=None, seed=0, index=0):
+    """The take's signals as the board would see them with the extra IMUs `trackers` worn: IMU noise
+    (edge.imus.ImuNoise, as training synthesises it) and, with faults='disconnect', DragPoser's
+    faulty-sensor protocol on them (each frame one tracker drops with probability 1 % for 100 frames),
+    through the synchroniser's hold and fade. Seeded per take."""
+    if not trackers:
+        return take.signals
+    rng = np.random.default_rng([seed, index, 13])
+    worn = mask(trackers)
+    alive = dragposer_drops(rng, take.frames, worn, take.fps) if faults == "disconnect" else None
+    return wear(take.signals, worn, take.fps, rng, ImuNoise(), alive)
+
+
 def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECISION, max_frames=None, dump=None,
-             models=None, seed=0, lookahead=None, ik=True, log=print):
+             models=None, seed=0, lookahead=None, ik=True, log=print, trackers=(), faults=None):
     files = find_clips(paths, split)
     if not files:
         raise SystemExit(f"edge eval: no clips found in {paths}" + (f" for split {split!r}" if split else ""))
+    if faults not in (None, "disconnect"):
+        raise ValueError(f"--faults {faults!r}: edge eval knows 'disconnect' (DragPoser's protocol on the extra trackers)")
     pipe = Pipeline(models, samples=samples, seed=seed, precision=precision, ssi=not no_ssi, lookahead=lookahead,
                     foot_ik=ik, arm_ik=ik)
+    if trackers and not pipe.imus:
+        raise ValueError(f"--trackers {','.join(trackers)}: the model in {models or 'models/'} reads no extra IMUs "
+                         f"(its decoder takes {pipe.n_features} features)")
+    phys, phys_gt, div = [], [], []
     scorer = PlausibilityScorer(pipe.autoencoder, pipe.threshold)
     parts, per_clip, skipped = [], [], []
     switches = switch_frames = 0
@@ -68,7 +97,7 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECI
         Path(dump).mkdir(parents=True, exist_ok=True)
     t0 = time.time()
     with Progress(len(files), "eval") as bar:
-        for f in files:
+        for index, f in enumerate(files):
             try:
                 take = load_take(f)
             except BvhError as e:
@@ -76,7 +105,8 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECI
                 log(f"skipped: {e}")
                 bar.update()
                 continue
-            run = run_take(pipe, take, max_frames)
+            run = run_take(pipe, take, max_frames, keep_samples=samples > 1,
+                           signals=take_signals(take, trackers, faults, seed, index))
             pred, pelvis = run.pred, run.pelvis
             switches += pipe.switch_count
             switch_frames += int(run.transition.sum())
@@ -100,6 +130,10 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECI
             gt_quiet += quiet
             m = metrics.clip_metrics(pred[w:], take.gt_pos[w:T], take.fps, head[w:], wrists[w:], bad)
             parts.append(m)
+            phys.append(metrics.physical_metrics(pred[w:], run.contacts[w:]))
+            phys_gt.append(metrics.physical_metrics(take.gt_pos[w:T], contact_labels(take.gt_pos[:T, FEET], take.fps)[w:]))
+            if run.samples is not None:
+                div.append(metrics.diversity_metrics(run.samples[w:], take.gt_pos[w:T]))
             s = metrics.summarize([m])
             per_clip.append({"clip": str(f), "frames": s["frames"], "mpjpe_cm": round(s["mpjpe_cm"], 3),
                              "implausible_rate": round(s["implausible_rate"], 4)})
@@ -114,8 +148,11 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECI
     if not parts:
         raise SystemExit("edge eval: no clip could be evaluated: " + "; ".join(skipped))
     result = {"clips": len(parts), "samples": samples, "ssi": pipe.ssi, "precision": precision, "ik": ik,
+              "trackers": ["waist", *trackers], "faults": faults, "decoder_features": pipe.n_features,
               "lookahead_frames": pipe.lookahead, "ssi_switches": switches, "transition_frames": switch_frames,
               "split": split, "warmup_s": WARMUP_S, **metrics.summarize(parts),
+              **metrics.summarize_physical(phys), "ground_truth": metrics.summarize_physical(phys_gt),
+              "diversity": metrics.summarize_diversity(div),
               "transition_jerk": {
                   "switches_measured": len(peaks_after),
                   "peak_after_switch_mean_m_s3": float(np.mean(peaks_after)) if peaks_after else None,
@@ -132,15 +169,17 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECI
 
 def main(args):
     try:
+        from edge.imus import parse_set
         result = evaluate(args.data, args.split, args.samples, args.no_ssi, args.precision, args.max_frames,
-                          args.dump, args.models, args.seed, args.lookahead, not args.no_ik)
+                          args.dump, args.models, args.seed, args.lookahead, not args.no_ik,
+                          trackers=parse_set(args.trackers), faults=args.faults)
     except (FileNotFoundError, ValueError) as e:
         print(f"edge eval: {e}", file=sys.stderr)
         return 2
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
     keys = ("clips", "frames", "mpjpe_cm", "mpjve_cm_s", "mpjae_cm_s2", "jitter_m_s3", "ee_error_cm",
-            "foot_skate_cm_s", "implausible_rate")
+            "foot_skate_cm_s", "implausible_rate", "penetration_rate", "leg_intersect_rate", "float_rate")
     print("  ".join(f"{k}={result[k]:.4g}" if isinstance(result[k], float) else f"{k}={result[k]}" for k in keys))
     print(f"wrote {args.json}")
     return 0

@@ -1,7 +1,9 @@
 """From tracker signals to the model's input, identically in training and on the board.
 
 SSI section 3: the head, both hands and the waist, as positions and velocities in the character's
-local frame (inverse waist yaw, X/Z relative to the waist, Y kept as height above the floor): 4 x 6 = 24.
+local frame (inverse waist yaw, X/Z relative to the waist, Y kept as height above the floor): 4 x 6 = 24. Then the extra
+body IMUs (DragPoser's variable sensor sets, edge.imus): for each of the seven locations the 6D of its
+orientation in the character frame, scaled by its presence flag, then the seven flags: 7 x 6 + 7 = 49.
 The waist puck has no position, so the waist is placed under the head joint along the puck's
 orientation using the calibrated pelvis-to-head length (`derive_waist_position`).
 """
@@ -11,7 +13,9 @@ from edge import quat
 from edge.signals import EYE_OFFSET, GRIP_OFFSET
 from edge.skeleton import PELVIS_TO_HEAD
 
-NUM_FEATURES = 24
+NUM_POINT_FEATURES = 24
+NUM_IMU_FEATURES = 49
+NUM_FEATURES = NUM_POINT_FEATURES + NUM_IMU_FEATURES
 _XZ = np.array([1.0, 0.0, 1.0])
 POINTS = ("head", "l_wrist", "r_wrist", "pelvis")
 
@@ -55,9 +59,21 @@ def features(points, prev_points, yaw_q, fps):
     return np.concatenate([local.reshape(local.shape[:-2] + (12,)), vel.reshape(vel.shape[:-2] + (12,))], axis=-1)
 
 
-def sequence_features(sig, fps, body_scale=1.0):
-    """Features for a whole sequence [T,24]; the first frame's velocity is zero."""
+def imu_features(imu_rot, imu_flag, yaw_q):
+    """imu_rot [...,7,4] world orientations, imu_flag [...,7] presence 0..1, yaw_q [...,4] -> [...,49]:
+    the 6D of each orientation in the character frame times its flag (an absent IMU reads 0), then the flags."""
+    local = quat.to_matrix(quat.mul(quat.inv(yaw_q)[..., None, :], imu_rot))
+    six = quat.matrix_to_6d(local) * imu_flag[..., None]
+    return np.concatenate([six.reshape(six.shape[:-2] + (42,)), imu_flag], axis=-1)
+
+
+def sequence_features(sig, fps, body_scale=1.0, n_features=NUM_FEATURES):
+    """Features for a whole sequence [T,n_features]; the first frame's velocity is zero. n_features=24
+    gives the 4-point features alone (the input of models trained before the extra IMUs)."""
     pts, waist_rot = body_points(sig, body_scale)
     prev = np.concatenate([pts[:1], pts[:-1]], axis=0)
     yaw_q = heading(waist_rot)
-    return features(pts, prev, yaw_q, fps), pts, yaw_q
+    feats = features(pts, prev, yaw_q, fps)
+    if n_features > NUM_POINT_FEATURES:
+        feats = np.concatenate([feats, imu_features(sig.imu_rot, sig.imu_flag, yaw_q)], axis=-1)
+    return feats, pts, yaw_q

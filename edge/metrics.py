@@ -2,8 +2,8 @@
 import numpy as np
 
 from edge.contacts import contact_labels
-from edge.skeleton import FEET, HEAD, WRISTS
-
+from edge.physics import FLOAT_M, INTERSECT_M, PENETRATION_M, foot_height, leg_gap
+from edge.skeleton import ANKLES, FEET, HEAD, LOWER_BODY, WRISTS
 
 def clip_metrics(pred, gt, fps, tracked_head, tracked_wrists, implausible):
     """pred, gt [T,J,3]; tracked_* [T,3] / [T,2,3]; implausible [T] bool. Sums and counts, so clips aggregate by frame."""
@@ -64,3 +64,47 @@ def transition_peaks(pred, fps, switch_starts, window_s=1.0):
         busy[max(s - 3, 0):s + w] = True
     quiet = [float(j[a:a + w].max()) for a in range(0, len(j) - w + 1, w) if not busy[a:a + w].any()]
     return after, quiet
+
+
+def physical_metrics(pos, contacts):
+    """Physical plausibility of a clip (SSI 3.2 and 5.3's constraints), as sums and counts.
+    pos [T,J,3] world metres, floor at y = 0; contacts [T,2] what the output (or the truth) says."""
+    depth = np.maximum(-pos[:, np.concatenate([ANKLES, FEET]), 1], 0).max(-1)     # deepest foot joint, [T]
+    sinks = depth > PENETRATION_M
+    floats = ((contacts > 0.5) & (foot_height(pos) > FLOAT_M)).any(-1)
+    return {"frames": len(pos), "penetration_n": int(sinks.sum()), "penetration_depth_sum": float(depth[sinks].sum()),
+            "intersect_n": int((leg_gap(pos) < INTERSECT_M).sum()), "float_n": int(floats.sum())}
+
+
+def summarize_physical(parts):
+    """Sums from physical_metrics -> rates and the mean depth (cm) of the frames that sink."""
+    tot = {k: sum(p[k] for p in parts) for k in parts[0]} if parts else {}
+    n = max(tot.get("frames", 0), 1)
+    return {"penetration_rate": tot.get("penetration_n", 0) / n,
+            "penetration_cm": 100 * tot.get("penetration_depth_sum", 0) / max(tot.get("penetration_n", 0), 1),
+            "leg_intersect_rate": tot.get("intersect_n", 0) / n, "float_rate": tot.get("float_n", 0) / n,
+            "physical_sum": (tot.get("penetration_n", 0) + tot.get("intersect_n", 0) + tot.get("float_n", 0)) / n}
+
+
+def diversity_metrics(samples, gt):
+    """What N samples offer SSI (N > 1), as sums. samples [T,N,J,3] every sample's pose of a frame, gt [T,J,3].
+    apd: mean pairwise lower-body distance between samples; oracle: the best sample per frame (all joints);
+    the oracle's lower-body error against the average sample's."""
+    T, N = samples.shape[:2]
+    err = np.linalg.norm(samples - gt[:, None], axis=-1)                     # [T,N,J]
+    lower = err[..., LOWER_BODY].mean(-1)                                    # [T,N]
+    low = samples[:, :, LOWER_BODY]
+    pair = np.linalg.norm(low[:, :, None] - low[:, None], axis=-1).mean(-1)  # [T,N,N]
+    apd = pair.sum((1, 2)) / (N * (N - 1))
+    return {"frames": T, "apd_lower_sum": float(apd.sum()), "oracle_sum": float(err.mean(-1).min(-1).sum()),
+            "oracle_lower_sum": float(lower.min(-1).sum()), "average_lower_sum": float(lower.mean(-1).sum())}
+
+
+def summarize_diversity(parts):
+    if not parts:
+        return {}
+    tot = {k: sum(p[k] for p in parts) for k in parts[0]}
+    n = max(tot["frames"], 1)
+    return {"apd_lower_cm": 100 * tot["apd_lower_sum"] / n, "oracle_mpjpe_cm": 100 * tot["oracle_sum"] / n,
+            "oracle_lower_cm": 100 * tot["oracle_lower_sum"] / n, "average_sample_lower_cm": 100 * tot["average_lower_sum"] / n,
+            "oracle_to_average_lower": tot["oracle_lower_sum"] / max(tot["average_lower_sum"], 1e-12)}

@@ -28,10 +28,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from edge import native, quat
-from edge.criteria import Composite, FrameContext, Plausibility
-from edge.features import body_points, features, heading
+from edge.criteria import Composite, FrameContext, PhysicalPlausibility, Plausibility
+from edge.features import NUM_POINT_FEATURES, body_points, features, heading, imu_features
+from edge.imus import IMU_JOINTS, NUM_IMUS
 from edge.ik import FootLock, apply_limb_ik, smoothstep
 from edge.inference import DEFAULT_PRECISION, Autoencoder, Decoder, open_models
+from edge.physics import floor_lift
 from edge.plausibility import PlausibilityScorer
 from edge.signals import EYE_OFFSET, GRIP_OFFSET
 from edge.skeleton import ANKLES, HEAD, JOINT, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, PELVIS_TO_HEAD, TOES, fk
@@ -146,13 +148,16 @@ class Pipeline:
         self.foot_ik, self.arm_ik = foot_ik, arm_ik
         self.manifest, dec_session, ae_session = open_models(models, threads, precision)
         m = self.manifest
+        # The decoder's input: the 24 point features, and the extra IMUs' 49 when the model reads them.
+        self.n_features = m["features"]
+        self.imus = NUM_IMUS if self.n_features > NUM_POINT_FEATURES else 0
         self.rows = N + 1 if N > 1 else N   # the extra row carries a live transition
         self.decoder = Decoder(dec_session, self.rows, m["latent"], m["hidden"], m["features"])
         self.recompute = Decoder(dec_session, lookahead + 1, m["latent"], m["hidden"], m["features"], recurrent=False)
         self.autoencoder = Autoencoder(ae_session, N)
         self.threshold = m["plausibility_threshold_m"]
         self.scorer = PlausibilityScorer(self.autoencoder, self.threshold, use_native)
-        self.criteria = Composite(criteria if criteria is not None else [Plausibility(self.scorer)])
+        self.criteria = Composite(criteria if criteria is not None else self.default_criteria(m, use_native))
 
         # N=1 is the plain CVAE at the prior mean; more samples draw fixed latents once (SSI 3.2).
         self.latents = np.zeros((N, m["latent"]), np.float32)
@@ -173,6 +178,7 @@ class Pipeline:
         self._limb_weights = np.zeros((R, 4))
         self._limb_weights[:, 2:] = 1.0 if arm_ik else 0.0
         self._limb_ends = np.zeros((R, 4, 3, 3))
+        self._floor_lift = np.zeros((R, 2))           # how far the floor lifted each row's feet (m), per frame
         self._toe_offsets = OFFSETS[TOES][:, :, None]
         # Every sample's pelvis is the waist IMU's rotation: a read-only [N,3,3] view of slot s's.
         self._pelvis = [np.broadcast_to(self.buffer.waist_m[k], (N, 3, 3)) for k in range(lookahead + 1)]
@@ -185,6 +191,18 @@ class Pipeline:
             self._setup_native(fps, body_scale, foot_ik, arm_ik)
         self.reset()
 
+    def default_criteria(self, manifest, use_native=True):
+        """SSI's default selection cost: the autoencoder's plausibility score, plus the physical one
+        (edge.criteria.PhysicalPlausibility) at the weights chosen on val for this model (the manifest's
+        `selection`; a model without one uses the autoencoder alone)."""
+        w = manifest.get("selection", {"plausibility": 1.0})
+        out = [Plausibility(self.scorer, w.get("plausibility", 1.0))]
+        if w.get("physical"):
+            p = w["physical"]
+            out.append(PhysicalPlausibility(p.get("weight", 1.0), p.get("floor", 1.0), p.get("legs", 1.0),
+                                            p.get("support", 1.0), use_native))
+        return out
+
     def _setup_native(self, fps, body_scale, foot_ik, arm_ik):
         """Addresses the C calls use every frame, found once: the skeleton, the scratch rows, FootLock's
         state, the ring buffer and the output pose (native.CoreContext), and the decoder's buffers."""
@@ -194,18 +212,20 @@ class Pipeline:
                    "chains": np.ascontiguousarray(LIMB_CHAINS, np.int64), "poles": LIMB_POLES,
                    "ankles": np.ascontiguousarray(ANKLES, np.int64)}
         self._addr = {k: native.addr(v) for k, v in self._c.items()}
-        for k in ("_local", "_world", "_pos", "_targets", "_weights"):
+        for k in ("_local", "_world", "_pos", "_targets", "_weights", "_floor_lift"):
             self._addr[k] = native.addr(getattr(self, k))
         for k in ("lock_pos", "locked", "raw", "since_release", "weight"):     # FootLock's state
             self._addr[k] = native.addr(getattr(self.feet, k))
-        # One frame's tracker signals in, and what ep_frame_features makes of them.
-        self._frame_in = np.zeros(25)
+        # One frame's tracker signals in (the extra IMUs' orientations and flags after the 25), and what
+        # ep_frame_features makes of them.
+        self._frame_in = np.zeros(25 + 5 * NUM_IMUS)
         self._in = {k: self._frame_in[i:j].reshape(shape) for k, i, j, shape in (
             ("head_pos", 0, 3, (3,)), ("head_rot", 3, 7, (4,)), ("hand_pos", 7, 13, (2, 3)),
-            ("hand_rot", 13, 21, (2, 4)), ("waist_rot", 21, 25, (4,)))}
+            ("hand_rot", 13, 21, (2, 4)), ("waist_rot", 21, 25, (4,)),
+            ("imu_rot", 25, 25 + 4 * NUM_IMUS, (NUM_IMUS, 4)), ("imu_flag", 25 + 4 * NUM_IMUS, 25 + 5 * NUM_IMUS, (NUM_IMUS,)))}
         self._frame_offsets = np.concatenate([EYE_OFFSET[None], GRIP_OFFSET, (PELVIS_TO_HEAD * body_scale)[None]])
         self._points, self._prev = np.zeros((4, 3)), np.zeros((4, 3))
-        self._feat32, self._mats = np.zeros(24, np.float32), np.zeros((4, 3, 3))
+        self._feat32, self._mats = np.zeros(self.n_features, np.float32), np.zeros((4, 3, 3))
         for k in ("_frame_in", "_frame_offsets", "_points", "_prev", "_feat32", "_mats"):
             self._addr[k] = native.addr(getattr(self, k))
         # The SSI decision reads ring-buffer slot s's costs: (base address, bytes per slot).
@@ -229,6 +249,7 @@ class Pipeline:
             out_local=native.addr(out.rotations), out_world=native.addr(self._emit_world),
             out_pos=native.addr(out.positions), out_contacts=native.addr(out.contacts),
             frame_in=a["_frame_in"], frame_offsets=a["_frame_offsets"], prev=a["_prev"], fps=fps,
+            n_features=self.n_features, imus=self.imus, floor_lift=a["_floor_lift"],
             **(dict(zip(("ae_in", "ae_local", "ae_root_local"), ae)) if ae else {}))
         self._core = ctypes.pointer(ctx)
         self._bind_decoder()
@@ -287,7 +308,10 @@ class Pipeline:
             points, waist_rot = points[0], waist_rot[0]
             prev = points if self._prev_points is None else self._prev_points
             self._prev_points = points
-            feat = features(points, prev, heading(waist_rot), self.fps)
+            yaw_q = heading(waist_rot)
+            feat = features(points, prev, yaw_q, self.fps)
+            if self.imus:
+                feat = np.concatenate([feat, imu_features(sig.imu_rot[0], sig.imu_flag[0], yaw_q)])
             q = self._quats                      # waist, hands, head: one to_matrix call
             q[0], q[1:3], q[3] = waist_rot, sig.hand_rot[0], sig.head_rot[0]
             m = quat.to_matrix(q)
@@ -334,7 +358,12 @@ class Pipeline:
         # Judge frame t, the newest, and decide (3.2.4: detection at t + tau relative to the output).
         if N > 1:
             ctx = FrameContext(t, self._pos[:N], self._world[:N] if keep_world else None, self._pelvis[s][:N],
-                               ae_ready=self._ae_ready)
+                               ae_ready=self._ae_ready, contacts=dec.contacts[:N], floor_lift=self._floor_lift[:N])
+            if self.criteria.needs_imu and self.imus:       # the extra IMUs the frame has, for SensorAgreement
+                worn = np.flatnonzero(sig.imu_flag[0] > 0)
+                m = quat.to_matrix(sig.imu_rot[0, worn])
+                ctx.imu = {int(IMU_JOINTS[k]): m[i] for i, k in enumerate(worn)}
+                ctx.imu_weight = {int(IMU_JOINTS[k]): float(sig.imu_flag[0, k]) for k in worn}
             b.cost[s, :N] = self.criteria.cost(ctx)
         if self._pending is not None:
             self._apply_samples(t, s)
@@ -344,14 +373,18 @@ class Pipeline:
         return self._emit(t - self.lookahead)
 
     def _frame_inputs_native(self, sig):
-        """body_points, heading, features and the tracker matrices of one frame in one C call
+        """body_points, heading, features and the tracker matrices of one frame in C calls
         (bit-identical to the numpy path; tests/test_native.py). Returns (points [4,3], features
-        [24] float32, matrices [4,3,3]: waist, hands, head)."""
+        [n_features] float32, matrices [4,3,3]: waist, hands, head)."""
         a = self._addr
         self._load_frame_in(sig)
         first = self._prev_points is None       # the first frame's velocity is zero: prev = points
         self.native.ep_frame_features(a["_frame_in"], a["_frame_offsets"], a["_points" if first else "_prev"],
                                       self.fps, a["_points"], a["_feat32"], a["_mats"])
+        if self.imus:
+            f = self._feat32
+            self.native.ep_imu_features(self.imus, native.addr(self._in["imu_rot"]), native.addr(self._in["imu_flag"]),
+                                        native.addr(self._in["waist_rot"]), f.ctypes.data + 4 * NUM_POINT_FEATURES)
         np.copyto(self._prev, self._points)
         self._prev_points = self._prev
         return self._points, self._feat32, self._mats
@@ -361,6 +394,8 @@ class Pipeline:
         v = self._in
         v["head_pos"][:], v["head_rot"][:] = sig.head_pos[0], sig.head_rot[0]
         v["hand_pos"][:], v["hand_rot"][:], v["waist_rot"][:] = sig.hand_pos[0], sig.hand_rot[0], sig.waist_rot[0]
+        if self.imus:
+            v["imu_rot"][:], v["imu_flag"][:] = sig.imu_rot[0], sig.imu_flag[0]
 
     def set_samples(self, n):
         """Adaptive N: run the first n (1..max_samples) samples, each keeping its own latent.
@@ -428,8 +463,10 @@ class Pipeline:
     def _post(self, rows, wrists, hand_m, head_m):
         """Leg IK to the foot locks and arm IK to the controllers in one batched call, head to the headset.
 
-        wrists [2,3], hand_m [2,3,3], head_m [3,3], or the same per row. Updates rotations and positions
-        in place (the IK moves knees, ankles, toes, elbows and wrists; nothing else).
+        The legs' goals are lifted where an ankle or a toe would be under the floor (edge.physics;
+        how far goes to _floor_lift), so foot IK never puts a foot into the floor, and a lock holds
+        the foot on it, not under it. wrists [2,3], hand_m [2,3,3], head_m [3,3], or the same per row.
+        Updates rotations and positions in place (the IK moves knees, ankles, toes, elbows and wrists).
         """
         if not (self.foot_ik or self.arm_ik):
             return
@@ -440,13 +477,20 @@ class Pipeline:
             hd, hd_stride = native.rows(head_m, 2)
             self.native.ep_post(rows, NUM_JOINTS, a["parents"], a["offsets"], a["chains"], a["poles"], a["_targets"],
                                 a["_weights"], int(self.foot_ik), int(self.arm_ik), wr, wr_stride, hm, hm_stride,
-                                hd, hd_stride, NECK, HEAD, a["_local"], a["_world"], a["_pos"])
+                                hd, hd_stride, NECK, HEAD, a["_local"], a["_world"], a["_pos"], a["_floor_lift"])
             return
         loc, W, P = self._local[:rows], self._world[:rows], self._pos[:rows]
         tgt, wts, ends = self._limb_targets[:rows], self._limb_weights[:rows], self._limb_ends[:rows]
         tgt[:, :2] = self._targets[:rows]
         tgt[:, 2:] = wrists
         wts[:, :2] = self._weights[:rows] if self.foot_ik else 0.0
+        if self.foot_ik:            # the effective leg goals, lifted clear of the floor, at weight 1
+            ankle = P[:, ANKLES]
+            tgt[:, :2] = ankle + wts[:, :2, None] * (tgt[:, :2] - ankle)
+            lift = floor_lift(tgt[:, :2, 1], (W[:, ANKLES] @ self._toe_offsets)[..., 1, 0])
+            tgt[:, :2, 1] += lift
+            wts[:, :2] = 1.0
+            self._floor_lift[:rows] = lift
         ends[:, :2] = W[:, ANKLES]
         ends[:, 2:] = hand_m if self.arm_ik else W[:, LIMB_CHAINS[2:, 2]]
         apply_limb_ik(loc, W, P, PARENTS, LIMB_CHAINS, tgt, wts, LIMB_POLES, ends, OFFSETS)

@@ -3,13 +3,16 @@
 One place for this: training, `edge eval` and the device simulator all call `synthesize`.
 - headset: 6-DoF pose of the eyes (head joint plus an eye offset in the head frame);
 - controllers: 6-DoF poses at the grip (wrist plus a grip offset in the wrist frame);
-- waist puck: an IMU, so orientation and linear acceleration only (no position).
+- waist puck: an IMU, so orientation and linear acceleration only (no position);
+- extra body IMUs (edge.imus, any subset of seven): each segment's orientation and a presence flag
+  (1 worn and fresh, fading to 0 when lost, 0 not worn); `wear` chooses which are worn.
 """
 from dataclasses import dataclass, fields
 
 import numpy as np
 
 from edge import quat
+from edge.imus import IMU_JOINTS, NUM_IMUS, ImuNoise, fade
 from edge.skeleton import HEAD, JOINT, fk
 
 EYE_OFFSET = np.array([0.0, 0.09, 0.09])          # head joint -> between the eyes, head frame
@@ -27,6 +30,14 @@ class Signals:
     hand_rot: np.ndarray    # [T,2,4]
     waist_rot: np.ndarray   # [T,4] puck orientation (IMU fusion output)
     waist_acc: np.ndarray   # [T,3] puck linear acceleration in the sensor frame, m/s^2
+    imu_rot: np.ndarray = None    # [T,7,4] extra IMUs' orientations (edge.imus.IMU_LOCATIONS order), held when silent
+    imu_flag: np.ndarray = None   # [T,7] their presence, 0..1 (None: none worn)
+
+    def __post_init__(self):
+        if self.imu_rot is None:
+            self.imu_rot = np.tile(np.array([1.0, 0, 0, 0]), self.head_pos.shape[:-1] + (NUM_IMUS, 1))
+        if self.imu_flag is None:
+            self.imu_flag = np.zeros(self.head_pos.shape[:-1] + (NUM_IMUS,))
 
     @property
     def frames(self):
@@ -40,7 +51,9 @@ class Signals:
 
     @classmethod
     def from_dict(cls, d, prefix=""):
-        return cls(**{f.name: np.asarray(d[prefix + f.name], dtype=np.float64) for f in fields(cls)})
+        """Older recordings carry no extra IMUs: they come back with none worn."""
+        return cls(**{f.name: np.asarray(d[prefix + f.name], dtype=np.float64) for f in fields(cls)
+                      if prefix + f.name in d})
 
 
 def world_pose(rotations, root):
@@ -65,7 +78,8 @@ def synthesize_from_pose(world_rot_m, pos, fps, rng=None, noise=None):
     waist_rot = world_rot[..., 0, :]
     # Linear acceleration (gravity removed, as a BNO055 reports it) in the sensor frame.
     acc_world = np.gradient(np.gradient(pos[..., 0, :], axis=0), axis=0) * fps * fps
-    sig = Signals(head_pos, head_rot, hand_pos, hand_rot, waist_rot, quat.rotate(quat.inv(waist_rot), acc_world))
+    sig = Signals(head_pos, head_rot, hand_pos, hand_rot, waist_rot, quat.rotate(quat.inv(waist_rot), acc_world),
+                  world_rot[..., IMU_JOINTS, :])
     if noise is not None:
         sig = noise.apply(sig, fps, rng)
     return sig
@@ -114,4 +128,19 @@ class DeviceNoise:
         waist_rot = quat.mul(quat.from_yaw(yaw), quat.mul(rot_noise[..., 3, :], s.waist_rot))
         acc = s.waist_acc + rng.standard_normal(s.waist_acc.shape) * 0.1
         return Signals(head_pos, quat.normalize(head_rot), hand_pos, quat.normalize(hand_rot),
-                       quat.normalize(waist_rot), acc)
+                       quat.normalize(waist_rot), acc, s.imu_rot, s.imu_flag)
+
+
+def wear(sig: Signals, worn, fps, rng=None, noise: ImuNoise = None, alive=None):
+    """The extra IMUs `worn` ([7] mask, or [T,7] when the set changes) as the board sees them: with
+    IMU noise (needs rng), and, when `alive` [T,7] says when each one is heard, held through silences
+    and fading out and back in as the synchroniser does (edge.imus.fade)."""
+    rot = sig.imu_rot if noise is None else noise.apply(sig.imu_rot, fps, rng)
+    worn = np.broadcast_to(np.asarray(worn, float), sig.imu_flag.shape)
+    flag = worn.copy()
+    if alive is not None:
+        flag, rot = fade(alive & (worn > 0), fps, rot)
+        flag = flag * (worn > 0)
+    out = Signals(**{f.name: getattr(sig, f.name) for f in fields(sig)})
+    out.imu_rot, out.imu_flag = rot, flag
+    return out

@@ -15,8 +15,7 @@ from edge.skeleton import JOINT_NAMES
 FPS = 60.0
 
 
-# Extra IMU trackers a take can carry besides the waist puck: tracker name -> the joint it sits on.
-EXTRA_IMUS = {"chest": "chest", "l_foot": "l_ankle", "r_foot": "r_ankle"}
+from edge.imus import IMU_LOCATIONS
 
 
 @dataclass
@@ -25,27 +24,28 @@ class Take:
     signals: Signals
     gt_pos: np.ndarray   # [T,J,3] world metres
     fps: float
-    imu: dict = None     # extra tracker name -> world orientation [T,4] of its body part (see EXTRA_IMUS)
+    imu: dict = None     # extra IMU location (edge.imus) -> the true world orientation [T,4] of its segment
 
     @property
     def frames(self):
         return self.signals.frames
 
 
+def _imus_of(signals):
+    return {name: signals.imu_rot[:, k] for k, name in enumerate(IMU_LOCATIONS)}
+
+
 def from_bvh(path, fps=FPS, rng=None, noise=None):
-    from edge import quat
     from edge.retarget import load_motion
-    from edge.skeleton import JOINT
     m = load_motion(path, fps)
-    rot, pos = world_pose(m.rotations, m.root)
-    imu = {name: quat.from_matrix(rot[:, JOINT[joint]]) for name, joint in EXTRA_IMUS.items()}
-    return Take(str(path), synthesize(m.rotations, m.root, fps, rng, noise), pos, fps, imu)
+    _, pos = world_pose(m.rotations, m.root)
+    sig = synthesize(m.rotations, m.root, fps, rng, noise)
+    return Take(str(path), sig, pos, fps, _imus_of(sig))
 
 
 def save_sample(path, take, credit):
-    imu = {f"imu_{k}": v.astype(np.float32) for k, v in (take.imu or {}).items()}
     np.savez_compressed(path, fps=take.fps, name=take.name, credit=credit, joint_names=np.array(JOINT_NAMES),
-                        gt_pos=take.gt_pos.astype(np.float32), **take.signals.as_dict("sig_"), **imu)
+                        gt_pos=take.gt_pos.astype(np.float32), **take.signals.as_dict("sig_"))
 
 
 def from_sample(path):
@@ -54,8 +54,12 @@ def from_sample(path):
         names = [str(n) for n in d["joint_names"]]
         if names != list(JOINT_NAMES):
             raise BvhError(f"{path}: sample was made for a different skeleton ({len(names)} joints)")
-        imu = {k[4:]: d[k].astype(np.float64) for k in d.files if k.startswith("imu_")}
-        return Take(str(d["name"]), Signals.from_dict(d, "sig_"), d["gt_pos"].astype(np.float64), float(d["fps"]), imu)
+        sig = Signals.from_dict(d, "sig_")
+        if "sig_imu_rot" in d.files:         # every location's segment orientation is in the signals
+            imu = _imus_of(sig)
+        else:                                # older files: the extra trackers they recorded (chest, feet)
+            imu = {k[4:]: d[k].astype(np.float64) for k in d.files if k.startswith("imu_")}
+        return Take(str(d["name"]), sig, d["gt_pos"].astype(np.float64), float(d["fps"]), imu)
     except (OSError, KeyError, ValueError) as e:
         raise BvhError(f"{path}: not a readable edgepose sample file ({e})") from None
 

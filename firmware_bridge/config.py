@@ -71,6 +71,9 @@ class Config:
     tracker_names: list = field(default_factory=list)
 
 
+from edge.imus import TRACKER_NAMES  # noqa: E402  (the body locations a tracker may be named for)
+
+
 def _host_port(value, where):
     host, sep, port = value.rpartition(":")
     if not sep or not port.isdigit() or not host:
@@ -143,6 +146,10 @@ def from_dict(raw, where="config"):
         raise ConfigError(f"{where}: [[trackers]] url: {e}") from None
     if len(set(cfg.tracker_names)) != len(cfg.tracker_names):
         raise ConfigError(f"{where}: tracker names repeat: {cfg.tracker_names}")
+    unknown = [n for n in cfg.tracker_names if n not in TRACKER_NAMES]
+    if unknown:
+        raise ConfigError(f"{where}: [[trackers]] url: unknown tracker name {unknown[0]!r}; the model reads "
+                          f"{', '.join(TRACKER_NAMES)}")
     cfg.pose_stream = out.get("pose_stream", "headset")
     if cfg.pose_stream not in ("headset", "") and not cfg.pose_stream.startswith("serial://"):
         raise ConfigError(f"{where}: [output] pose_stream must be \"headset\", a serial:// URL or \"\"")

@@ -11,12 +11,18 @@ A stream that has said nothing for `lost_after` seconds is lost: its last value 
 controllers drift to a neutral pose beside the body, expressed in the headset's heading frame so
 they follow the user), and when it comes back the output blends from the held value to the live
 one over a cosine schedule (RPM's bounded correction) instead of snapping.
+
+The extra body IMUs (edge.imus: chest, thighs, shins, feet) reach the model as orientations and a
+presence flag: a lost one holds its last orientation while its flag fades to 0 over edge.imus.FADE_S,
+and a returning one is used at once while its flag climbs back, the same fade training saw
+(edge.imus.fade), so the model moves between sensor sets smoothly.
 """
 from dataclasses import dataclass
 
 import numpy as np
 
 from edge import quat
+from edge.imus import FADE_S, IMU_INDEX, NUM_IMUS
 from edge.signals import Signals
 
 # Where lost controllers settle, in the headset's heading frame (hands hanging beside the hips).
@@ -114,6 +120,7 @@ class Health:
     lost: dict
     dropped: int
     backwards: int
+    ages: dict = None       # tracker name -> seconds since its newest sample (inf: never heard)
 
 
 class FrameSynchronizer:
@@ -134,6 +141,9 @@ class FrameSynchronizer:
         self._recover = {}                           # source -> (value at recovery, time recovered)
         self._last = {}
         self._held_extra = {}                        # what a held source remembers from when it was lost
+        self.imu_flag = np.zeros(NUM_IMUS)           # the extra IMUs' presence (edge.imus order), faded per tick
+        self._imu_rot = np.tile([1.0, 0.0, 0.0, 0.0], (NUM_IMUS, 1))
+        self._imu_t = None
 
     def add_headset(self, s, received=None):
         received = s.received if received is None else received
@@ -168,24 +178,31 @@ class FrameSynchronizer:
                 v = np.concatenate([self._neutral_hand(head, k), head[3:7]])
             hands.append(self._guard(name, v, lost[name], t, lambda held, since, k=k: self._decay_hand(held, since, head, k)))
         waist = None
+        ages = {}
+        step = 0.0 if self._imu_t is None else max(t - self._imu_t, 0.0) / FADE_S
+        self._imu_t = t
         for name in self.trackers:
-            if name != "waist":                      # only the waist feeds the model: just its age here
-                lost[name] = self.streams[name].age(t) > self.lost_after
-                continue
             v, age = self.streams[name].sample(t)
             lost[name] = v is None or age > self.lost_after
+            ages[name] = self.streams[name].age(t)
             if name == "waist":
                 if v is None:                        # never heard from: upright, facing where the headset faces
                     v = np.concatenate([np.zeros(3), quat.from_yaw(quat.yaw(head[3:7]))])
                 waist = self._guard(name, v, lost[name], t, lambda held, since, h=head: self._follow_head(held, h))
+            elif name in IMU_INDEX:                  # an extra IMU: hold while lost, fade its flag
+                k = IMU_INDEX[name]
+                if not lost[name]:
+                    self._imu_rot[k] = quat.normalize(v[3:7])
+                target = 0.0 if lost[name] else 1.0
+                self.imu_flag[k] += float(np.clip(target - self.imu_flag[k], -step, step))
         if waist is None:
             waist = np.concatenate([np.zeros(3), quat.from_yaw(quat.yaw(head[3:7]))])
         sig = Signals(head[None, 0:3], quat.normalize(head[None, 3:7]),
                       np.stack([hands[0][0:3], hands[1][0:3]])[None],
                       quat.normalize(np.stack([hands[0][3:7], hands[1][3:7]]))[None],
-                      quat.normalize(waist[None, 3:7]), np.zeros((1, 3)))
+                      quat.normalize(waist[None, 3:7]), np.zeros((1, 3)), self._imu_rot[None].copy(), self.imu_flag[None].copy())
         streams = self.streams.values()
-        return sig, Health(lost, sum(s.dropped for s in streams), sum(s.backwards for s in streams))
+        return sig, Health(lost, sum(s.dropped for s in streams), sum(s.backwards for s in streams), ages)
 
     def _follow_head(self, held, head):
         """A lost waist keeps its tilt but turns with the headset, from the heading offset it had when lost."""

@@ -11,16 +11,24 @@ from pathlib import Path
 
 import numpy as np
 
-from edge import quat
+from edge import imus, quat
 from edge.bvh import BvhError
 from edge.contacts import contact_labels
 from edge.features import sequence_features
 from edge.progress import Progress
 from edge.retarget import load_motion
-from edge.signals import DeviceNoise, synthesize_from_pose, world_pose
+from edge.signals import DeviceNoise, synthesize_from_pose, wear, world_pose
 from edge.skeleton import FEET, HEAD, PREDICTED
 
-SOURCE_FOLDERS = {"cmu": ("cmu_amc2bvh",), "daz": ("cmu_daz_ateliercircle",), "bandai": ("bandai_namco_ccbync",)}
+# --sources groups -> folders of ../shared/mocap. CMU terms: cmu, daz; CC BY-NC 4.0: bandai; CC BY-SA 3.0: hdm05.
+SOURCE_FOLDERS = {
+    "cmu": ("cmu_amc2bvh", "cmu_cgspeed_mb"),                   # CMU originals (incl. 135 karate) and cgspeed's BVH
+    "daz": ("cmu_daz_ateliercircle", "cmu_daz_papagina"),       # CMU motion on the Daz skeleton
+    "bandai": ("bandai_namco_ccbync",),
+    "hdm05": ("hdm05_ccbysa",),
+}
+SOURCE_LICENCES = {"cmu": "CMU terms (free for research and commercial use; no resale)", "daz": "CMU terms + MIT",
+                   "bandai": "CC BY-NC 4.0 (non-commercial)", "hdm05": "CC BY-SA 3.0 (share-alike)"}
 FPS = 60.0
 
 
@@ -96,8 +104,30 @@ def window_starts(cs: ClipSet, window):
     return np.concatenate(out)
 
 
-def make_batch(cs: ClipSet, starts, window, rng, noise: DeviceNoise = None):
-    """Time-major batch [W,B,...] of model inputs and targets, with device noise synthesised per window."""
+def random_imus(rng, window, batch):
+    """Which extra IMUs each window wears, and when each one is heard (DragPoser's variable sets and
+    faulty sensors): a quarter of the windows wear none, a third one of the common sets, the rest a
+    random subset; a worn IMU goes silent once in the window with probability 0.3, for 5-45 frames
+    (past 15 frames the synchroniser calls it lost and fades its flag). -> worn [B,7], alive [W,B,7]."""
+    K = imus.NUM_IMUS
+    worn = np.zeros((batch, K))
+    kind = rng.random(batch)
+    sets = [imus.mask(s) for s in imus.COMMON_SETS]
+    for b in np.flatnonzero((kind >= 0.25) & (kind < 0.6)):
+        worn[b] = sets[rng.integers(len(sets))]
+    rand = kind >= 0.6
+    worn[rand] = rng.random((int(rand.sum()), K)) < 0.5
+    drop = (rng.random((batch, K)) < 0.3) & (worn > 0)
+    start, length = rng.integers(0, window, (batch, K)), rng.integers(5, 46, (batch, K))
+    t = np.arange(window)[:, None, None]
+    alive = (worn[None] > 0) & ~(drop & (t >= start) & (t < start + length))
+    return worn, alive
+
+
+def make_batch(cs: ClipSet, starts, window, rng, noise: DeviceNoise = None, imu_noise: imus.ImuNoise = None,
+               with_imus=True):
+    """Time-major batch [W,B,...] of model inputs and targets, with device noise synthesised per window
+    and a random set of extra IMUs (random_imus) unless with_imus is False (the 4-point case)."""
     idx = starts[None, :] + np.arange(window)[:, None]          # [W,B]
     rot = cs.rotations[idx].astype(np.float64)                  # [W,B,J,4]
     root = cs.root[idx].astype(np.float64)
@@ -110,6 +140,9 @@ def make_batch(cs: ClipSet, starts, window, rng, noise: DeviceNoise = None):
     root = quat.rotate(yaw[None], root) + shift[None]
     world_rot, gt_pos = world_pose(rot, root)
     sig = synthesize_from_pose(world_rot, gt_pos, FPS, rng, noise)
+    if with_imus:
+        worn, alive = random_imus(rng, window, len(starts))
+        sig = wear(sig, worn[None], FPS, rng, imu_noise, alive)
     feats, points, yaw_q = sequence_features(sig, FPS)
     inv_yaw = quat.inv(yaw_q)[..., None, :]
     gt_rel = quat.rotate(inv_yaw, gt_pos - gt_pos[..., HEAD:HEAD + 1, :])   # head-anchored, character frame
@@ -121,6 +154,7 @@ def make_batch(cs: ClipSet, starts, window, rng, noise: DeviceNoise = None):
         "root_rot": quat.to_matrix(root_local).astype(np.float32),
         "rot6d": quat.matrix_to_6d(local_m).reshape(local_m.shape[:-3] + (-1,)).astype(np.float32),
         "contacts": cs.contacts[idx],
+        "anchor_y": points[..., 0, 1].astype(np.float32),        # the tracked head joint's height (floor terms)
     }
 
 

@@ -13,7 +13,6 @@ from pathlib import Path
 
 import torch
 
-from edge.features import NUM_FEATURES
 from edge.modelfiles import write_manifest
 from edge.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS
 from models.nets import CVAE, HIDDEN, LATENT, AEStep, DecoderStep, PoseAE
@@ -22,9 +21,11 @@ from models.nets import CVAE, HIDDEN, LATENT, AEStep, DecoderStep, PoseAE
 def load_checkpoint(ckpt):
     ckpt = Path(ckpt)
     meta = json.loads((ckpt / "meta.json").read_text())
-    cvae = CVAE(posterior=meta.get("posterior_encoder", False), learned_prior=meta.get("learned_prior", False))
+    state = torch.load(ckpt / "cvae.pt", weights_only=True)
+    cvae = CVAE(posterior=meta.get("posterior_encoder", False), learned_prior=meta.get("learned_prior", False),
+                n_features=state["norm.mean"].shape[0])
     ae = PoseAE()
-    cvae.load_state_dict(torch.load(ckpt / "cvae.pt", weights_only=True))
+    cvae.load_state_dict(state)
     ae.load_state_dict(torch.load(ckpt / "ae.pt", weights_only=True))
     return cvae.eval(), ae.eval(), meta
 
@@ -32,7 +33,7 @@ def load_checkpoint(ckpt):
 def export_decoder(cvae, path):
     step = DecoderStep(cvae).eval()
     n = 4
-    args = (torch.zeros(n, NUM_FEATURES), torch.zeros(n, LATENT), torch.zeros(n, HIDDEN))
+    args = (torch.zeros(n, cvae.n_features), torch.zeros(n, LATENT), torch.zeros(n, HIDDEN))
     torch.onnx.export(step, args, str(path), dynamo=False, external_data=False, opset_version=17,
                       input_names=["features", "latent", "hidden"],
                       output_names=["rot6d", "contacts", "hidden_out"],
@@ -51,7 +52,7 @@ def export_all(ckpt, out):
     export_decoder(cvae, out / "decoder.onnx")
     export_autoencoder(ae, out / "autoencoder.onnx")
     info = {
-        "fps": 60.0, "latent": LATENT, "hidden": HIDDEN, "features": NUM_FEATURES,
+        "fps": 60.0, "latent": LATENT, "hidden": HIDDEN, "features": cvae.n_features,
         "joint_names": list(JOINT_NAMES), "parents": PARENTS.tolist(),
         "plausibility_threshold_m": meta["plausibility_threshold_m"],
         "training": {k: v for k, v in meta.items() if k != "plausibility_threshold_m"},

@@ -21,11 +21,11 @@ def matrix_from_6d(r6):
 
 def fk_positions(root_rot, local_rot):
     """root_rot [...,3,3], local_rot [...,J-1,3,3] -> joint positions [...,J,3] with the pelvis at the origin."""
-    offsets = torch.as_tensor(OFFSETS, dtype=local_rot.dtype)
+    offsets = torch.as_tensor(OFFSETS, dtype=local_rot.dtype, device=local_rot.device)
     rots = [None] * NUM_JOINTS
     pos = [None] * NUM_JOINTS
     rots[0] = root_rot
-    pos[0] = torch.zeros(root_rot.shape[:-2] + (3,), dtype=root_rot.dtype)
+    pos[0] = torch.zeros(root_rot.shape[:-2] + (3,), dtype=root_rot.dtype, device=root_rot.device)
     for idx in LEVELS:
         for j in idx:
             p = PARENTS[j]
@@ -64,18 +64,19 @@ class CVAE(nn.Module):
     given the trackers (wide for legs during a kick, narrow when standing).
     """
 
-    def __init__(self, posterior=False, learned_prior=False):
+    def __init__(self, posterior=False, learned_prior=False, n_features=NUM_FEATURES):
         super().__init__()
-        self.posterior, self.learned_prior = posterior, learned_prior
-        self.prior = nn.Sequential(nn.Linear(NUM_FEATURES + HIDDEN, HIDDEN), nn.ReLU(),
+        self.posterior, self.learned_prior, self.n_features = posterior, learned_prior, n_features
+        F = n_features          # 24 for the models before the extra IMUs, 24 + 49 since (edge.features)
+        self.prior = nn.Sequential(nn.Linear(F + HIDDEN, HIDDEN), nn.ReLU(),
                                    nn.Linear(HIDDEN, 2 * LATENT)) if learned_prior else None
-        self.norm = Normalizer(NUM_FEATURES)
+        self.norm = Normalizer(F)
         self.target_norm = Normalizer(NUM_JOINTS * 3) if posterior else None
-        self.enc_fc = nn.Linear(NUM_FEATURES + (NUM_JOINTS * 3 if posterior else 0), HIDDEN)
+        self.enc_fc = nn.Linear(F + (NUM_JOINTS * 3 if posterior else 0), HIDDEN)
         self.enc_gru = nn.GRU(HIDDEN, HIDDEN)
         self.mu = nn.Linear(HIDDEN, LATENT)
         self.logvar = nn.Linear(HIDDEN, LATENT)
-        self.dec_fc = nn.Linear(LATENT + NUM_FEATURES, HIDDEN)
+        self.dec_fc = nn.Linear(LATENT + F, HIDDEN)
         self.dec_gru = nn.GRU(HIDDEN, HIDDEN)
         self.rot_head = nn.Linear(HIDDEN, ROT_OUT)
         self.contact_head = nn.Linear(HIDDEN, 2)
@@ -95,7 +96,7 @@ class CVAE(nn.Module):
         inp = torch.relu(self.dec_fc(torch.cat([z, self.norm(x)], dim=-1)))
         h, _ = self.dec_gru(inp, h0)
         y = torch.relu(h)
-        return self.rot_head(y) + _IDENTITY_6D, torch.sigmoid(self.contact_head(y)), h
+        return self.rot_head(y) + _IDENTITY_6D.to(y.device), torch.sigmoid(self.contact_head(y)), h
 
     def prior_params(self, x_norm, h_prev):
         """Conditional prior from normalised features and the previous GRU state -> (mu_p, logvar_p)."""
@@ -117,7 +118,7 @@ class CVAE(nn.Module):
     def decode_prior_mean(self, x):
         """Frame-by-frame decoding at epsilon = 0, as N=1 runs: z_t = 0, or mu_p(x_t, h_{t-1})."""
         if not self.learned_prior:
-            return self.decode(x, torch.zeros(x.shape[:-1] + (LATENT,)))
+            return self.decode(x, torch.zeros(x.shape[:-1] + (LATENT,), device=x.device))
         h = torch.zeros((1,) + x.shape[1:-1] + (HIDDEN,))
         xn, rots, cons = self.norm(x), [], []
         for t in range(len(x)):
@@ -139,7 +140,7 @@ class DecoderStep(nn.Module):
     - h' = (1 - u) n + u h is computed as n + u (h - n); the rest pose's 6D is folded into the
       rotation head's bias.
 
-    Inputs: features [N,24], latent [N,30], hidden [N,128]; outputs: rot6d [N,120], contacts [N,2], hidden [N,128].
+    Inputs: features [N,F] (F = 24 + 49), latent [N,30], hidden [N,128]; outputs: rot6d [N,120], contacts [N,2], hidden [N,128].
     """
 
     def __init__(self, cvae: CVAE):

@@ -1,17 +1,24 @@
 """Train the pose autoencoder and the CVAE on the `train` split, select on `val`, export ONNX.
 
-    python -m models.train --data ../shared/mocap [--sources cmu daz] [--minutes 40]
+    python -m models.train --data ../shared/mocap [--sources cmu daz hdm05] [--minutes 100] [--device cuda]
+    torchrun --nproc_per_node=2 -m models.train ...      # the same recipe on several GPUs (PyTorch DDP)
 
-Seeded, CPU only, with a progress bar and a log (models/train_log.txt). Loss (SSI eq. 1):
-  L = w_pos * MSE(FK positions, head-anchored, m^2) + lambda * KL + gamma * BCE(contacts) + w_rot * MSE(6D)
+Seeded, with a progress bar and a log (models/train_log.txt). The decoder reads the 4-point features
+and the seven extra IMUs (edge.features), trained on random sensor sets with drop-outs and IMU noise
+(models.dataset.random_imus, edge.imus.ImuNoise). The shipped recipe (recipe_losses, --best-of 8):
+  L = w_pos * (MSE(FK positions at z=0) + relaxed best-of-K MSE) + w_floor * floor depth^2
+      + gamma * BCE(contacts) + w_rot * MSE(6D)
+SSI eq. 1's CVAE loss (w_pos * MSE + lambda * KL + ...) is --best-of 0. Under torchrun each process
+(one per GPU, or CPU processes with the gloo backend) draws its own batches; DDP averages the gradients,
+and rank 0 validates, logs and saves.
 
-Sample-diversity experiments (measured in models/MODEL_CARD.md, none shipped): --posterior (the
-encoder also sees the pose), --learned-prior (a conditional prior p(z | trackers, GRU state)), and
---variety K --init models/checkpoints (best-of-K fine-tuning of the shipped decoder).
+Sample-diversity experiments measured before (models/MODEL_CARD.md, not shipped): --posterior (the
+encoder also sees the pose) and --learned-prior (a conditional prior p(z | trackers, GRU state)).
 """
 import argparse
 import json
 import multiprocessing as mp
+import os
 import time
 from pathlib import Path
 
@@ -19,12 +26,13 @@ import numpy as np
 import torch
 
 from edge.progress import Progress
+from edge.imus import ImuNoise
 from edge.signals import DeviceNoise
-from edge.skeleton import HEAD, LOWER_BODY, NUM_PREDICTED
+from edge.skeleton import ANKLES, HEAD, LOWER_BODY, NUM_PREDICTED, TOES
 from models import dataset as ds
 from models.nets import CVAE, LATENT, PoseAE, fk_positions, matrix_from_6d
 
-LOSS = {"w_pos": 1000.0, "lambda_kl": 5.0, "gamma_bce": 0.1, "w_rot": 0.1}
+LOSS = {"w_pos": 1000.0, "lambda_kl": 5.0, "gamma_bce": 0.1, "w_rot": 0.1, "w_floor": 1000.0}
 
 
 def _producer(q, root, sources, window, batch, seed):
@@ -32,13 +40,13 @@ def _producer(q, root, sources, window, batch, seed):
     cs = ds.build(root, "train", sources)
     starts = ds.window_starts(cs, window)
     rng = np.random.default_rng(seed)
-    noise = DeviceNoise()
+    noise, imu_noise = DeviceNoise(), ImuNoise()
     while True:
-        q.put(ds.make_batch(cs, rng.choice(starts, batch), window, rng, noise))
+        q.put(ds.make_batch(cs, rng.choice(starts, batch), window, rng, noise, imu_noise))
 
 
-def to_t(b):
-    return {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in b.items()}
+def to_t(b, device="cpu"):
+    return {k: torch.from_numpy(np.ascontiguousarray(v)).to(device) for k, v in b.items()}
 
 
 def head_positions(rot6d, root_rot):
@@ -48,23 +56,38 @@ def head_positions(rot6d, root_rot):
     return pos - pos[..., HEAD:HEAD + 1, :]
 
 
-def variety_losses(model, b, K):
-    """Best-of-K ("variety", multiple-choice) training for sample diversity: the prior mean (z = 0, what
-    N=1 runs) learns the usual regression, and of K latents held fixed over the window, only the one
-    closest to the truth is pulled towards it, so the samples spread over the poses the trackers leave
-    open instead of collapsing onto the mean. Returns (mse at z=0, best-of-K mse, bce, rot, mpjpe at z=0)."""
+FOOT_JOINTS = np.concatenate([ANKLES, TOES])
+
+
+def floor_depth(rel, anchor_y):
+    """How far the ankles and toes go below the floor [...,4] (m, 0 above it): head-anchored positions
+    plus the tracked head joint's height are heights above the floor."""
+    return torch.relu(-(rel[..., FOOT_JOINTS, 1] + anchor_y[..., None]))
+
+
+def recipe_losses(model, b, K, eps=0.05):
+    """The shipped recipe's terms (SSI eq. 1 with best-of-K sampling, see the module docstring):
+    the prior mean (z = 0, what N=1 runs) regresses the pose; of K latents held fixed over each
+    window, the closest to the truth is pulled towards it with weight 1 - eps and every one with eps
+    (relaxed multiple-choice learning, Rupprecht et al. 2017), so the samples spread over the poses
+    the trackers leave open while none drifts into nonsense; and no foot of any sample may sink
+    below the floor. Returns a dict of scalar tensors."""
     x, gt = b["features"], b["gt_rel"]
     W, B = x.shape[:2]
-    rot0, con0, _ = model.decode(x, torch.zeros(W, B, LATENT))
-    eps = torch.randn(1, B * K, LATENT).expand(W, -1, -1)
-    rotk, _, _ = model.decode(x.repeat(1, K, 1), eps)
-    err0 = head_positions(rot0, b["root_rot"]) - gt
-    errk = head_positions(rotk, b["root_rot"].repeat(1, K, 1, 1)) - gt.repeat(1, K, 1, 1)
-    per_window = (errk ** 2).sum(-1).mean(dim=(0, 2)).view(K, B)
-    best = per_window.min(0).values.mean()
+    rot0, con0, _ = model.decode(x, torch.zeros(W, B, LATENT, device=x.device))
+    eps_z = torch.randn(1, B * K, LATENT, device=x.device).expand(W, -1, -1)
+    rotk, _, _ = model.decode(x.repeat(1, K, 1), eps_z)
+    pos0 = head_positions(rot0, b["root_rot"])
+    posk = head_positions(rotk, b["root_rot"].repeat(1, K, 1, 1))
+    err0 = pos0 - gt
+    per_window = ((posk - gt.repeat(1, K, 1, 1)) ** 2).sum(-1).mean(dim=(0, 2)).view(K, B)
+    variety = (1 - eps) * per_window.min(0).values.mean() + eps * per_window.mean()
+    floor = (floor_depth(pos0, b["anchor_y"]) ** 2).sum(-1).mean() + \
+            (floor_depth(posk, b["anchor_y"].repeat(1, K)) ** 2).sum(-1).mean()
     bce = torch.nn.functional.binary_cross_entropy(con0.clamp(1e-6, 1 - 1e-6), b["contacts"])
     rot = ((rot0 - b["rot6d"]) ** 2).mean()
-    return (err0 ** 2).sum(-1).mean(), best, bce, rot, err0.norm(dim=-1).mean()
+    return {"mse": (err0 ** 2).sum(-1).mean(), "variety": variety, "floor": floor, "bce": bce, "rot": rot,
+            "mpjpe": err0.norm(dim=-1).mean()}
 
 
 def cvae_losses(model, b, sample=True):
@@ -73,7 +96,7 @@ def cvae_losses(model, b, sample=True):
     if sample:
         rot6d, con, mu, logvar, prior = model(b["features"], True, b["gt_rel"])
     else:
-        mu = logvar = torch.zeros(b["features"].shape[:-1] + (LATENT,))
+        mu = logvar = torch.zeros(b["features"].shape[:-1] + (LATENT,), device=b["features"].device)
         rot6d, con, _ = model.decode_prior_mean(b["features"])
     local = matrix_from_6d(rot6d.reshape(rot6d.shape[:-1] + (NUM_PREDICTED, 6)))
     pos = fk_positions(b["root_rot"], local)
@@ -126,69 +149,134 @@ def ae_error(ae, b):
     return (pos - inp).norm(dim=-1)
 
 
-def main():
+class RecipeStep(torch.nn.Module):
+    """One training step's loss as a module, so DDP wraps it: forward(batch) -> (total loss, terms)."""
+
+    def __init__(self, model, best_of, eps):
+        super().__init__()
+        self.model, self.best_of, self.eps = model, best_of, eps
+
+    def forward(self, b):
+        if self.best_of:
+            t = recipe_losses(self.model, b, self.best_of, self.eps)
+            loss = LOSS["w_pos"] * (t["mse"] + t["variety"]) + LOSS["w_floor"] * t["floor"]
+        else:
+            mse, kl, bce, rot, mpjpe = cvae_losses(self.model, b)
+            t = {"mse": mse, "kl": kl, "bce": bce, "rot": rot, "mpjpe": mpjpe}
+            loss = LOSS["w_pos"] * mse + LOSS["lambda_kl"] * kl
+        return loss + LOSS["gamma_bce"] * t["bce"] + LOSS["w_rot"] * t["rot"], t
+
+
+def distributed():
+    """(rank, world size, local rank) from torchrun's environment; (0, 1, 0) when run alone."""
+    return int(os.environ.get("RANK", 0)), int(os.environ.get("WORLD_SIZE", 1)), int(os.environ.get("LOCAL_RANK", 0))
+
+
+def pick_device(name, local_rank):
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda":
+        if not torch.cuda.is_available():
+            raise SystemExit("--device cuda: no CUDA device here (torch.cuda.is_available() is False); use --device cpu")
+        torch.cuda.set_device(local_rank)
+        return torch.device("cuda", local_rank)
+    return torch.device("cpu")
+
+
+def validate(model, batches):
+    model.eval()
+    with torch.no_grad():
+        v = np.mean([cvae_losses(model, vb, sample=False)[4].item() for vb in batches]) * 100
+    model.train()
+    return v
+
+
+def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default="../shared/mocap")
     ap.add_argument("--sources", nargs="*", default=None, choices=sorted(ds.SOURCE_FOLDERS),
-                    help="train on these sources only (cmu daz = CMU only, commercial-safe)")
-    ap.add_argument("--minutes", type=float, default=45.0, help="CVAE wall-clock budget")
+                    help="train on these sources only (cmu daz = CMU terms only; hdm05 is CC BY-SA, bandai CC BY-NC)")
+    ap.add_argument("--minutes", type=float, default=100.0, help="CVAE wall-clock budget")
+    ap.add_argument("--steps", type=int, default=0, help="stop after this many CVAE steps instead (0: the budget)")
     ap.add_argument("--ae-steps", type=int, default=4000)
-    ap.add_argument("--batch", type=int, default=256)
+    ap.add_argument("--batch", type=int, default=128, help="windows per step (per process under torchrun)")
     ap.add_argument("--window", type=int, default=60)
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--best-of", type=int, default=8, metavar="K",
+                    help="relaxed best-of-K sampling (the shipped recipe); 0 = SSI eq. 1's CVAE loss")
+    ap.add_argument("--eps", type=float, default=0.05, help="weight of the mean over the K samples")
+    ap.add_argument("--floor", type=float, default=LOSS["w_floor"], help="weight of the floor term (m^2)")
     ap.add_argument("--posterior", action="store_true", help="encoder also sees the target pose (q(z|x,y))")
     ap.add_argument("--learned-prior", action="store_true",
                     help="conditional prior p(z | trackers, GRU state); implies --posterior")
-    ap.add_argument("--kl", type=float, default=LOSS["lambda_kl"], help="KL weight lambda")
-    ap.add_argument("--variety", type=int, default=0, metavar="K",
-                    help="best-of-K training for sample diversity (z = 0 regression + the best of K latents)")
+    ap.add_argument("--kl", type=float, default=LOSS["lambda_kl"], help="KL weight lambda (--best-of 0)")
     ap.add_argument("--init", help="start the CVAE from this checkpoint folder (e.g. models/checkpoints) and "
                                    "reuse its autoencoder instead of training one")
+    ap.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
+    ap.add_argument("--val-every", type=int, default=400)
     ap.add_argument("--out", default="models")
     ap.add_argument("--ckpt", default=".cache/train")
-    a = ap.parse_args()
+    ap.add_argument("--no-export", action="store_true", help="stop after saving the checkpoint")
+    a = ap.parse_args(argv)
 
+    rank, world, local_rank = distributed()
+    device = pick_device(a.device, local_rank)
+    lead = rank == 0
     out, ckpt = Path(a.out), Path(a.ckpt)
-    ckpt.mkdir(parents=True, exist_ok=True)
-    out.mkdir(parents=True, exist_ok=True)
-    logf = open(out / "train_log.txt", "w")
+    if lead:
+        ckpt.mkdir(parents=True, exist_ok=True)
+        out.mkdir(parents=True, exist_ok=True)
+    logf = open(out / "train_log.txt", "w") if lead else None
 
     def log(msg):
-        print(msg, flush=True)
-        logf.write(msg + "\n")
-        logf.flush()
+        if lead:
+            print(msg, flush=True)
+            logf.write(msg + "\n")
+            logf.flush()
 
     torch.manual_seed(a.seed)
-    torch.set_num_threads(2)
-    LOSS["lambda_kl"] = a.kl
-    log(f"args: {vars(a)}  loss: {LOSS}")
+    torch.set_num_threads(max(1, (os.cpu_count() or 2) // world))
+    LOSS["lambda_kl"], LOSS["w_floor"] = a.kl, a.floor
+    log(f"args: {vars(a)}  loss: {LOSS}  device: {device}  processes: {world}")
     cs_train = ds.build(a.data, "train", a.sources)
     cs_val = ds.build(a.data, "val", a.sources)
     log(f"train: {len(cs_train.names)} clips, {len(cs_train.root) / 3600:.1f} min; val: {len(cs_val.names)} clips, "
         f"{len(cs_val.root) / 3600:.1f} min (60 Hz)")
 
-    q = mp.get_context("fork").Queue(maxsize=8)
-    procs = [mp.get_context("fork").Process(target=_producer, args=(q, a.data, a.sources, a.window, a.batch, a.seed + 1 + k),
-                                            daemon=True) for k in range(1)]
+    ctx = mp.get_context("fork")
+    q = ctx.Queue(maxsize=8)
+    procs = [ctx.Process(target=_producer, args=(q, a.data, a.sources, a.window, a.batch, a.seed + 1 + 1000 * rank),
+                         daemon=True)]
     for p in procs:
         p.start()
+    if world > 1:       # after the fork: the batch producer must not inherit the process group's threads
+        import torch.distributed as dist
+        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
 
     t0 = time.time()
     if a.init:
         import shutil
-        shutil.copy(Path(a.init) / "ae.pt", ckpt / "ae.pt")
+        if lead:
+            shutil.copy(Path(a.init) / "ae.pt", ckpt / "ae.pt")
         threshold = json.loads((Path(a.init) / "meta.json").read_text())["plausibility_threshold_m"]
         log(f"autoencoder and threshold from {a.init}")
-    else:
+    elif lead:
         ae, threshold = train_ae(cs_train, cs_val, a.ae_steps, a.seed, log)
         torch.save(ae.state_dict(), ckpt / "ae.pt")
         log(f"autoencoder trained in {time.time() - t0:.0f} s")
+    if world > 1:
+        dist.barrier()
 
-    # Validation: fixed clean windows of 4 s, latent at the prior mean (what N=1 runs).
-    vrng = np.random.default_rng(1234)
-    vstarts = ds.window_starts(cs_val, 240)
-    val_batches = [to_t(ds.make_batch(cs_val, vrng.choice(vstarts, 128), 240, vrng, None)) for _ in range(4)]
+    # Validation (rank 0): fixed noisy windows of 4 s, latent at the prior mean (what N=1 runs), with
+    # no extra IMUs (the 4-point case) and with random sets of them; selection on their mean.
+    val_batches = {}
+    if lead:
+        vrng = np.random.default_rng(1234)
+        vstarts = ds.window_starts(cs_val, 240)
+        for kind in ("none", "imus"):
+            val_batches[kind] = [to_t(ds.make_batch(cs_val, vrng.choice(vstarts, 128), 240, vrng, DeviceNoise(),
+                                                    ImuNoise(), with_imus=kind == "imus"), device) for _ in range(4)]
 
     a.posterior = a.posterior or a.learned_prior
     model = CVAE(posterior=a.posterior, learned_prior=a.learned_prior)
@@ -199,50 +287,72 @@ def main():
         model.norm.fit(torch.cat([b["features"] for b in fit]))
     if a.posterior:
         model.target_norm.fit(torch.cat([b["gt_rel"].flatten(-2) for b in fit]))
+    model.to(device)
+    step = RecipeStep(model, a.best_of, a.eps)
+    if world > 1:      # DDP broadcasts rank 0's weights and buffers now and averages the gradients
+        step = torch.nn.parallel.DistributedDataParallel(step, find_unused_parameters=True)
+        torch.save({k: v.cpu() for k, v in model.state_dict().items()}, ckpt / f"initial_rank{rank}.pt")
     opt = torch.optim.Adam(model.parameters(), lr=a.lr)
     budget = a.minutes * 60
     best, best_it, it = float("inf"), -1, 0
     t1 = time.time()
-    bar = Progress(int(budget), "cvae (s)")
-    while time.time() - t1 < budget:
-        frac = (time.time() - t1) / budget
+    total = a.steps or int(budget)
+    bar = Progress(total, "cvae (steps)" if a.steps else "cvae (s)") if lead else None
+    stop = torch.zeros(1)
+    while True:
+        done = it >= a.steps if a.steps else time.time() - t1 >= budget
+        if world > 1:      # rank 0's clock decides for everyone, so every process runs the same steps
+            stop.fill_(float(done))
+            dist.broadcast(stop, 0)
+            done = bool(stop.item())
+        if done:
+            break
+        frac = it / a.steps if a.steps else (time.time() - t1) / budget
         for g in opt.param_groups:
-            g["lr"] = 1e-5 + 0.5 * (a.lr - 1e-5) * (1 + np.cos(np.pi * frac))
-        b = to_t(q.get())
+            g["lr"] = 1e-5 + 0.5 * (a.lr - 1e-5) * (1 + np.cos(np.pi * min(frac, 1.0)))
+        b = to_t(q.get(), device)
         model.train()
-        if a.variety:
-            mse, kl, bce, rot, mpjpe = variety_losses(model, b, a.variety)    # kl slot: the best-of-K term
-            loss = LOSS["w_pos"] * (mse + kl) + LOSS["gamma_bce"] * bce + LOSS["w_rot"] * rot
-        else:
-            mse, kl, bce, rot, mpjpe = cvae_losses(model, b)
-            loss = LOSS["w_pos"] * mse + LOSS["lambda_kl"] * kl + LOSS["gamma_bce"] * bce + LOSS["w_rot"] * rot
+        loss, t = step(b)
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         opt.step()
         it += 1
-        if it % 20 == 0:
-            bar.n = int(time.time() - t1) - 1
-            bar.update(postfix=f"it {it} train {mpjpe.item() * 100:.2f} cm kl {kl.item():.3f} bce {bce.item():.3f}")
-        if it % 400 == 0 or time.time() - t1 >= budget:
-            model.eval()
-            with torch.no_grad():
-                v = np.mean([cvae_losses(model, vb, sample=False)[4].item() for vb in val_batches]) * 100
-            model.train()
-            log(f"it {it} t {time.time() - t1:.0f}s lr {opt.param_groups[0]['lr']:.2e} train mpjpe {mpjpe.item() * 100:.2f} "
-                f"kl {kl.item():.4f} bce {bce.item():.4f} | val mpjpe (head-anchored, no IK) {v:.2f} cm")
-            if v < best:
-                best, best_it = v, it
+        if lead and it % 20 == 0:
+            bar.n = it - 1 if a.steps else int(time.time() - t1) - 1
+            bar.update(postfix=f"it {it} train {t['mpjpe'].item() * 100:.2f} cm bce {t['bce'].item():.3f}"
+                               + (f" floor {t['floor'].item() * 1e4:.2f} cm2" if "floor" in t else ""))
+        last = (it >= a.steps) if a.steps else (time.time() - t1 >= budget)
+        if lead and (it % a.val_every == 0 or last):
+            v = {k: validate(model, vb) for k, vb in val_batches.items()}
+            score = float(np.mean(list(v.values())))
+            log(f"it {it} t {time.time() - t1:.0f}s lr {opt.param_groups[0]['lr']:.2e} train mpjpe "
+                f"{t['mpjpe'].item() * 100:.2f} " + " ".join(f"{k} {x.item():.4f}" for k, x in t.items() if k != "mpjpe")
+                + f" | val mpjpe (head-anchored, no IK) none {v['none']:.2f} imus {v['imus']:.2f} cm")
+            if score < best:
+                best, best_it = score, it
                 torch.save(model.state_dict(), ckpt / "cvae.pt")
-    bar.close()
+    if bar:
+        bar.close()
     for p in procs:
         p.terminate()
+    if world > 1:      # every process ends with the same weights: rank r saves its own copy to show it
+        torch.save({k: v.cpu() for k, v in model.state_dict().items()}, ckpt / f"final_rank{rank}.pt")
+        dist.barrier()
+        dist.destroy_process_group()
+    if not lead:
+        return
     log(f"cvae: {it} iterations in {time.time() - t1:.0f} s; best val {best:.2f} cm at it {best_it}")
     meta = {"plausibility_threshold_m": threshold, "iterations": it, "best_iteration": best_it,
             "val_mpjpe_cm_training": best, "minutes": a.minutes, "sources": a.sources or sorted(ds.SOURCE_FOLDERS),
-            "loss": LOSS, "posterior_encoder": a.posterior, "learned_prior": a.learned_prior, "variety": a.variety, "init": a.init, "batch": a.batch, "window": a.window, "lr": a.lr, "seed": a.seed,
-            "train_clips": len(cs_train.names), "train_minutes": len(cs_train.root) / 3600}
+            "licences": {s: ds.SOURCE_LICENCES[s] for s in (a.sources or sorted(ds.SOURCE_FOLDERS))},
+            "loss": LOSS, "best_of": a.best_of, "eps": a.eps, "posterior_encoder": a.posterior,
+            "learned_prior": a.learned_prior, "init": a.init, "batch": a.batch, "window": a.window, "lr": a.lr,
+            "seed": a.seed, "processes": world, "device": str(device), "train_clips": len(cs_train.names),
+            "train_minutes": len(cs_train.root) / 3600, "features": "4-point + 7 IMUs (edge.features)"}
     (ckpt / "meta.json").write_text(json.dumps(meta, indent=2))
+    if a.no_export:
+        return
     from models.export import export_all
     export_all(ckpt, out)
     log("exported ONNX models and manifest")

@@ -87,7 +87,9 @@ def selection_agreement(data, samples, max_clips, models):
 def drift(models, frames=3000, rows=32, checkpoints=(100, 1000, 3000)):
     """Both decoders, closed loop, on the bundled sample's features looped to `frames` frames."""
     take = from_sample(SAMPLE)
-    feats, _, yaw_q = sequence_features(take.signals, take.fps)
+    folder = Path(models) if models else DEFAULT_DIR
+    feats, _, yaw_q = sequence_features(take.signals, take.fps,
+                                        n_features=json.loads((folder / "manifest.json").read_text())["features"])
     root = quat.to_matrix(quat.mul(quat.inv(yaw_q), take.signals.waist_rot))     # puck in the character frame
     reps = -(-frames // len(feats))
     feats = np.tile(feats, (reps, 1))[:frames].astype(np.float32)

@@ -55,18 +55,22 @@ def test_model_that_is_not_onnx_fails_at_load(model_copy):
 
 
 def _sample_features(T=300):
+    """The bundled walk's decoder input, as wide as the shipped decoder reads it; with the extra IMUs
+    (when it reads them) worn on both legs and dropping out (edge.imus), so those inputs are exercised."""
+    from edge.imus import IMU_LOCATIONS, ImuNoise, dragposer_drops, mask
+    from edge.signals import wear
     take = from_sample(SAMPLE)
-    f, _, _ = sequence_features(take.signals, take.fps)
+    rng = np.random.default_rng(0)
+    worn = mask(IMU_LOCATIONS[1:5])
+    sig = wear(take.signals, worn, take.fps, rng, ImuNoise(), dragposer_drops(rng, take.frames, worn, p=0.02, frames=40))
+    f, _, _ = sequence_features(sig, take.fps, n_features=load_manifest()["features"])
     return f[:T].astype(np.float32)
 
 
 def _torch_models(torch):
-    from models.nets import CVAE, PoseAE
-    ck = DEFAULT_DIR / "checkpoints"
-    cvae, ae = CVAE(), PoseAE()
-    cvae.load_state_dict(torch.load(ck / "cvae.pt", weights_only=True))
-    ae.load_state_dict(torch.load(ck / "ae.pt", weights_only=True))
-    return cvae.eval(), ae.eval()
+    from models.export import load_checkpoint
+    cvae, ae, _ = load_checkpoint(DEFAULT_DIR / "checkpoints")
+    return cvae, ae
 
 
 def test_onnx_decoder_matches_pytorch_over_a_300_frame_closed_loop(torch):
@@ -123,7 +127,7 @@ def test_learned_prior_step_at_zero_epsilon_decodes_the_prior_mean(torch):
     from models.nets import LATENT, CVAE, DecoderStep
     torch.manual_seed(0)
     cvae = CVAE(posterior=True, learned_prior=True).eval()
-    x = torch.randn(40, 3, 24)
+    x = torch.randn(40, 3, cvae.n_features)
     step = DecoderStep(cvae).eval()
     with torch.no_grad():
         rot_seq, con_seq, _ = cvae.decode_prior_mean(x)

@@ -62,7 +62,7 @@ def test_int8_decoder_tracks_fp32_in_closed_loop_on_the_sample(take, manifest):
 
     Tolerances: rot6d within 0.05 and FK joint positions within 0.5 cm on average and 3 cm at worst
     (measured: 0.020, 0.19 cm and 1.0 cm)."""
-    f, _, yaw = sequence_features(take.signals, take.fps)
+    f, _, yaw = sequence_features(take.signals, take.fps, n_features=manifest["features"])
     root = quat.to_matrix(quat.mul(quat.inv(yaw), take.signals.waist_rot))[:, None]
     feats, z = f[:, None].astype(np.float32), np.zeros((1, 30), np.float32)
     a = rollout(make_session(DEFAULT_DIR / FP32[0]), feats, z)[0]

@@ -97,7 +97,7 @@ class CoreContext(ctypes.Structure):
                                      "out_world", "out_pos", "ae_in", "ae_local", "ae_root_local", "frame_in",
                                      "frame_offsets", "prev")]
                 + [("fps", _D), ("ring_features", _P), ("dec_features", _P), ("dec_rows", _I), ("ring_hidden", _P),
-                   ("hidden", _I), ("out_contacts", _P)])
+                   ("hidden", _I), ("out_contacts", _P), ("n_features", _I), ("imus", _I), ("floor_lift", _P)])
 
 
 _SIGNATURES = {
@@ -106,7 +106,9 @@ _SIGNATURES = {
     "ep_leg_error": [_I, _I, _P, _I, _P, _P, _P, _P, _P, _P],
     "ep_foot_locks": [_I, _I, _P, _P, _I, _P, _D, _D, _P, _P, _P, _P, _P, _P],
     "ep_frame_features": [_P, _P, _P, _D, _P, _P, _P],
-    "ep_post": [_I, _I, _P, _P, _P, _P, _P, _P, _I, _I, _P, _I, _P, _I, _P, _I, _I, _I, _P, _P, _P],
+    "ep_imu_features": [_I, _P, _P, _P, _P],
+    "ep_physical_cost": [_I, _I, _P, _P, _P, _P, _P, _D, _D, _D, _D, _D, _D, _D, _P],
+    "ep_post": [_I, _I, _P, _P, _P, _P, _P, _P, _I, _I, _P, _I, _P, _I, _P, _I, _I, _I, _P, _P, _P, _P],
     "ep_switch_to": [_I, _P, _I],
     "ep_frame_poses": [ctypes.POINTER(CoreContext), _I, _I, _I, _I, _I, _D, _P, _P, _P],
     "ep_emit": [ctypes.POINTER(CoreContext), _I, _I],

@@ -55,6 +55,10 @@ static double clamp(double x, double lo, double hi) { return x < lo ? lo : (x > 
 typedef double lane[LANES];             /* one value for each of LANES samples */
 
 int ep_max_joints(void) { return MAX_JOINTS; }
+#define MAX_FEATURES 128
+/* edge.pipeline.FLOOR_ANKLE / FLOOR_TOE: the lowest an ankle and a toe joint may go (m above the floor) */
+#define FLOOR_ANKLE 0.07
+#define FLOOR_TOE 0.0
 
 /* dst[k][l] = src[row_l * stride + k] for k < n: row_l is r0 + l, or the block's last real row in a
  * spare lane (nl real rows). stride 0 gives every lane the same values. */
@@ -309,13 +313,28 @@ static void lane_two_bone_ik(lane *a, lane *b, lane *c, lane *t, lane *a_rot, la
  * w_stride apart (NULL: weight w_const). */
 static void block_chain(block *k, int r0, int nl, int J, const int64_t *parents, const double *offsets,
                         const int64_t *chain, const double *tg, int64_t tg_stride, const double *w, int64_t w_stride,
-                        double w_const, const double *pole_local, const double *end_rot, int64_t end_stride) {
+                        double w_const, const double *pole_local, const double *end_rot, int64_t end_stride,
+                        int floor, double *lift, int64_t lift_stride) {
     int ia = (int)chain[0], ib = (int)chain[1], ic = (int)chain[2], ip = (int)parents[ia];
     lane goal[3], wt[1], pole[3], v[3], end[9], a_new[9], b_new[9];
     gather(goal, 3, tg, tg_stride, r0, nl);
     if (w) gather(wt, 1, w, w_stride, r0, nl);
     else EACH wt[0][l] = w_const;
     for (int i = 0; i < 3; i++) EACH goal[i][l] = k->P[ic][i][l] + wt[0][l] * (goal[i][l] - k->P[ic][i][l]);
+    if (floor) {                /* edge.pipeline.floor_lift: no ankle or toe below the floor */
+        int it = ic + 1;
+        while (it < J && parents[it] != ic) it++;
+        const double *o = offsets + it * 3;
+        lane up;
+        EACH {
+            double toe_drop = k->W[ic][3][l] * o[0] + k->W[ic][4][l] * o[1] + k->W[ic][5][l] * o[2];
+            double a = FLOOR_ANKLE - goal[1][l], t = FLOOR_TOE - (goal[1][l] + toe_drop);
+            up[l] = a > t ? a : t;
+            up[l] = up[l] > 0.0 ? up[l] : 0.0;
+            goal[1][l] += up[l];
+        }
+        if (lift) scatter(&up, 1, lift, lift_stride, r0, nl);
+    }
     if (end_rot) gather(end, 9, end_rot, end_stride, r0, nl);
     else lane_copy(end, k->W[ic], 9);
     lane_matvec3_shared_v(k->W[ib], pole_local, pole);
@@ -341,13 +360,13 @@ static void block_chain(block *k, int r0, int nl, int J, const int64_t *parents,
 static void block_post(block *k, int r0, int nl, int J, const int64_t *parents, const double *offsets,
                        const int64_t *chains, const double *poles, const double *foot_goals, const double *foot_weights,
                        int foot_ik, int arm_ik, const double *wrists, int wrists_stride, const double *hand_m,
-                       int hand_stride, const double *head_m, int head_stride, int neck, int head) {
+                       int hand_stride, const double *head_m, int head_stride, int neck, int head, double *lift) {
     for (int c = 0; c < 2; c++)
         block_chain(k, r0, nl, J, parents, offsets, chains + c * 3, foot_goals + c * 3, 6, foot_ik ? foot_weights + c : 0,
-                    2, 0.0, poles + c * 3, 0, 0);
+                    2, 0.0, poles + c * 3, 0, 0, foot_ik, lift ? lift + c : 0, 2);
     for (int c = 2; c < 4; c++)
         block_chain(k, r0, nl, J, parents, offsets, chains + c * 3, wrists + (c - 2) * 3, wrists_stride, 0, 0,
-                    arm_ik ? 1.0 : 0.0, poles + c * 3, arm_ik ? hand_m + (c - 2) * 9 : 0, hand_stride);
+                    arm_ik ? 1.0 : 0.0, poles + c * 3, arm_ik ? hand_m + (c - 2) * 9 : 0, hand_stride, 0, 0, 0);
     if (arm_ik) {
         gather(k->W[head], 9, head_m, head_stride, r0, nl);
         lane_matmul3_tn(k->W[neck], k->W[head], k->L[head]);
@@ -355,19 +374,20 @@ static void block_post(block *k, int r0, int nl, int J, const int64_t *parents, 
 }
 
 /* edge.pipeline.Pipeline._post: the legs (chains 0, 1) to their foot goals [R,2,3] at the lock
- * weights [R,2] (0 without foot IK), keeping the ankles' orientation; the arms (chains 2, 3) onto the
+ * weights [R,2] (0 without foot IK), lifted so no ankle or toe is below the floor (how far: lift
+ * [R,2], when not NULL), keeping the ankles' orientation; the arms (chains 2, 3) onto the
  * controllers (wrists [2,3], hand rotations [2,3,3] per row or shared) with the hands turned to them;
  * the head turned to the headset (head_m [3,3]). Without arm IK the arms and head are left alone. */
 void ep_post(int R, int J, const int64_t *parents, const double *offsets, const int64_t *chains,
              const double *poles, const double *foot_goals, const double *foot_weights, int foot_ik, int arm_ik,
              const double *wrists, int wrists_stride, const double *hand_m, int hand_stride, const double *head_m,
-             int head_stride, int neck, int head, double *local, double *world, double *pos) {
+             int head_stride, int neck, int head, double *local, double *world, double *pos, double *lift) {
     block k;
     for (int r0 = 0; r0 < R; r0 += LANES) {
         int nl = R - r0 < LANES ? R - r0 : LANES;
         block_load(&k, r0, nl, J, local, world, pos);
         block_post(&k, r0, nl, J, parents, offsets, chains, poles, foot_goals, foot_weights, foot_ik, arm_ik, wrists,
-                   wrists_stride, hand_m, hand_stride, head_m, head_stride, neck, head);
+                   wrists_stride, hand_m, hand_stride, head_m, head_stride, neck, head, lift);
         block_store(&k, r0, nl, J, local, world, pos);
     }
 }
@@ -498,9 +518,9 @@ typedef struct {
      * pelvis rotation in it [N,3,3] (ep_local_pose's outputs). */
     float *ae_in;
     double *ae_local, *ae_root_local;
-    /* ep_frame_inputs: this frame's tracker signals [25] and ep_frame_features' offsets [4,3], last
-     * frame's points [4,3] (updated), the frame rate; the features go to the ring [slots,24] and to
-     * every one of the decoder's dec_rows input rows. */
+    /* ep_frame_inputs: this frame's tracker signals [25 (+ imus * 5)] and ep_frame_features' offsets
+     * [4,3], last frame's points [4,3] (updated), the frame rate; the features go to the ring
+     * [slots,n_features] and to every one of the decoder's dec_rows input rows. */
     const double *frame_in, *frame_offsets;
     double *prev, fps;
     float *ring_features, *dec_features;
@@ -509,6 +529,10 @@ typedef struct {
     float *ring_hidden;
     int hidden;
     double *out_contacts;                     /* ep_emit's foot contacts [2] */
+    /* the decoder's input width: 24 point features, or 24 + imus * 7 with the extra IMUs (frame_in then
+     * carries their orientations and flags after the 25 tracker values) */
+    int n_features, imus;
+    double *floor_lift;                       /* how far the floor lifted each row's feet [rows,2], out */
 } core_context;
 
 static void copy_f32(float *dst, const float *src, int64_t n) { for (int64_t i = 0; i < n; i++) dst[i] = src[i]; }
@@ -552,7 +576,7 @@ void ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n,
                 }
         }
         block_post(&k, r0, nl, J, x->parents, x->offsets, x->chains, x->poles, x->goals, x->weights, x->foot_ik,
-                   x->arm_ik, wrists, 0, hand_m, 0, head_m, 0, x->neck, x->head);
+                   x->arm_ik, wrists, 0, hand_m, 0, head_m, 0, x->neck, x->head, x->floor_lift);
         block_store(&k, r0, nl, J, 0, world, pos);
         int ns = N - r0 < nl ? N - r0 : nl;     /* sample rows in this block (not the transition row) */
         if (x->ae_in && ns > 0) {                /* ep_local_pose on the block, for the plausibility score */
@@ -589,7 +613,7 @@ void ep_row_pose(const core_context *x, const float *rot6d, const double *goals,
     block k;
     block_forward(&k, 0, 1, x->J, x->parents, x->offsets, x->head, rot6d, 0, root_m, 0, anchor, 0);
     block_post(&k, 0, 1, x->J, x->parents, x->offsets, x->chains, x->poles, goals, weights, x->foot_ik, x->arm_ik,
-               wrists, 0, hand_m, 0, head_m, 0, x->neck, x->head);
+               wrists, 0, hand_m, 0, head_m, 0, x->neck, x->head, 0);
     block_store(&k, 0, 1, x->J, local, world, pos);
 }
 
@@ -621,9 +645,27 @@ static void quat_to_matrix(const double *q, double *m) {
     m[6] = 2 * (x * z - w * y); m[7] = 2 * (y * z + w * x); m[8] = 1 - 2 * (x * x + y * y);
 }
 
-/* One frame of tracker signals -> the decoder's 24 features and what the pipeline keeps of the frame:
- * edge.features.body_points, heading and features (the same arithmetic, in numpy's order, so the
- * result is bit-identical to the numpy path training used), and the tracker rotations as matrices.
+/* The inverse of the character's heading (edge.features.heading): the yaw of the waist's forward
+ * axis, as a quaternion about +Y, conjugated, in numpy's order of operations. */
+static void heading_inverse(const double *waist_rot, double *inv) {
+    const double forward[3] = {0.0, 0.0, 1.0};
+    double fwd[3];
+    quat_rotate(waist_rot, forward, fwd);
+    double half = atan2(fwd[0], fwd[2]) / 2, c = cos(half), s = sin(half);
+    inv[0] = c * 1.0; inv[1] = (s * 0.0) * -1.0; inv[2] = (s * 1.0) * -1.0; inv[3] = (s * 0.0) * -1.0;
+}
+
+/* edge.quat.mul */
+static void quat_mul(const double *a, const double *b, double *out) {
+    out[0] = a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3];
+    out[1] = a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2];
+    out[2] = a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1];
+    out[3] = a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0];
+}
+
+/* One frame of tracker signals -> the decoder's 24 point features and what the pipeline keeps of the
+ * frame: edge.features.body_points, heading and features (the same arithmetic, in numpy's order, so
+ * the result is bit-identical to the numpy path training used), and the tracker rotations as matrices.
  * in [25]: head_pos 3, head_rot 4, hand_pos 2x3, hand_rot 2x4, waist_rot 4; offsets [4,3]: eye,
  * left grip, right grip, pelvis-to-head (scaled); prev [4,3]: last frame's points.
  * Out: points [4,3] (head, wrists, waist), features (float, the decoder's input), mats [4,9]
@@ -640,12 +682,9 @@ void ep_frame_features(const double *in, const double *offsets, const double *pr
         points[6 + i] = hand_pos[3 + i] - turned[2][i];
         points[9 + i] = points[i] - turned[3][i];
     }
-    /* heading: yaw of the waist's forward axis, as a quaternion about +Y; then its inverse */
-    const double forward[3] = {0.0, 0.0, 1.0}, xz[3] = {1.0, 0.0, 1.0};
-    double fwd[3];
-    quat_rotate(waist_rot, forward, fwd);
-    double half = atan2(fwd[0], fwd[2]) / 2, c = cos(half), s = sin(half);
-    double inv[4] = {c * 1.0, (s * 0.0) * -1.0, (s * 1.0) * -1.0, (s * 0.0) * -1.0};
+    const double xz[3] = {1.0, 0.0, 1.0};
+    double inv[4];
+    heading_inverse(waist_rot, inv);
     for (int k = 0; k < 8; k++) {
         double v[3], r[3];
         for (int i = 0; i < 3; i++)
@@ -657,6 +696,67 @@ void ep_frame_features(const double *in, const double *offsets, const double *pr
     quat_to_matrix(hand_rot, mats + 9);
     quat_to_matrix(hand_rot + 4, mats + 18);
     quat_to_matrix(head_rot, mats + 27);
+}
+
+/* edge.features.imu_features: the K extra IMUs' orientations imu_rot [K,4] (world) and presence
+ * flags [K] -> features [K*6 + K]: the 6D (first two matrix columns) of each orientation in the
+ * character frame of waist_rot's heading, times its flag, then the flags. Bit-identical to numpy. */
+void ep_imu_features(int K, const double *imu_rot, const double *imu_flag, const double *waist_rot, float *features) {
+    double inv[4], local[4], m[9];
+    heading_inverse(waist_rot, inv);
+    for (int k = 0; k < K; k++) {
+        quat_mul(inv, imu_rot + k * 4, local);
+        quat_to_matrix(local, m);
+        const double f = imu_flag[k];
+        const double six[6] = {m[0], m[3], m[6], m[1], m[4], m[7]};
+        for (int i = 0; i < 6; i++) features[k * 6 + i] = (float)(six[i] * f);
+        features[K * 6 + k] = (float)f;
+    }
+}
+
+/* edge.physics.segment_distance: closest distance between segments p0-p1 and q0-q1. */
+static double segment_distance(const double *p0, const double *p1, const double *q0, const double *q1) {
+    double d1[3], d2[3], r[3];
+    for (int i = 0; i < 3; i++) { d1[i] = p1[i] - p0[i]; d2[i] = q1[i] - q0[i]; r[i] = p0[i] - q0[i]; }
+    double a = dot3(d1, d1), e = dot3(d2, d2), f = dot3(d2, r), c = dot3(d1, r), b = dot3(d1, d2);
+    double denom = a * e - b * b;
+    double sc = denom > 1e-12 ? clamp((b * f - c * e) / denom, 0, 1) : 0.0;
+    double t = (b * sc + f) / (e > 1e-12 ? e : 1e-12);
+    double am = a > 1e-12 ? a : 1e-12;
+    if (t < 0) sc = clamp(-c / am, 0, 1);
+    else if (t > 1) sc = clamp((b - c) / am, 0, 1);
+    t = clamp(t, 0, 1);
+    double dd[3];
+    for (int i = 0; i < 3; i++) dd[i] = p0[i] + d1[i] * sc - (q0[i] + d2[i] * t);
+    return sqrt(dot3(dd, dd));
+}
+
+/* edge.criteria.PhysicalPlausibility.cost for N rows of world positions pos [N,J,3]: w_floor times how
+ * far the floor lifted the feet (lift [N,2]), w_legs times how far the legs' thigh/shin segments come
+ * inside `gap` of each other (segs [2 sides][2 segments][2 ends] joint indices), and w_support times how
+ * far above `float_m` a foot is while the sample says it is in contact (contacts [N,2] float, > 0.5;
+ * the foot's height: edge.physics.foot_height with the rest heights toe_h and ankle_h of joints feet
+ * [toe l, toe r, ankle l, ankle r]). -> cost [N]. */
+void ep_physical_cost(int N, int J, const double *pos, const float *contacts, const double *lift, const int64_t *segs,
+                      const int64_t *feet, double gap, double float_m, double toe_h, double ankle_h, double w_floor,
+                      double w_legs, double w_support, double *cost) {
+    for (int r = 0; r < N; r++) {
+        const double *P = pos + (int64_t)r * J * 3;
+        double closest = 1e300;
+        for (int a = 0; a < 2; a++)
+            for (int b = 0; b < 2; b++) {
+                const int64_t *L = segs + a * 2, *R = segs + 4 + b * 2;
+                double d = segment_distance(P + L[0] * 3, P + L[1] * 3, P + R[0] * 3, P + R[1] * 3);
+                closest = d < closest ? d : closest;
+            }
+        double legs = gap - closest > 0 ? gap - closest : 0.0, support = 0.0;
+        for (int f = 0; f < 2; f++) {
+            double toe = P[feet[f] * 3 + 1] - toe_h, ankle = P[feet[2 + f] * 3 + 1] - ankle_h;
+            double h = (toe < ankle ? toe : ankle) - float_m;
+            if (contacts[r * 2 + f] > 0.5f && h > 0) support += h;
+        }
+        cost[r] = w_floor * (lift[r * 2] + lift[r * 2 + 1]) + w_legs * legs + w_support * support;
+    }
 }
 
 /* The k-th smallest of x[0..n) (x is reordered): Hoare's quickselect. */
@@ -710,14 +810,17 @@ int ep_switch_to(int N, const double *cost, int c) {
  * tracker matrices where Pipeline.step keeps them. */
 void ep_frame_inputs(const core_context *x, int slot, int first) {
     double points[12], mats[36];
-    float feat[24];
+    float feat[MAX_FEATURES];
+    const int F = x->n_features;
     ep_frame_features(x->frame_in, x->frame_offsets, first ? points : x->prev, x->fps, points, feat, mats);
+    if (F > 24)                 /* the extra IMUs: frame_in[25..] holds their orientations [K,4] and flags [K] */
+        ep_imu_features(x->imus, x->frame_in + 25, x->frame_in + 25 + 4 * x->imus, x->frame_in + 21, feat + 24);
     copy_f64(x->prev, points, 12);
     copy_f64(x->ring_anchor + slot * 3, points, 3);
     copy_f64(x->ring_wrists + slot * 6, points + 3, 6);
     copy_f64(x->ring_waist + slot * 9, mats, 9);
     copy_f64(x->ring_hand + slot * 18, mats + 9, 18);
     copy_f64(x->ring_head + slot * 9, mats + 27, 9);
-    copy_f32(x->ring_features + slot * 24, feat, 24);
-    for (int r = 0; r < x->dec_rows; r++) copy_f32(x->dec_features + (int64_t)r * 24, feat, 24);
+    copy_f32(x->ring_features + slot * F, feat, F);
+    for (int r = 0; r < x->dec_rows; r++) copy_f32(x->dec_features + (int64_t)r * F, feat, F);
 }

@@ -323,6 +323,8 @@ def report(session, summary, m, service, ear, opened, errors, faults, speed, dur
     seen = np.flatnonzero(m.seen)
     out = {
         "source": session.name, "speed": speed, "seconds": duration, "faults": faults,
+        "trackers": list(service.sync.trackers), "placement": session.meta.get("placement"),
+        "trackers_used_by_model": [n for n, _ in service._imu_slots] if service.pipeline.imus else [],
         "frames_in": summary["frames_in"], "frames_out": summary["frames_out"], "poses_decoded": m.decoded,
         "packets_corrupt": int(summary["packets_corrupt"] + ear.stats["corrupt"]),
         "packets_lost": int(summary["packets_lost"] + ear.stats.get("missed", 0)),
@@ -368,8 +370,8 @@ def tile_take(take, seconds):
     if reps <= 1:
         return take
     sig = take.signals
-    tiled = Signals(*(np.concatenate([getattr(sig, f)] * reps) for f in
-                      ("head_pos", "head_rot", "hand_pos", "hand_rot", "waist_rot", "waist_acc")))
+    from dataclasses import fields
+    tiled = Signals(**{f.name: np.concatenate([getattr(sig, f.name)] * reps) for f in fields(sig)})
     imu = {k: np.concatenate([v] * reps) for k, v in (take.imu or {}).items()}
     return type(take)(take.name, tiled, np.concatenate([take.gt_pos] * reps), take.fps, imu)
 
@@ -379,9 +381,10 @@ def tile_take(take, seconds):
 REPLAY_TIME_FAULTS = {"unplug_at", "unplug_s", "i2c_error_rate"}
 
 
-def load_source(source, transports, faults, seed=0, seconds=None):
+def load_source(source, transports, faults, seed=0, seconds=None, trackers=None):
     """A recording (.npz session), or a BVH clip / sample take synthesised through the device models
-    (repeated to last `seconds` when that is longer than the take)."""
+    (repeated to last `seconds` when that is longer than the take) with the extra IMUs `trackers`
+    (default: the two CAN foot trackers). A recording carries the trackers it was made with."""
     path = str(source)
     if path.endswith(".npz"):
         d = np.load(path, allow_pickle=False)
@@ -391,12 +394,17 @@ def load_source(source, transports, faults, seed=0, seconds=None):
                 print(f"edge replay: {path} is a recording, replayed as recorded: these faults do not apply "
                       f"to it: {', '.join(ignored)} (only unplug and i2c-errors do; replay a take or BVH to "
                       "inject the others)", file=sys.stderr)
-            return Session.load(path)
+            session = Session.load(path)
+            if trackers is not None and tuple(trackers) != tuple(session.meta.get("trackers", ["waist"])[1:]):
+                print(f"edge replay: {path} is a recording made with trackers "
+                      f"{','.join(session.meta.get('trackers', ['waist']))}; --trackers applies to a take or BVH clip "
+                      f"(e.g. samples/cmu_09_12_walk.npz)", file=sys.stderr)
+            return session
     from edge.takes import load_take
     take = load_take(path)
     if seconds:
         take = tile_take(take, seconds)
-    return synthesize(take, transports, faults, seed)
+    return synthesize(take, transports, faults, seed, trackers=trackers)
 
 
 def rss_mb():
@@ -416,7 +424,9 @@ def main(args):
         print(f"edge replay: unknown transport {sorted(bad)[0]!r}; use serial, i2c, can", file=sys.stderr)
         return 2
     try:
-        session = load_source(args.source, transports, faults, seconds=args.seconds)
+        from edge.imus import parse_set
+        trackers = None if args.trackers is None else parse_set(args.trackers)
+        session = load_source(args.source, transports, faults, seconds=args.seconds, trackers=trackers)
     except (OSError, ValueError) as e:
         print(f"edge replay: cannot use {args.source}: {e}", file=sys.stderr)
         return 2

@@ -15,26 +15,35 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from edge import quat
+from edge.imus import IMU_LOCATIONS, ImuNoise
 from edge.signals import DeviceNoise, Signals
 from edge.takes import Take
 from firmware_bridge import protocol
 from firmware_bridge.samples import HeadsetSample, TrackerSample
 from firmware_bridge.transports.can_bus import encode_node_frames
 
-# Who sits where when a session uses all three transports: the waist puck on I2C, the feet on CAN, the
-# chest on the serial hub. With fewer transports the waist moves to the hub, then to CAN node 3.
-CAN_NODES = {1: "l_foot", 2: "r_foot", 3: "waist"}
-HUB_IDS = {0: "chest", 1: "waist"}
+# Who sits where: the waist puck on I2C, the feet on CAN, every other extra IMU (edge.imus) on the
+# serial hub. With fewer transports the waist moves to the hub, then to CAN node 3, and the extra IMUs
+# to whichever of hub and CAN there is.
+CAN_NODES = {1: "l_foot", 2: "r_foot", 3: "waist", 4: "chest", 5: "l_thigh", 6: "r_thigh", 7: "l_shin", 8: "r_shin"}
+HUB_IDS = {0: "chest", 1: "waist", 2: "l_thigh", 3: "r_thigh", 4: "l_shin", 5: "r_shin", 6: "l_foot", 7: "r_foot"}
+# The extra IMUs a replay wears unless told: the two CAN foot trackers (the demo shows them in use).
+DEFAULT_TRACKERS = ("l_foot", "r_foot")
 
 
-def placement(transports):
+def placement(transports, trackers=None):
+    """transport -> the tracker names it carries, for the waist and the extra IMUs `trackers` (None: the
+    CAN foot trackers when there is a bus for them)."""
+    if trackers is None:
+        trackers = DEFAULT_TRACKERS if {"serial", "can"} & set(transports) else ()
     place = {"i2c": [], "hub": [], "can": []}
-    if "can" in transports:
-        place["can"] += ["l_foot", "r_foot"]
-    if "serial" in transports:
-        place["hub"].append("chest")
     waist_on = "i2c" if "i2c" in transports else "hub" if "serial" in transports else "can"
     place[waist_on].append("waist")
+    for name in trackers:
+        feet_on_can = name in ("l_foot", "r_foot") and "can" in transports
+        place["can" if feet_on_can or "serial" not in transports else "hub"].append(name)
+    if not {"serial", "can"} & set(transports) and trackers:
+        raise ValueError(f"extra trackers {', '.join(trackers)} need the serial hub or CAN (--transport)")
     return place
 RATES = {"headset": 72.0, "hub": 100.0, "can": 100.0, "i2c": 100.0}
 
@@ -140,8 +149,10 @@ def signal_at(sig: Signals, fps, t):
             lerp(sig.waist_acc))
 
 
-def imu_at(take, name, t):
-    q = take.imu[name] if name != "waist" else take.signals.waist_rot
+def imu_at(take, name, t, imus=None):
+    """A tracker's orientation at true time t: the waist puck's signal, or an extra IMU's (from `imus`,
+    the noisy orientations, when given)."""
+    q = take.signals.waist_rot if name == "waist" else (imus or take.imu)[name]
     x = np.clip(t * take.fps, 0, len(q) - 1)
     i0 = int(np.floor(x))
     return quat.slerp(q[i0], q[min(i0 + 1, len(q) - 1)], x - i0)
@@ -213,10 +224,23 @@ def flip_bits(data, ber, rng):
 
 # ----------------------------------------------------------------------------- synthesis
 
-def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, seed=0, seconds=None):
-    """Device traffic for a take. The headset always speaks serial; IMUs go where PLACEMENT puts them."""
+def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, seed=0, seconds=None,
+               trackers=None):
+    """Device traffic for a take. The headset always speaks serial; IMUs go where `placement` puts them.
+    The extra IMUs `trackers` carry IMU noise (edge.imus.ImuNoise), as `edge eval` and training have it."""
     faults = faults or {}
     rng = np.random.default_rng(seed)
+    place = placement(transports, trackers)
+    trackers = tuple(n for n in place["hub"] + place["can"] if n != "waist")
+    missing = [n for n in trackers if n not in (take.imu or {})]
+    if missing:
+        raise ValueError(f"{take.name} carries no orientation for {', '.join(missing)} (an older sample file: "
+                         f"replay the BVH clip, or rebuild the sample with python -m models.make_sample)")
+    imu_rng = np.random.default_rng([seed, 13])
+    imus = {}
+    if trackers:
+        noisy = ImuNoise().apply(np.stack([take.imu[n] for n in trackers], axis=1), take.fps, imu_rng)
+        imus = {n: noisy[:, k] for k, n in enumerate(trackers)}
     fps = take.fps
     duration = take.frames / fps if seconds is None else min(seconds, take.frames / fps)
     sig = take.signals
@@ -227,7 +251,7 @@ def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, see
         clocks["headset"].jump = (faults["clock_jump_at"], faults["clock_jump_s"])
     frames60 = int(np.ceil(duration * fps)) + 1
     dropped = {}
-    for tracker in ("waist", "chest", "l_foot", "r_foot"):
+    for tracker in ("waist",) + IMU_LOCATIONS:
         dropped[tracker] = (gaps(rng, frames60, faults["disconnect"], lambda r: faults.get("disconnect_frames", 100))
                             if "disconnect" in faults else np.zeros(frames60, bool))
     hands_gone = [gaps(rng, frames60, faults["hand_loss"], lambda r: r.uniform(*faults.get("hand_gap_s", [0.5, 2.0])) * fps)
@@ -248,13 +272,12 @@ def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, see
         if rng.random() >= loss:
             headset.add(t, flip_bits(data, ber, rng))
 
-    place = placement(transports)
-    has = lambda name: name == "waist" or bool(take.imu)          # sample takes may carry only the waist
+    has = lambda name: name == "waist" or name in imus
     hub = SerialLog()
     if place["hub"]:
         for k, t in enumerate(emission_times(RATES["hub"], duration, clocks["hub"].jitter, rng)):
             f = min(int(t * fps), frames60 - 1)
-            samples = [TrackerSample(n, device_time("hub", t), imu_at(take, n, t)) for n in place["hub"]
+            samples = [TrackerSample(n, device_time("hub", t), imu_at(take, n, t, imus)) for n in place["hub"]
                        if has(n) and not dropped[n][f]]
             if samples and rng.random() >= loss:
                 hub.add(t, flip_bits(protocol.encode_tracker_samples(samples, k & 0xFFFF, HUB_IDS), ber, rng))
@@ -269,7 +292,7 @@ def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, see
             for node, name in CAN_NODES.items():
                 if name not in place["can"] or not has(name) or dropped[name][f] or rng.random() < loss:
                     continue
-                for m in encode_node_frames(node, imu_at(take, name, t), np.zeros(3), 0xFF, k & 0xFF):
+                for m in encode_node_frames(node, imu_at(take, name, t, imus), np.zeros(3), 0xFF, k & 0xFF):
                     can_t.append(t)
                     can_id.append(m.arbitration_id)
                     can_data.append(np.frombuffer(flip_bits(bytes(m.data), ber, rng), np.uint8))
@@ -282,7 +305,7 @@ def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, see
         gone = dropped["waist"][np.minimum((i2c_t * fps).astype(int), frames60 - 1)]
         i2c_q[gone] = np.nan                                   # the puck stops answering (see replay)
     gt = None if take.gt_pos is None else take.gt_pos[:int(round(duration * fps))]
-    meta = {"faults": faults, "seed": seed, "placement": place,
+    meta = {"faults": faults, "seed": seed, "placement": place, "trackers": ["waist", *trackers],
             "clocks": {k: {"offset": c.offset, "drift": c.drift} for k, c in clocks.items()},
             "source": take.name}
     return Session(take.name, fps, duration, tuple(transports), headset, hub, np.array(can_t), np.array(can_id, np.int64),

@@ -1,0 +1,53 @@
+"""Physical plausibility of a pose (SSI 3.2 and 5.3): the floor, the legs' clearance, and support.
+
+One place for the geometry and the thresholds: the runtime's floor clamp (edge.pipeline), the
+selection criterion (edge.criteria.PhysicalPlausibility, and its C twin) and the metrics (edge.metrics,
+docs/metrics.md) read them from here. The floor is y = 0 in the world frame.
+"""
+import numpy as np
+
+from edge.skeleton import ANKLES, FEET, JOINT, TOE_HEIGHT
+
+PENETRATION_M = 0.02        # an ankle or toe this far below the floor sinks into it
+INTERSECT_M = 0.10          # the two legs' thigh/shin segments closer than this pass through each other
+FLOAT_M = 0.05              # a foot said to be in contact this far above the floor floats
+ANKLE_HEIGHT = TOE_HEIGHT + 0.07    # the ankle joint's height above the floor in the rest pose
+# The lowest the post-processing lets an ankle and a toe joint go (a flat foot has them at 0.09 and 0.02).
+FLOOR_ANKLE = 0.07
+FLOOR_TOE = 0.0
+# Thigh (hip -> knee) and shin (knee -> ankle) of each leg: [side, segment, end].
+LEG_SEGMENTS = np.array([[[JOINT[f"{s}_hip"], JOINT[f"{s}_knee"]], [JOINT[f"{s}_knee"], JOINT[f"{s}_ankle"]]]
+                         for s in "lr"])
+
+
+def segment_distance(p0, p1, q0, q1):
+    """Closest distance between segments p0-p1 and q0-q1 [...,3] -> [...] (Ericson, Real-Time Collision
+    Detection 5.1.9, with the parallel case handled)."""
+    d1, d2, r = p1 - p0, q1 - q0, p0 - q0
+    a, e, f = (d1 * d1).sum(-1), (d2 * d2).sum(-1), (d2 * r).sum(-1)
+    c, b = (d1 * r).sum(-1), (d1 * d2).sum(-1)
+    denom = a * e - b * b
+    s = np.where(denom > 1e-12, np.clip((b * f - c * e) / np.where(denom > 1e-12, denom, 1.0), 0, 1), 0.0)
+    t = (b * s + f) / np.maximum(e, 1e-12)
+    s = np.where(t < 0, np.clip(-c / np.maximum(a, 1e-12), 0, 1), np.where(t > 1, np.clip((b - c) / np.maximum(a, 1e-12), 0, 1), s))
+    t = np.clip(t, 0, 1)
+    return np.linalg.norm(p0 + d1 * s[..., None] - (q0 + d2 * t[..., None]), axis=-1)
+
+
+def leg_gap(pos):
+    """The smallest distance between a left-leg and a right-leg segment (thighs and shins) [...] (m)."""
+    L, R = pos[..., LEG_SEGMENTS[0], :], pos[..., LEG_SEGMENTS[1], :]      # [...,2,2,3]
+    d = segment_distance(L[..., :, None, 0, :], L[..., :, None, 1, :], R[..., None, :, 0, :], R[..., None, :, 1, :])
+    return d.reshape(d.shape[:-2] + (4,)).min(-1)
+
+
+def foot_height(pos):
+    """Each foot's lowest point above the floor [...,2] (m): the toe's or the ankle's height above where it
+    stands in the rest pose, whichever is lower (a flat foot on the floor reads 0)."""
+    return np.minimum(pos[..., FEET, 1] - TOE_HEIGHT, pos[..., ANKLES, 1] - ANKLE_HEIGHT)
+
+
+def floor_lift(ankle_y, toe_drop_y):
+    """How far a foot must rise so neither its ankle (at ankle_y) nor its toe (toe_drop_y below or above
+    the ankle) is under the floor limits [...] (m, 0 when it is clear)."""
+    return np.maximum(np.maximum(FLOOR_ANKLE - ankle_y, FLOOR_TOE - (ankle_y + toe_drop_y)), 0.0)
