@@ -27,6 +27,8 @@ def main(argv=None):
                     help="extra IMUs worn besides the waist, synthesised from the clip with IMU noise: none (default), "
                          "all, or a list of chest,l_thigh,r_thigh,l_shin,r_shin,l_foot,r_foot")
     ev.add_argument("--faults", choices=("disconnect",), help="DragPoser's faulty-sensor protocol on the extra trackers")
+    ev.add_argument("--no-segments", action="store_true",
+                    help="leave the worn IMUs' segments to the decoder (by default each takes its IMU's rotation)")
     ev.add_argument("--lookahead", type=int, default=None, help="SSI look-ahead tau in frames (default 10 for N>1, 0 for N=1)")
     ev.add_argument("--report", help="also draw the report (PNGs, GIF, index.html) into this folder (needs the [viz] extra; "
                                      "dumps into REPORT/dump unless --dump is given)")

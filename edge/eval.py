@@ -77,14 +77,14 @@ def take_signals(take, trackers, faults=None, seed=0, index=0):
 
 
 def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECISION, max_frames=None, dump=None,
-             models=None, seed=0, lookahead=None, ik=True, log=print, trackers=(), faults=None):
+             models=None, seed=0, lookahead=None, ik=True, log=print, trackers=(), faults=None, segments=True):
     files = find_clips(paths, split)
     if not files:
         raise SystemExit(f"edge eval: no clips found in {paths}" + (f" for split {split!r}" if split else ""))
     if faults not in (None, "disconnect"):
         raise ValueError(f"--faults {faults!r}: edge eval knows 'disconnect' (DragPoser's protocol on the extra trackers)")
     pipe = Pipeline(models, samples=samples, seed=seed, precision=precision, ssi=not no_ssi, lookahead=lookahead,
-                    foot_ik=ik, arm_ik=ik)
+                    foot_ik=ik, arm_ik=ik, segments=segments)
     if trackers and not pipe.imus:
         raise ValueError(f"--trackers {','.join(trackers)}: the model in {models or 'models/'} reads no extra IMUs "
                          f"(its decoder takes {pipe.n_features} features)")
@@ -149,6 +149,7 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECI
         raise SystemExit("edge eval: no clip could be evaluated: " + "; ".join(skipped))
     result = {"clips": len(parts), "samples": samples, "ssi": pipe.ssi, "precision": precision, "ik": ik,
               "trackers": ["waist", *trackers], "faults": faults, "decoder_features": pipe.n_features,
+              "imu_segments": pipe.segments,
               "lookahead_frames": pipe.lookahead, "ssi_switches": switches, "transition_frames": switch_frames,
               "split": split, "warmup_s": WARMUP_S, **metrics.summarize(parts),
               **metrics.summarize_physical(phys), "ground_truth": metrics.summarize_physical(phys_gt),
@@ -172,7 +173,7 @@ def main(args):
         from edge.imus import parse_set
         result = evaluate(args.data, args.split, args.samples, args.no_ssi, args.precision, args.max_frames,
                           args.dump, args.models, args.seed, args.lookahead, not args.no_ik,
-                          trackers=parse_set(args.trackers), faults=args.faults)
+                          trackers=parse_set(args.trackers), faults=args.faults, segments=not args.no_segments)
     except (FileNotFoundError, ValueError) as e:
         print(f"edge eval: {e}", file=sys.stderr)
         return 2

@@ -36,14 +36,15 @@ from edge.inference import DEFAULT_PRECISION, Autoencoder, Decoder, open_models
 from edge.physics import floor_lift
 from edge.plausibility import PlausibilityScorer
 from edge.signals import EYE_OFFSET, GRIP_OFFSET
-from edge.skeleton import ANKLES, HEAD, JOINT, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, PELVIS_TO_HEAD, TOES, fk
+from edge.skeleton import (ANKLES, HEAD, JOINT, LEVELS, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, PELVIS_TO_HEAD,
+                           TOES, fk)
 
 # Legs (foot locks) and arms (controllers) solved in one batched IK call.
 LIMB_CHAINS = np.array([[JOINT[f"{s}_{a}"], JOINT[f"{s}_{b}"], JOINT[f"{s}_{c}"]]
                         for a, b, c in (("hip", "knee", "ankle"), ("shoulder", "elbow", "wrist")) for s in "lr"])
 LIMB_POLES = np.array([[0.0, 0.0, 1.0]] * 2 + [[0.0, 0.0, -1.0]] * 2)   # knees bend forward, elbows back
 NECK = JOINT["neck"]
-_FRAME_INPUTS = ("waist_m", "anchor", "wrists", "hand_m", "head_m")    # a frame's inputs to FK and IK, in ep_row_pose's order
+_FRAME_INPUTS = ("waist_m", "anchor", "wrists", "hand_m", "head_m", "seg_m", "seg_flag")  # a frame's inputs to FK and IK, in ep_row_pose's order
 SWITCH_HISTORY = 10_000     # switches kept in Pipeline.switches (hours of a take; edge eval reads them per take)
 
 
@@ -56,6 +57,24 @@ class Pose:
     contacts: np.ndarray = field(default_factory=lambda: np.zeros(2))
     sample: int = 0
     transition: bool = False
+
+
+def fk_with_segments(local, world, pos, seg_m, seg_flag):
+    """edge.skeleton.fk for rows [R,J,...] (root at the origin) in which joint j's world rotation is
+    its IMU's measurement seg_m[j] where seg_flag[j] > 0, blended with the decoder's in 6D by the flag
+    (a fading IMU hands its segment back smoothly), and its local rotation follows. The IMUs fix the
+    segments' directions; the body still hangs from the head (DragPoser's sensors as constraints)."""
+    world[:, 0], pos[:, 0] = local[:, 0], 0.0
+    for idx in LEVELS:
+        par = PARENTS[idx]
+        world[:, idx] = world[:, par] @ local[:, idx]
+        pos[:, idx] = pos[:, par] + (world[:, par] @ OFFSETS[idx][..., None])[..., 0]
+        hit = idx[seg_flag[idx] > 0]
+        if len(hit):
+            f = seg_flag[hit][:, None]
+            blend = (1 - f) * quat.matrix_to_6d(world[:, hit]) + f * quat.matrix_to_6d(seg_m[hit])
+            world[:, hit] = quat.matrix_from_6d(blend)
+            local[:, hit] = np.swapaxes(world[:, PARENTS[hit]], -1, -2) @ world[:, hit]
 
 
 def transition_weight(k, T):
@@ -120,6 +139,9 @@ class LookaheadBuffer:
         self.wrists = np.zeros((S, 2, 3))
         self.hand_m = np.zeros((S, 2, 3, 3))
         self.head_m = np.zeros((S, 3, 3))
+        # The worn IMUs' measured segment rotations and flags, per joint (flag 0: no IMU there).
+        self.seg_m = np.zeros((S, NUM_JOINTS, 3, 3))
+        self.seg_flag = np.zeros((S, NUM_JOINTS))
         # Transition output that overrides a sample's own pose for a frame: row trans_row[s].
         self.override = np.zeros(S, bool)
         self.trans_row = np.zeros(S, np.int64)
@@ -134,7 +156,7 @@ class LookaheadBuffer:
 class Pipeline:
     def __init__(self, models=None, samples=1, seed=0, fps=60.0, body_scale=1.0, precision=DEFAULT_PRECISION, threads=1,
                  lookahead=None, transition=10, ssi=True, criteria=None, foot_ik=True, arm_ik=True,
-                 use_native=True):
+                 use_native=True, segments=True):
         if not 1 <= samples <= 128:
             raise ValueError(f"samples must be 1..128, got {samples}")
         lookahead = (10 if samples > 1 else 0) if lookahead is None else lookahead
@@ -151,6 +173,8 @@ class Pipeline:
         # The decoder's input: the 24 point features, and the extra IMUs' 49 when the model reads them.
         self.n_features = m["features"]
         self.imus = NUM_IMUS if self.n_features > NUM_POINT_FEATURES else 0
+        # A worn IMU also sets its segment's world rotation after the decoder (fk_with_segments).
+        self.segments = bool(segments and self.imus)
         self.rows = N + 1 if N > 1 else N   # the extra row carries a live transition
         self.decoder = Decoder(dec_session, self.rows, m["latent"], m["hidden"], m["features"])
         self.recompute = Decoder(dec_session, lookahead + 1, m["latent"], m["hidden"], m["features"], recurrent=False)
@@ -210,7 +234,7 @@ class Pipeline:
         # Arrays the C calls read by address; held here so they live as long as the pipeline.
         self._c = {"parents": np.ascontiguousarray(PARENTS, np.int64), "offsets": OFFSETS,
                    "chains": np.ascontiguousarray(LIMB_CHAINS, np.int64), "poles": LIMB_POLES,
-                   "ankles": np.ascontiguousarray(ANKLES, np.int64)}
+                   "ankles": np.ascontiguousarray(ANKLES, np.int64), "imu_joints": np.ascontiguousarray(IMU_JOINTS, np.int64)}
         self._addr = {k: native.addr(v) for k, v in self._c.items()}
         for k in ("_local", "_world", "_pos", "_targets", "_weights", "_floor_lift"):
             self._addr[k] = native.addr(getattr(self, k))
@@ -250,6 +274,8 @@ class Pipeline:
             out_pos=native.addr(out.positions), out_contacts=native.addr(out.contacts),
             frame_in=a["_frame_in"], frame_offsets=a["_frame_offsets"], prev=a["_prev"], fps=fps,
             n_features=self.n_features, imus=self.imus, floor_lift=a["_floor_lift"],
+            ring_seg_m=native.addr(b.seg_m), ring_seg_flag=native.addr(b.seg_flag), imu_joints=a["imu_joints"],
+            segments=int(self.segments),
             **(dict(zip(("ae_in", "ae_local", "ae_root_local"), ae)) if ae else {}))
         self._core = ctypes.pointer(ctx)
         self._bind_decoder()
@@ -319,6 +345,9 @@ class Pipeline:
             b.anchor[s] = points[0]
             b.wrists[s] = points[1:3]
             b.waist_m[s], b.hand_m[s], b.head_m[s] = m[0], m[1:3], m[3]
+            if self.segments:
+                b.seg_m[s, IMU_JOINTS] = quat.to_matrix(sig.imu_rot[0])
+                b.seg_flag[s, IMU_JOINTS] = sig.imu_flag[0]
             dec.features[:] = feat
             b.hidden_in[s, :N] = dec.state[:N]      # (the compiled core copies it after the step)
         live = self.trans is not None and t <= self.trans_end
@@ -329,9 +358,10 @@ class Pipeline:
             dec.state[N] = (1 - a) * dec.state[c] + a * dec.state[n]
         dec.step()
 
-        # Post-processing for every row at once; the transition row (row N) borrows interpolated foot
-        # locks: it blends the two samples' foot goals (not lock positions, which are stale for a foot
-        # that is free) and lock weights.
+        # Post-processing for every row at once; the transition row (row N) blends the two samples' foot
+        # goals (not lock positions, which are stale for a foot that is free) and, like the samples, runs
+        # the leg IK at weight 1: the goals already carry each lock's pull, so the row's first and last
+        # frames are the two samples' own poses.
         rows = N + 1 if live else N
         keep_world = self.criteria.needs_world_rot      # every joint's world rotation, only for a criterion that asks
         if self.native:             # _forward, _foot_goals, the blend, _post and the ring copies below in one call
@@ -339,12 +369,12 @@ class Pipeline:
                                        self._addr["_world"] if keep_world else None, self._addr["_pos"],
                                        self._hidden_addr[dec.last_read])
         else:
-            self._forward(dec.rot6d[:rows], b.waist_m[s], b.anchor[s])
+            self._forward(dec.rot6d[:rows], b.waist_m[s], b.anchor[s], b.seg_m[s], b.seg_flag[s])
             if self.foot_ik:
                 goal, w = self._foot_goals(N)
                 if live:
                     self._targets[N] = (1 - a) * goal[c] + a * goal[n]
-                    self._weights[N] = (1 - a) * w[c] + a * w[n]
+                    self._weights[N] = 1.0      # like the samples' own: their goals carry the locks' pull
             self._post(rows, b.wrists[s], b.hand_m[s], b.head_m[s])
             b.rot6d[s, :rows] = dec.rot6d[:rows]
             b.contacts[s, :rows] = dec.contacts[:rows]
@@ -418,8 +448,9 @@ class Pipeline:
         return out
 
     # ------------------------------------------------------------------ stages
-    def _forward(self, rot6d, waist_m, anchor):
-        """6D -> local rotations, FK with the waist IMU as root, body hung from the tracked head.
+    def _forward(self, rot6d, waist_m, anchor, seg_m=None, seg_flag=None):
+        """6D -> local rotations, FK with the waist IMU as root, body hung from the tracked head; the
+        segments of worn IMUs take their measured rotations (fk_with_segments; seg_m [J,3,3], seg_flag [J]).
 
         waist_m [3,3] or per row [R,3,3]; anchor (the tracked head joint) [3] or [R,3]. Writes the
         scratch rows _local, _world, _pos. (The live frame runs this, _foot_goals and _post as one C
@@ -431,13 +462,18 @@ class Pipeline:
             r6, r6_stride = native.rows(rot6d, 1, np.float32)
             root, root_stride = native.rows(waist_m, 2)
             head, head_stride = native.rows(anchor, 1)
+            seg = seg_flag is not None and seg_flag.any()
             self.native.ep_forward(R, NUM_JOINTS, a["parents"], a["offsets"], HEAD, r6, r6_stride, root, root_stride,
-                                   head, head_stride, a["_local"], a["_world"], a["_pos"])
+                                   head, head_stride, native.addr(seg_m) if seg else None,
+                                   native.addr(seg_flag) if seg else None, a["_local"], a["_world"], a["_pos"])
             return
         loc, W, P = self._local[:R], self._world[:R], self._pos[:R]
         loc[:, 0] = waist_m
         quat.matrix_from_6d(rot6d.reshape(R, NUM_PREDICTED, 6), out=loc[:, 1:])
-        fk(loc, self._zero3, out=(W, P))
+        if seg_flag is not None and seg_flag.any():
+            fk_with_segments(loc, W, P, seg_m, seg_flag)
+        else:
+            fk(loc, self._zero3, out=(W, P))
         P += anchor[..., None, :] - P[:, HEAD:HEAD + 1]
 
     def _foot_goals(self, N):
@@ -564,7 +600,7 @@ class Pipeline:
         b.rot6d[sl, N] = rc.rot6d[:K]
         b.contacts[sl, N] = rc.contacts[:K]
         b.leg_goal[sl, N] = (1 - a3) * b.leg_goal[sl, c] + a3 * b.leg_goal[sl, n]
-        b.leg_weight[sl, N] = (1 - a) * b.lock_weight[sl, c] + a * b.lock_weight[sl, n]
+        b.leg_weight[sl, N] = 1.0
 
     def _emit(self, o):
         if o < 0:
@@ -601,7 +637,7 @@ class Pipeline:
             self.native.ep_row_pose(self._core, *rows, *(a(getattr(b, k)[s]) for k in _FRAME_INPUTS),
                                     a(rotations), a(self._emit_world), a(positions))
             return positions, rotations
-        self._forward(b.rot6d[s, row][None], b.waist_m[s], b.anchor[s])
+        self._forward(b.rot6d[s, row][None], b.waist_m[s], b.anchor[s], b.seg_m[s], b.seg_flag[s])
         self._targets[0], self._weights[0] = b.leg_goal[s, row], b.leg_weight[s, row]
         self._post(1, b.wrists[s], b.hand_m[s], b.head_m[s])
         positions[:], rotations[:] = self._pos[0], self._local[0]

@@ -212,8 +212,8 @@ def build(folder, data=None, methods=("dynamic", "static"), log=print):
     train = val = None
     if have_data:
         log("calibration and validation windows from the mocap data (train / val) ...")
-        train = mocap_windows(data, "train", CALIB_WINDOWS, CALIB_FRAMES, seed=11)
-        val = mocap_windows(data, "val", VAL_WINDOWS, VAL_FRAMES, seed=12)
+        train = mocap_windows(data, "train", CALIB_WINDOWS, CALIB_FRAMES, seed=11, n_features=manifest["features"])
+        val = mocap_windows(data, "val", VAL_WINDOWS, VAL_FRAMES, seed=12, n_features=manifest["features"])
     report = {"methods_tried": list(methods), "selection": {}, "candidates": {}}
     entries, runtime = {}, {}
     call_us = {"decoder": decoder_call_us, "autoencoder": autoencoder_call_us}

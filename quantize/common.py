@@ -68,7 +68,8 @@ def _call_us(call, frames, warmup):
 
 def decoder_call_us(path, rows, frames=400, warmup=50):
     """One bare decoder step on `rows` rows, through the runtime's IOBinding path (edge.inference.Decoder)."""
-    dec = Decoder(make_session(path), rows, 30, 128, 24)
+    session = make_session(path)
+    dec = Decoder(session, rows, 30, 128, session.get_inputs()[0].shape[1])
     rng = np.random.default_rng(0)
     dec.features[:] = rng.standard_normal(dec.features.shape) * 0.3
     dec.latent[:] = rng.standard_normal(dec.latent.shape)
@@ -93,8 +94,9 @@ def pin_one_core():
         return None
 
 
-def mocap_windows(data, split, windows, window, seed, noise=True):
-    """`windows` random training-style windows of one split: the decoder's features [W,B,24] (time-major),
+def mocap_windows(data, split, windows, window, seed, noise=True, n_features=None):
+    """`windows` random training-style windows of one split: the decoder's features [W,B,F] (time-major;
+    with random extra IMUs as training has them, unless n_features is 24, a model without IMU inputs),
     the head-anchored ground truth [W,B,J,3], the puck rotation in the character frame [W,B,3,3] and the
     ground-truth local poses for the autoencoder. Uses models.dataset (cached in .cache/)."""
     from edge.signals import DeviceNoise
@@ -103,7 +105,12 @@ def mocap_windows(data, split, windows, window, seed, noise=True):
     rng = np.random.default_rng(seed)
     starts = window_starts(cs, window)
     pick = np.sort(rng.choice(starts, size=min(windows, len(starts)), replace=False))
-    b = make_batch(cs, pick, window, rng, DeviceNoise() if noise else None)
+    from edge.features import NUM_POINT_FEATURES
+    from edge.imus import ImuNoise
+    imus = n_features is None or n_features > NUM_POINT_FEATURES
+    b = make_batch(cs, pick, window, rng, DeviceNoise() if noise else None, ImuNoise() if noise else None, with_imus=imus)
+    if not imus:
+        b["features"] = b["features"][..., :NUM_POINT_FEATURES]
     frames = rng.choice(len(cs.root), size=min(4096, len(cs.root)), replace=False)
     poses = pose_batch(cs, frames)
     return {"features": b["features"], "gt_rel": b["gt_rel"], "root_rot": b["root_rot"], "poses": poses}

@@ -25,3 +25,15 @@ def mocap():
 @pytest.fixture(scope="session")
 def torch():
     return pytest.importorskip("torch", reason="needs torch (pip install -e '.[train]')")
+
+
+def worn_signals(take, names=None, seed=0, drops=True):
+    """The take's signals with extra IMUs worn (default: all seven), IMU noise, and drop-outs that make
+    their flags fade out and back in (edge.imus), so tests cross every IMU path."""
+    import numpy as np
+    from edge.imus import IMU_LOCATIONS, ImuNoise, dragposer_drops, mask
+    from edge.signals import wear
+    rng = np.random.default_rng(seed)
+    worn = mask(IMU_LOCATIONS if names is None else names)
+    alive = dragposer_drops(rng, take.frames, worn, p=0.02, frames=50) if drops else None
+    return wear(take.signals, worn, take.fps, rng, ImuNoise(), alive)

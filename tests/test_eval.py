@@ -59,3 +59,26 @@ def test_malformed_bvh_is_skipped_with_its_reason(tmp_path, capsys):
 def test_bad_sample_count_is_refused():
     with pytest.raises(ValueError, match="samples"):
         Pipeline(samples=0)
+
+
+def test_eval_runs_the_extra_imus_it_is_told_and_says_which(tmp_path):
+    """--trackers synthesises those IMUs from the clip (with IMU noise); the JSON names them, and the
+    physical and diversity metrics are there, on the prediction and on the ground truth."""
+    from edge.eval import evaluate
+    from edge.imus import parse_set
+    from edge.pipeline import Pipeline
+    if not Pipeline(samples=1).imus:
+        pytest.skip("the shipped decoder reads no extra IMUs")
+    base = evaluate([str(SAMPLE)], samples=4, max_frames=400, log=lambda *a: None)
+    legs = evaluate([str(SAMPLE)], samples=4, max_frames=400, log=lambda *a: None,
+                    trackers=parse_set("l_thigh,r_thigh,l_shin,r_shin"), faults="disconnect")
+    assert base["trackers"] == ["waist"] and legs["trackers"] == ["waist", "l_thigh", "r_thigh", "l_shin", "r_shin"]
+    assert legs["faults"] == "disconnect" and legs["imu_segments"]
+    assert legs["mpjpe_cm"] < base["mpjpe_cm"]                 # four leg IMUs beat none, even dropping out
+    for k in ("penetration_rate", "penetration_cm", "leg_intersect_rate", "float_rate"):
+        assert k in base and k in base["ground_truth"]
+    d = base["diversity"]
+    assert d["apd_lower_cm"] > 0.1 and d["oracle_lower_cm"] < d["average_sample_lower_cm"]   # the samples differ
+    assert evaluate([str(SAMPLE)], samples=1, max_frames=200, log=lambda *a: None)["diversity"] == {}
+    with pytest.raises(ValueError, match="disconnect"):
+        evaluate([str(SAMPLE)], max_frames=100, faults="unplug", log=lambda *a: None)

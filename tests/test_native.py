@@ -12,7 +12,7 @@ from edge.pipeline import LIMB_CHAINS, Pipeline
 from edge.plausibility import PlausibilityScorer
 from edge.skeleton import ANKLES, HEAD, JOINT, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, fk
 from edge.takes import from_sample
-from tests.conftest import SAMPLE
+from tests.conftest import SAMPLE, worn_signals
 
 lib = native.load()
 pytestmark = pytest.mark.skipif(lib is None, reason=f"compiled core unavailable: {native.why_unavailable()}")
@@ -48,7 +48,7 @@ def native_forward(r6, root_m, anchor):
     a, sa = native.rows(r6, 1, np.float32)
     b, sb = native.rows(root_m, 2)
     c, sc = native.rows(anchor, 1)
-    lib.ep_forward(R, NUM_JOINTS, A(P64), A(OFFSETS), HEAD, a, sa, b, sb, c, sc, A(loc), A(W), A(P))
+    lib.ep_forward(R, NUM_JOINTS, A(P64), A(OFFSETS), HEAD, a, sa, b, sb, c, sc, None, None, A(loc), A(W), A(P))
     return loc, W, P
 
 
@@ -105,13 +105,14 @@ def test_plausibility_score_matches_numpy_and_reuses_its_buffers():
                                               (8, True, "feet"), (8, True, "arms")])
 def test_pipeline_output_is_the_same_with_and_without_the_compiled_core(samples, ssi, ik):
     take = from_sample(SAMPLE)
+    sig = worn_signals(take)            # every extra IMU worn, dropping out now and then
     runs = []
     for use_native in (True, False):
         pipe = Pipeline(samples=samples, ssi=ssi, use_native=use_native, foot_ik=ik != "arms", arm_ik=ik != "feet")
         assert (pipe.native is not None) == use_native
         poses = []
         for t in range(400):
-            pose = pipe.step(take.signals.slice(t, t + 1))
+            pose = pipe.step(sig.slice(t, t + 1))
             if pose is not None:
                 poses.append((pose.positions.copy(), pose.rotations.copy(), pose.sample))
         runs.append((poses, list(pipe.switches)))
@@ -174,15 +175,19 @@ def test_foot_locks_match_numpy_through_contacts_releases_and_slips():
 
 
 def test_frame_features_are_bit_identical_to_the_numpy_features_training_used():
-    from edge.features import body_points, features, heading
+    from edge.features import body_points, features, heading, imu_features
     take = from_sample(SAMPLE)
+    signals = worn_signals(take)
     pipe = Pipeline(samples=1, body_scale=1.07)
     prev = None
     for t in range(300):
-        sig = take.signals.slice(t, t + 1)
+        sig = signals.slice(t, t + 1)
         points, waist_rot = body_points(sig, 1.07)
         points, waist_rot = points[0], waist_rot[0]
-        want = features(points, points if prev is None else prev, heading(waist_rot), 60.0).astype(np.float32)
+        want = features(points, points if prev is None else prev, heading(waist_rot), 60.0)
+        if pipe.imus:
+            want = np.concatenate([want, imu_features(sig.imu_rot[0], sig.imu_flag[0], heading(waist_rot))])
+        want = want.astype(np.float32)
         prev = points
         q = np.stack([waist_rot, *sig.hand_rot[0], sig.head_rot[0]])
         got_points, got, mats = pipe._frame_inputs_native(sig)
@@ -224,11 +229,12 @@ def test_a_decoder_swapped_in_after_construction_is_the_one_the_compiled_core_re
 
 def test_the_live_frame_inputs_land_in_the_ring_bit_identical_to_the_numpy_path():
     take = from_sample(SAMPLE)
+    sig = worn_signals(take)
     pipes = [Pipeline(samples=8, use_native=u, precision="fp32") for u in (True, False)]
     for t in range(40):
         for p in pipes:
-            p.step(take.signals.slice(t, t + 1))
+            p.step(sig.slice(t, t + 1))
         a, b = (p.buffer for p in pipes)
-        for k in ("features", "anchor", "wrists", "waist_m", "hand_m", "head_m", "hidden_in"):
+        for k in ("features", "anchor", "wrists", "waist_m", "hand_m", "head_m", "hidden_in", "seg_m", "seg_flag"):
             assert np.array_equal(getattr(a, k), getattr(b, k)), k
         assert np.array_equal(pipes[0].decoder.features, pipes[1].decoder.features)

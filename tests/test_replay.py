@@ -121,3 +121,20 @@ def test_a_realtime_replay_that_first_builds_the_compiled_core_still_tracks(tmp_
     assert r.returncode == 0, r.stderr[-2000:]
     assert (tmp_path / "cache" / "native").exists()
     assert json.loads(out.read_text())["mpjpe_cm"] < 12.0
+
+
+def test_extra_trackers_ride_the_simulated_hub_and_can_and_feed_the_model(take):
+    """--trackers: the shins go on the serial hub, the feet on CAN, and the model reads all four."""
+    from edge.pipeline import Pipeline
+    session = synthesize(take, ("serial", "i2c", "can"), {}, 0, trackers=("l_shin", "r_shin", "l_foot", "r_foot"))
+    assert session.meta["placement"] == {"i2c": ["waist"], "hub": ["l_shin", "r_shin"], "can": ["l_foot", "r_foot"]}
+    result = replay(session, "max", samples=8, lookahead=LOOKAHEAD, seconds=SECONDS)
+    assert set(result["trackers"]) == {"waist", "l_shin", "r_shin", "l_foot", "r_foot"}
+    assert result["errors"] == [] and result["deadline_misses"] == 0
+    if Pipeline(samples=1).imus:
+        assert result["trackers_used_by_model"] == ["l_shin", "r_shin", "l_foot", "r_foot"]
+        bare = replay(synthesize(take, ("serial", "i2c", "can"), {}, 0, trackers=()), "max", samples=8,
+                      lookahead=LOOKAHEAD, seconds=SECONDS)
+        assert result["mpjpe_cm"] < bare["mpjpe_cm"]
+    with pytest.raises(ValueError, match="need the serial hub or CAN"):
+        synthesize(take, ("i2c",), {}, 0, trackers=("l_shin",))

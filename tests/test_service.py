@@ -97,6 +97,8 @@ def test_run_streams_poses_that_listen_decodes(tmp_path):
     ({"headset": {"url": "serial:///dev/null"}, "runtime": {"sample": 4}}, "unknown key 'sample'"),
     ({"headset": {"url": "serial:///dev/null"}, "output": {"vmc": "localhost"}}, "HOST:PORT"),
     ({"headset": {"url": "serial:///dev/null"}, "trackers": [{"url": "serial:///dev/x?trackers=waist"}]}, "ID:NAME"),
+    ({"headset": {"url": "serial:///dev/null"}, "trackers": [{"url": "can://virtual/x?nodes=1:l_knee"}]},
+     "unknown tracker name 'l_knee'; the model reads waist, chest, l_thigh, r_thigh, l_shin, r_shin, l_foot, r_foot"),
 ])
 def test_bad_config_fails_at_start_with_what_to_fix(raw, message):
     with pytest.raises(config_mod.ConfigError, match=message):

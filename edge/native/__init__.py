@@ -97,11 +97,12 @@ class CoreContext(ctypes.Structure):
                                      "out_world", "out_pos", "ae_in", "ae_local", "ae_root_local", "frame_in",
                                      "frame_offsets", "prev")]
                 + [("fps", _D), ("ring_features", _P), ("dec_features", _P), ("dec_rows", _I), ("ring_hidden", _P),
-                   ("hidden", _I), ("out_contacts", _P), ("n_features", _I), ("imus", _I), ("floor_lift", _P)])
+                   ("hidden", _I), ("out_contacts", _P), ("n_features", _I), ("imus", _I), ("floor_lift", _P),
+                   ("ring_seg_m", _P), ("ring_seg_flag", _P), ("imu_joints", _P), ("segments", _I)])
 
 
 _SIGNATURES = {
-    "ep_forward": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _P, _I, _P, _P, _P],
+    "ep_forward": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _P, _I, _P, _P, _P, _P, _P],
     "ep_local_pose": [_I, _I, _P, _P, _I, _P, _P, _P],
     "ep_leg_error": [_I, _I, _P, _I, _P, _P, _P, _P, _P, _P],
     "ep_foot_locks": [_I, _I, _P, _P, _I, _P, _D, _D, _P, _P, _P, _P, _P, _P],
@@ -113,7 +114,7 @@ _SIGNATURES = {
     "ep_frame_poses": [ctypes.POINTER(CoreContext), _I, _I, _I, _I, _I, _D, _P, _P, _P],
     "ep_emit": [ctypes.POINTER(CoreContext), _I, _I],
     "ep_frame_inputs": [ctypes.POINTER(CoreContext), _I, _I],
-    "ep_row_pose": [ctypes.POINTER(CoreContext)] + [_P] * 11,
+    "ep_row_pose": [ctypes.POINTER(CoreContext)] + [_P] * 13,
     "ep_max_joints": [],
 }
 _RETURNS_INT = {"ep_switch_to", "ep_max_joints"}

@@ -185,10 +185,12 @@ static void block_store(block *k, int r0, int nl, int J, double *local, double *
 }
 
 /* Pipeline._forward on one block: 6D -> local rotations (root from root_m), FK (edge.skeleton.fk,
- * parents[j] < j) and the body translated so joint `head` sits at `anchor`. */
+ * parents[j] < j) and the body translated so joint `head` sits at `anchor`. A joint j with
+ * seg_flag[j] > 0 (shared by every row; NULL: none) takes the world rotation its IMU measured,
+ * seg_m [J,9], blended in 6D by the flag, and its local rotation follows. */
 static void block_forward(block *k, int r0, int nl, int J, const int64_t *parents, const double *offsets, int head,
                           const float *rot6d, int rot6d_stride, const double *root_m, int root_stride,
-                          const double *anchor, int anchor_stride) {
+                          const double *anchor, int anchor_stride, const double *seg_m, const double *seg_flag) {
     lane v[3], shift[3];
     gather(k->L[0], 9, root_m, root_stride, r0, nl);
     lane_copy(k->W[0], k->L[0], 9);
@@ -197,6 +199,16 @@ static void block_forward(block *k, int r0, int nl, int J, const int64_t *parent
         int p = (int)parents[j];
         lane_matrix_from_6d_f32(rot6d + (j - 1) * 6, rot6d_stride, r0, nl, k->L[j]);
         lane_matmul3(k->W[p], k->L[j], k->W[j]);
+        if (seg_flag && seg_flag[j] > 0.0) {    /* edge.pipeline.fk_with_segments: a worn IMU sets the segment */
+            const double f = seg_flag[j], *m = seg_m + j * 9;
+            lane a[3], b[3];
+            for (int i = 0; i < 3; i++) EACH {
+                a[i][l] = (1 - f) * k->W[j][i * 3][l] + f * m[i * 3];
+                b[i][l] = (1 - f) * k->W[j][i * 3 + 1][l] + f * m[i * 3 + 1];
+            }
+            lane_matrix_from_6d_f64(a, b, k->W[j]);
+            lane_matmul3_tn(k->W[p], k->W[j], k->L[j]);
+        }
         lane_matvec3_shared_v(k->W[p], offsets + j * 3, v);
         for (int i = 0; i < 3; i++) EACH k->P[j][i][l] = k->P[p][i][l] + v[i][l];
     }
@@ -210,12 +222,13 @@ static void block_forward(block *k, int r0, int nl, int J, const int64_t *parent
  * and positions [R,J,...] (see block_forward). */
 void ep_forward(int R, int J, const int64_t *parents, const double *offsets, int head,
                 const float *rot6d, int rot6d_stride, const double *root_m, int root_stride,
-                const double *anchor, int anchor_stride, double *local, double *world, double *pos) {
+                const double *anchor, int anchor_stride, const double *seg_m, const double *seg_flag,
+                double *local, double *world, double *pos) {
     block k;
     for (int r0 = 0; r0 < R; r0 += LANES) {
         int nl = R - r0 < LANES ? R - r0 : LANES;
         block_forward(&k, r0, nl, J, parents, offsets, head, rot6d, rot6d_stride, root_m, root_stride, anchor,
-                      anchor_stride);
+                      anchor_stride, seg_m, seg_flag);
         block_store(&k, r0, nl, J, local, world, pos);
     }
 }
@@ -533,6 +546,11 @@ typedef struct {
      * carries their orientations and flags after the 25 tracker values) */
     int n_features, imus;
     double *floor_lift;                       /* how far the floor lifted each row's feet [rows,2], out */
+    /* the worn IMUs' segments: ep_frame_inputs writes each one's measured world rotation [J,9] and flag
+     * [J] (0 for joints without one, or when segments is 0) for ring slot s; imu_joints [imus] */
+    double *ring_seg_m, *ring_seg_flag;
+    const int64_t *imu_joints;
+    int segments;
 } core_context;
 
 static void copy_f32(float *dst, const float *src, int64_t n) { for (int64_t i = 0; i < n; i++) dst[i] = src[i]; }
@@ -541,7 +559,7 @@ static void copy_f64(double *dst, const double *src, int64_t n) { for (int64_t i
 /* Pipeline.step between the decoder and the criteria, for R rows: N samples and, when R = N + 1,
  * the transition row from sample c to sample n at blend weight a. Per block of LANES rows, kept on
  * the stack throughout: _forward; the samples' foot locks (_foot_goals: goals drawn by the locks, IK
- * weight 1); the transition row's goals and weights blended from c's and n's (c, n < N, so their
+ * weight 1); the transition row's goals blended from c's and n's (at IK weight 1 too) (c, n < N, so their
  * blocks came first or are this one); _post. The tracker inputs are ring slot `slot`'s, shared by
  * every row; world rotations and positions [R,J,...] go to world and pos (world skipped when NULL).
  * Then what the ring keeps of each row goes to slot `slot`: the decoder's 6D and contacts, the leg
@@ -558,7 +576,8 @@ void ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n,
     matmul3(yt, root_m, root_local);
     for (int r0 = 0; r0 < R; r0 += LANES) {
         int nl = R - r0 < LANES ? R - r0 : LANES;
-        block_forward(&k, r0, nl, J, x->parents, x->offsets, x->head, x->rot6d, x->rot6d_stride, root_m, 0, anchor, 0);
+        block_forward(&k, r0, nl, J, x->parents, x->offsets, x->head, x->rot6d, x->rot6d_stride, root_m, 0, anchor, 0,
+                      x->ring_seg_m + (int64_t)slot * J * 9, x->ring_seg_flag + (int64_t)slot * J);
         if (x->foot_ik) {
             for (int l = 0; l < nl && r0 + l < N; l++)
                 for (int f = 0; f < 2; f++) {
@@ -572,7 +591,7 @@ void ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n,
                 for (int f = 0; f < 2; f++) {
                     for (int i = 0; i < 3; i++)
                         x->goals[(N * 2 + f) * 3 + i] = (1 - a) * x->goals[(c * 2 + f) * 3 + i] + a * x->goals[(n * 2 + f) * 3 + i];
-                    x->weights[N * 2 + f] = (1 - a) * x->lock_weight[c * 2 + f] + a * x->lock_weight[n * 2 + f];
+                    x->weights[N * 2 + f] = 1.0;   /* as the samples': their goals carry the locks' pull */
                 }
         }
         block_post(&k, r0, nl, J, x->parents, x->offsets, x->chains, x->poles, x->goals, x->weights, x->foot_ik,
@@ -609,9 +628,10 @@ void ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n,
  * the result is bit for bit the row's pose in ep_frame_poses. world is scratch [J,3,3]. */
 void ep_row_pose(const core_context *x, const float *rot6d, const double *goals, const double *weights,
                  const double *root_m, const double *anchor, const double *wrists, const double *hand_m,
-                 const double *head_m, double *local, double *world, double *pos) {
+                 const double *head_m, const double *seg_m, const double *seg_flag, double *local, double *world,
+                 double *pos) {
     block k;
-    block_forward(&k, 0, 1, x->J, x->parents, x->offsets, x->head, rot6d, 0, root_m, 0, anchor, 0);
+    block_forward(&k, 0, 1, x->J, x->parents, x->offsets, x->head, rot6d, 0, root_m, 0, anchor, 0, seg_m, seg_flag);
     block_post(&k, 0, 1, x->J, x->parents, x->offsets, x->chains, x->poles, goals, weights, x->foot_ik, x->arm_ik,
                wrists, 0, hand_m, 0, head_m, 0, x->neck, x->head, 0);
     block_store(&k, 0, 1, x->J, local, world, pos);
@@ -625,7 +645,8 @@ void ep_emit(const core_context *x, int slot, int row) {
     x->out_contacts[1] = x->ring_contacts[r * 2 + 1];
     ep_row_pose(x, x->ring_rot6d + r * x->rot6d_stride, x->ring_goal + r * 6, x->ring_weight + r * 2,
                 x->ring_waist + slot * 9, x->ring_anchor + slot * 3, x->ring_wrists + slot * 6, x->ring_hand + slot * 18,
-                x->ring_head + slot * 9, x->out_local, x->out_world, x->out_pos);
+                x->ring_head + slot * 9, x->ring_seg_m + (int64_t)slot * x->J * 9, x->ring_seg_flag + (int64_t)slot * x->J,
+                x->out_local, x->out_world, x->out_pos);
 }
 
 /* edge.quat.rotate, in its order of operations: t = 2 (u x v); v + w t + u x t. */
@@ -815,6 +836,12 @@ void ep_frame_inputs(const core_context *x, int slot, int first) {
     ep_frame_features(x->frame_in, x->frame_offsets, first ? points : x->prev, x->fps, points, feat, mats);
     if (F > 24)                 /* the extra IMUs: frame_in[25..] holds their orientations [K,4] and flags [K] */
         ep_imu_features(x->imus, x->frame_in + 25, x->frame_in + 25 + 4 * x->imus, x->frame_in + 21, feat + 24);
+    if (x->segments)
+        for (int k = 0; k < x->imus; k++) {
+            int64_t j = x->imu_joints[k];
+            quat_to_matrix(x->frame_in + 25 + 4 * k, x->ring_seg_m + ((int64_t)slot * x->J + j) * 9);
+            x->ring_seg_flag[(int64_t)slot * x->J + j] = x->frame_in[25 + 4 * x->imus + k];
+        }
     copy_f64(x->prev, points, 12);
     copy_f64(x->ring_anchor + slot * 3, points, 3);
     copy_f64(x->ring_wrists + slot * 6, points + 3, 6);

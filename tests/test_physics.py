@@ -1,0 +1,69 @@
+"""Physical plausibility: the geometry and metrics (edge.physics, edge.metrics), the floor clamp in the
+foot IK, and the selection criterion (numpy and compiled core alike)."""
+import numpy as np
+import pytest
+
+from edge import metrics
+from edge.criteria import FrameContext, PhysicalPlausibility
+from edge.physics import FLOOR_ANKLE, FLOOR_TOE, foot_height, leg_gap, segment_distance
+from edge.pipeline import Pipeline
+from edge.skeleton import ANKLES, JOINT, REST, TOES, PELVIS_HEIGHT
+from edge.takes import from_sample
+from conftest import SAMPLE
+
+STANDING = REST + [0.0, PELVIS_HEIGHT, 0.0]          # the rest pose on the floor
+
+
+def test_segment_distance_matches_a_dense_search():
+    rng = np.random.default_rng(0)
+    P = rng.normal(size=(500, 4, 3))
+    d = segment_distance(P[:, 0], P[:, 1], P[:, 2], P[:, 3])
+    s = np.linspace(0, 1, 401)[None, :, None]
+    a, b = P[:, :1] + (P[:, 1:2] - P[:, :1]) * s, P[:, 2:3] + (P[:, 3:4] - P[:, 2:3]) * s
+    dense = np.linalg.norm(a[:, :, None] - b[:, None], axis=-1).min((1, 2))
+    assert np.all(d <= dense + 1e-12) and np.all(dense - d < 2e-3)
+
+
+def test_metrics_see_a_sunk_foot_crossed_legs_and_a_floating_contact():
+    pose = np.repeat(STANDING[None], 4, 0)
+    assert np.allclose(foot_height(pose[0]), 0.0) and leg_gap(pose[0]) == pytest.approx(0.18)
+    pose[1, [JOINT["l_ankle"], JOINT["l_toe"]], 1] -= 0.05            # sinks 3 cm past the 2 cm tolerance
+    pose[2, [JOINT["l_knee"], JOINT["l_ankle"], JOINT["l_toe"]], 0] = -0.05     # left shin across the right
+    pose[3, [JOINT["r_ankle"], JOINT["r_toe"]], 1] += 0.2             # lifted 20 cm ...
+    contacts = np.array([[1, 1], [1, 1], [1, 1], [1, 1.0]])           # ... while said to be in contact
+    m = metrics.summarize_physical([metrics.physical_metrics(pose, contacts)])
+    assert m["penetration_rate"] == 0.25 and m["penetration_cm"] == pytest.approx(3.0)
+    assert m["leg_intersect_rate"] == 0.25 and m["float_rate"] == 0.25 and m["physical_sum"] == 0.75
+
+
+def test_foot_ik_never_leaves_a_foot_in_the_floor_on_either_path():
+    """Lower the whole take 15 cm: the decoder's feet go into the floor, and the leg IK lifts them out."""
+    take = from_sample(SAMPLE)
+    sig = take.signals
+    sunk = type(sig)(**{**vars(sig), "head_pos": sig.head_pos - [0, 0.15, 0], "hand_pos": sig.hand_pos - [0, 0.15, 0]})
+    for native in (True, False):
+        pipe = Pipeline(samples=1, use_native=native)
+        low, lifted = [], []
+        for t in range(300):
+            pose = pipe.step(sunk.slice(t, t + 1))
+            low.append(min(pose.positions[ANKLES, 1].min() - FLOOR_ANKLE, pose.positions[TOES, 1].min() - FLOOR_TOE))
+            lifted.append(pipe._floor_lift[0].max())
+        assert min(low) > -1e-6, f"native={native}: a foot {-min(low) * 100:.1f} cm under the floor"
+        assert max(lifted) > 0.02                 # the clamp did work: the raw feet were under
+
+
+def test_physical_criterion_prefers_the_clean_sample_and_the_core_agrees_with_numpy():
+    rng = np.random.default_rng(2)
+    pos = np.repeat(STANDING[None], 40, 0) + rng.normal(0, 0.01, (40, 21, 3))
+    pos[5, [JOINT["l_knee"], JOINT["l_ankle"], JOINT["l_toe"]], 0] = -0.05      # crossed legs
+    pos[6, [JOINT["r_ankle"], JOINT["r_toe"]], 1] += 0.3                        # a floating contact
+    lift = np.zeros((40, 2))
+    lift[7] = 0.04                                                              # feet lifted out of the floor
+    contacts = np.ones((40, 2), np.float32)
+    ctx = FrameContext(0, np.ascontiguousarray(pos), None, None, contacts=contacts, floor_lift=lift)
+    fast = PhysicalPlausibility().cost(ctx).copy()
+    slow = PhysicalPlausibility(use_native=False).cost(ctx)
+    assert np.allclose(fast, slow, atol=1e-12)
+    assert fast[5] > 0.05 and fast[6] > 0.2 and fast[7] == pytest.approx(0.08)
+    clean = np.delete(fast, [5, 6, 7])
+    assert clean.max() < 0.01
