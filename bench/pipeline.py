@@ -2,6 +2,7 @@
 
     python bench/pipeline.py [--samples 1,10,32,100] [--frames 600] [--precision fp32] [--json OUT]
     python bench/pipeline.py --compare [--samples 1,10,32,100] [--frames 600] [--blocks 10] [--json OUT]
+    python bench/pipeline.py --trackers [--samples 100] [--frames 3000] [--blocks 30] [--json OUT]
 
 Plain run: the pipeline with --precision models, then its bare decoder call; medians and p99 in
 microseconds and the pipeline / decoder ratio.
@@ -18,6 +19,10 @@ rotating block by block), so machine noise hits every side alike. Ratios are p50
 calls, with the range of the per-block ratios; the fp32 pipeline / ORT decoder ratio of the plain run
 is reported too. Before timing, the PyTorch and ONNX decoders are run on the same inputs and must agree (max abs
 difference < 1e-4).
+
+--trackers times, per N, the default (int8) pipeline fed the bundled walk with no extra IMUs and with
+all seven worn (edge.imus; the decoder's IMU inputs and each segment's measured rotation), interleaved
+the same way; the ratio is all seven / none.
 
 Pins itself to one core (like the board's budget). A benchmark, not a test: it prints figures and,
 besides that agreement check, asserts nothing.
@@ -172,16 +177,43 @@ def compare(a, frames, ns):
             "parity_max_abs_diff": diff, "results": rows}
 
 
+def trackers(a, frames, ns):
+    """The frame with all seven extra IMUs against the frame with none, interleaved (same model)."""
+    from edge.imus import IMU_LOCATIONS, ImuNoise, mask
+    from edge.signals import wear
+    take = from_sample(SAMPLE)
+    worn = wear(take.signals, mask(IMU_LOCATIONS), take.fps, np.random.default_rng(0), ImuNoise())
+    worn_frames = [worn.slice(t, t + 1) for t in range(take.frames)]
+    per_block = a.frames // a.blocks
+    rows = []
+    print(f"{'N':>4} {'none p50':>9} {'all seven p50':>14} {'all/none':>20}   (microseconds, one core, int8)")
+    for n in ns:
+        pipes = {"none": (Pipeline(samples=n), frames), "all_seven": (Pipeline(samples=n), worn_frames)}
+        if not pipes["none"][0].imus:
+            sys.exit("the shipped decoder reads no extra IMUs: nothing to compare")
+        for p, f in pipes.values():
+            warm(p, f)
+        calls = {k: (lambda t, p=p, f=f: p.step(f[t % len(f)])) for k, (p, f) in pipes.items()}
+        times = interleaved(calls, a.blocks, per_block)
+        r = {"samples": n, "us": {k: summary(v) for k, v in times.items()}, "ratio": ratio(times, "all_seven", "none")}
+        rows.append(r)
+        q = r["ratio"]
+        print(f"{n:>4} {r['us']['none']['p50']:>9.0f} {r['us']['all_seven']['p50']:>14.0f} "
+              f"{q['p50']:>8.3f} [{q['blocks_min']:.2f},{q['blocks_max']:.2f}]")
+    return {"machine": machine(), "blocks": a.blocks, "calls_per_block": per_block, "results": rows}
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--samples", default="1,10,32,100")
     ap.add_argument("--frames", type=int, default=600, help="timed calls per side")
     ap.add_argument("--precision", default="fp32", help="models of the plain run (--compare times fp32 and int8)")
     ap.add_argument("--compare", action="store_true", help="int8 vs fp32 and ONNX Runtime vs PyTorch eager, interleaved")
-    ap.add_argument("--blocks", type=int, default=10, help="--compare: blocks the timed calls are split into")
+    ap.add_argument("--trackers", action="store_true", help="all seven extra IMUs against none, interleaved")
+    ap.add_argument("--blocks", type=int, default=10, help="--compare/--trackers: blocks the timed calls are split into")
     ap.add_argument("--json")
     a = ap.parse_args()
-    if a.compare and not 1 <= a.blocks <= a.frames:
+    if (a.compare or a.trackers) and not 1 <= a.blocks <= a.frames:
         ap.error("--blocks must be 1..--frames")
     try:
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
@@ -190,7 +222,7 @@ def main():
     take = from_sample(SAMPLE)
     frames = [take.signals.slice(t, t + 1) for t in range(take.frames)]
     ns = [int(x) for x in a.samples.split(",")]
-    report = (compare if a.compare else plain)(a, frames, ns)
+    report = (compare if a.compare else trackers if a.trackers else plain)(a, frames, ns)
     if a.json:
         Path(a.json).write_text(json.dumps(report, indent=2) + "\n")
 

@@ -77,14 +77,17 @@ def take_signals(take, trackers, faults=None, seed=0, index=0):
 
 
 def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECISION, max_frames=None, dump=None,
-             models=None, seed=0, lookahead=None, ik=True, log=print, trackers=(), faults=None, segments=True):
+             models=None, seed=0, lookahead=None, ik=True, log=print, trackers=(), faults=None, segments=True,
+             selection=None, max_clips=None):
     files = find_clips(paths, split)
+    if max_clips and len(files) > max_clips:        # an even spread over the list (a quick subset)
+        files = [files[i] for i in np.linspace(0, len(files) - 1, max_clips).round().astype(int)]
     if not files:
         raise SystemExit(f"edge eval: no clips found in {paths}" + (f" for split {split!r}" if split else ""))
     if faults not in (None, "disconnect"):
         raise ValueError(f"--faults {faults!r}: edge eval knows 'disconnect' (DragPoser's protocol on the extra trackers)")
     pipe = Pipeline(models, samples=samples, seed=seed, precision=precision, ssi=not no_ssi, lookahead=lookahead,
-                    foot_ik=ik, arm_ik=ik, segments=segments)
+                    foot_ik=ik, arm_ik=ik, segments=segments, selection=selection)
     if trackers and not pipe.imus:
         raise ValueError(f"--trackers {','.join(trackers)}: the model in {models or 'models/'} reads no extra IMUs "
                          f"(its decoder takes {pipe.n_features} features)")
@@ -149,7 +152,7 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECI
         raise SystemExit("edge eval: no clip could be evaluated: " + "; ".join(skipped))
     result = {"clips": len(parts), "samples": samples, "ssi": pipe.ssi, "precision": precision, "ik": ik,
               "trackers": ["waist", *trackers], "faults": faults, "decoder_features": pipe.n_features,
-              "imu_segments": pipe.segments,
+              "imu_segments": pipe.segments, "selection": [(c.name, c.weight) for c in pipe.criteria.criteria],
               "lookahead_frames": pipe.lookahead, "ssi_switches": switches, "transition_frames": switch_frames,
               "split": split, "warmup_s": WARMUP_S, **metrics.summarize(parts),
               **metrics.summarize_physical(phys), "ground_truth": metrics.summarize_physical(phys_gt),

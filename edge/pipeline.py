@@ -156,7 +156,7 @@ class LookaheadBuffer:
 class Pipeline:
     def __init__(self, models=None, samples=1, seed=0, fps=60.0, body_scale=1.0, precision=DEFAULT_PRECISION, threads=1,
                  lookahead=None, transition=10, ssi=True, criteria=None, foot_ik=True, arm_ik=True,
-                 use_native=True, segments=True):
+                 use_native=True, segments=True, selection=None):
         if not 1 <= samples <= 128:
             raise ValueError(f"samples must be 1..128, got {samples}")
         lookahead = (10 if samples > 1 else 0) if lookahead is None else lookahead
@@ -181,7 +181,7 @@ class Pipeline:
         self.autoencoder = Autoencoder(ae_session, N)
         self.threshold = m["plausibility_threshold_m"]
         self.scorer = PlausibilityScorer(self.autoencoder, self.threshold, use_native)
-        self.criteria = Composite(criteria if criteria is not None else self.default_criteria(m, use_native))
+        self.criteria = Composite(criteria if criteria is not None else self.default_criteria(m, use_native, selection))
 
         # N=1 is the plain CVAE at the prior mean; more samples draw fixed latents once (SSI 3.2).
         self.latents = np.zeros((N, m["latent"]), np.float32)
@@ -215,11 +215,11 @@ class Pipeline:
             self._setup_native(fps, body_scale, foot_ik, arm_ik)
         self.reset()
 
-    def default_criteria(self, manifest, use_native=True):
+    def default_criteria(self, manifest, use_native=True, selection=None):
         """SSI's default selection cost: the autoencoder's plausibility score, plus the physical one
         (edge.criteria.PhysicalPlausibility) at the weights chosen on val for this model (the manifest's
-        `selection`; a model without one uses the autoencoder alone)."""
-        w = manifest.get("selection", {"plausibility": 1.0})
+        `selection`, or these; a model without one uses the autoencoder alone)."""
+        w = selection or manifest.get("selection", {"plausibility": 1.0})
         out = [Plausibility(self.scorer, w.get("plausibility", 1.0))]
         if w.get("physical"):
             p = w["physical"]

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from edge.bvh import BvhError
-from edge.criteria import CollisionAvoid, Plausibility, TargetHit
+from edge.criteria import CollisionAvoid, TargetHit
 from edge.eval import run_take
 from edge.inference import DEFAULT_PRECISION
 from edge.pipeline import Pipeline
@@ -84,8 +84,7 @@ def run_study(paths, task, samples_list, runs, split=None, models=None, max_clip
 
 
 def _one(take, task, n, seed, models, precision=DEFAULT_PRECISION):
-    pipe = Pipeline(models, samples=n, seed=seed, criteria=[], precision=precision)
-    pipe.criteria.criteria.append(Plausibility(pipe.scorer))
+    pipe = Pipeline(models, samples=n, seed=seed, precision=precision)    # the default criteria, plus the task's
     if task == "avoid":
         center, radius = obstacle_for(take)
         crit = CollisionAvoid([center], [radius], joints=LEFT_LEG, weight=10.0)
