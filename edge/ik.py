@@ -6,6 +6,8 @@ The arm pass puts the wrists on the controllers (the SSI paper's section 6 limit
 """
 import numpy as np
 
+from edge.physics import LOCK_SNAP_M, lowest_point, support
+
 from edge.quat import cross
 
 
@@ -100,10 +102,12 @@ def smoothstep(x):
 class FootLock:
     """Per-sample, per-foot contact locks with a smooth release (LoBSTR 3.4.1).
 
-    While a foot's contact probability is above 0.5 its ankle is held where contact began; after
+    While a foot's contact probability (times edge.physics.support of its height: a foot in the air
+    is not in contact) is above 0.5 its ankle is held where contact began, on the floor: a lock taken with the foot's lowest point within edge.physics.LOCK_SNAP_M of the floor is
+    moved up or down onto it (a foot in contact stands on the floor, not above or under it). After
     release the IK weight eases from 1 to 0 over `release_frames` frames. A lock also lets go when the
-    network's own ankle has moved more than `max_slip` metres from it: the contact was wrong, and
-    holding on would drag the leg.
+    network's own ankle has moved more than `max_slip` metres from it across the floor: the contact
+    was wrong, and holding on would drag the leg.
     """
 
     def __init__(self, samples, feet=2, release_frames=10, max_slip=0.08):
@@ -120,19 +124,27 @@ class FootLock:
         self.since_release[:] = self.release_frames
         self.weight[:] = 0
 
-    def update(self, contacts, ankle_pos):
+    def update(self, contacts, ankle_pos, toe_drop=None):
         """contacts [B,2] probabilities, ankle_pos [B,2,3] -> IK targets [B,2,3] and weights [B,2].
+        toe_drop [B,2]: each toe's height relative to its ankle (for the floor snap; None: no snap).
 
         B may be fewer than the samples allocated (adaptive N): the first B rows are updated."""
         B = len(contacts)
         lock_pos, locked, was_raw = self.lock_pos[:B], self.locked[:B], self.raw[:B]
         since, weight = self.since_release[:B], self.weight[:B]
-        raw = contacts > 0.5
-        slipped = locked & (np.linalg.norm(ankle_pos - lock_pos, axis=-1) > self.max_slip)
+        if toe_drop is not None:    # a foot in the air is not in contact, whatever the decoder says
+            raw = contacts * support(lowest_point(ankle_pos[..., 1], toe_drop)) > 0.5
+        else:
+            raw = contacts > 0.5
+        d = ankle_pos - lock_pos
+        slipped = locked & (np.sqrt(d[..., 0] * d[..., 0] + d[..., 2] * d[..., 2]) > self.max_slip)
         # Lock on a new contact, or on a continuing one once an earlier release has fully eased out;
         # a lock taken mid-release starts where the foot is drawn, so the foot does not jump.
         start = raw & ~locked & (~was_raw | (weight == 0))
         drawn = ankle_pos + weight[..., None] * (lock_pos - ankle_pos)
+        if toe_drop is not None:
+            h = lowest_point(drawn[..., 1], toe_drop)
+            drawn[..., 1] -= np.where(np.abs(h) <= LOCK_SNAP_M, h, 0.0)
         lock_pos[start] = drawn[start]
         locked[:] = (locked & raw & ~slipped) | start
         was_raw[:] = raw

@@ -15,6 +15,12 @@ ANKLE_HEIGHT = TOE_HEIGHT + 0.07    # the ankle joint's height above the floor i
 # The lowest the post-processing lets an ankle and a toe joint go (a flat foot has them at 0.09 and 0.02).
 FLOOR_ANKLE = 0.07
 FLOOR_TOE = 0.0
+# A foot whose lowest point is more than SUPPORT_NONE_M above the floor cannot be standing on it: the
+# contact the decoder reports fades out between SUPPORT_FULL_M and SUPPORT_NONE_M (edge.pipeline).
+SUPPORT_FULL_M = 0.03
+SUPPORT_NONE_M = 0.08
+# A foot lock taken with the foot's lowest point within this of the floor is set on the floor (edge.ik.FootLock).
+LOCK_SNAP_M = 0.12
 # Thigh (hip -> knee) and shin (knee -> ankle) of each leg: [side, segment, end].
 LEG_SEGMENTS = np.array([[[JOINT[f"{s}_hip"], JOINT[f"{s}_knee"]], [JOINT[f"{s}_knee"], JOINT[f"{s}_ankle"]]]
                          for s in "lr"])
@@ -51,3 +57,14 @@ def floor_lift(ankle_y, toe_drop_y):
     """How far a foot must rise so neither its ankle (at ankle_y) nor its toe (toe_drop_y below or above
     the ankle) is under the floor limits [...] (m, 0 when it is clear)."""
     return np.maximum(np.maximum(FLOOR_ANKLE - ankle_y, FLOOR_TOE - (ankle_y + toe_drop_y)), 0.0)
+
+
+def lowest_point(ankle_y, toe_drop_y):
+    """foot_height from an ankle's height and its toe's height relative to it [...] (m)."""
+    return np.minimum(ankle_y + toe_drop_y - TOE_HEIGHT, ankle_y - ANKLE_HEIGHT)
+
+
+def support(height):
+    """How far a foot at this lowest-point height [...] can be bearing weight: 1 on the floor (up to
+    SUPPORT_FULL_M), fading linearly to 0 at SUPPORT_NONE_M. A decoder contact is multiplied by it."""
+    return np.clip((SUPPORT_NONE_M - height) / (SUPPORT_NONE_M - SUPPORT_FULL_M), 0.0, 1.0)

@@ -33,7 +33,7 @@ from edge.features import NUM_POINT_FEATURES, body_points, features, heading, im
 from edge.imus import IMU_JOINTS, NUM_IMUS
 from edge.ik import FootLock, apply_limb_ik, smoothstep
 from edge.inference import DEFAULT_PRECISION, Autoencoder, Decoder, open_models
-from edge.physics import floor_lift
+from edge.physics import floor_lift, lowest_point, support
 from edge.plausibility import PlausibilityScorer
 from edge.signals import EYE_OFFSET, GRIP_OFFSET
 from edge.skeleton import (ANKLES, HEAD, JOINT, LEVELS, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, PELVIS_TO_HEAD,
@@ -75,6 +75,13 @@ def fk_with_segments(local, world, pos, seg_m, seg_flag):
             blend = (1 - f) * quat.matrix_to_6d(world[:, hit]) + f * quat.matrix_to_6d(seg_m[hit])
             world[:, hit] = quat.matrix_from_6d(blend)
             local[:, hit] = np.swapaxes(world[:, PARENTS[hit]], -1, -2) @ world[:, hit]
+
+
+def supported_contacts(contacts, positions):
+    """The decoder's foot contacts [2] as far as each foot of the pose [J,3] is on the floor to bear them
+    (edge.physics.support): a foot in the air is not in contact, whatever the contact head says."""
+    toe_drop = positions[TOES, 1] - positions[ANKLES, 1]
+    return contacts * support(lowest_point(positions[ANKLES, 1], toe_drop))
 
 
 def transition_weight(k, T):
@@ -481,14 +488,16 @@ class Pipeline:
         sample's foot goal (in _targets) is where its lock draws the ankle, so the leg IK runs at weight 1.
         Returns (goals [N,2,3], lock weights [N,2])."""
         goal, pos = self._targets[:N], self._pos
+        toe_drop = (self._world[:N, ANKLES] @ self._toe_offsets)[..., 1, 0]   # for the locks' floor snap
         if self.native:
             a, f = self._addr, self.feet
-            self.native.ep_foot_locks(N, 2, a["contacts"], a["_pos"], NUM_JOINTS, a["ankles"], f.release_frames,
-                                      f.max_slip, a["lock_pos"], a["locked"], a["raw"], a["since_release"],
-                                      a["weight"], a["_targets"])
+            toe_drop = np.ascontiguousarray(toe_drop)
+            self.native.ep_foot_locks(N, 2, a["contacts"], a["_pos"], NUM_JOINTS, a["ankles"], native.addr(toe_drop),
+                                      f.release_frames, f.max_slip, a["lock_pos"], a["locked"], a["raw"],
+                                      a["since_release"], a["weight"], a["_targets"])
             w = f.weight[:N]
         else:
-            lock, w = self.feet.update(self.decoder.contacts[:N], pos[:N, ANKLES])
+            lock, w = self.feet.update(self.decoder.contacts[:N], pos[:N, ANKLES], toe_drop)
             ankle = pos[:N, ANKLES]
             np.subtract(lock, ankle, out=goal)
             goal *= w[..., None]
@@ -618,7 +627,7 @@ class Pipeline:
             self.native.ep_emit(self._core, s, row)
         else:
             self.pose_from_buffer(o, row, p.positions, p.rotations)
-            p.contacts[:] = b.contacts[s, row]
+            p.contacts[:] = supported_contacts(b.contacts[s, row], p.positions)
         return p
 
     def pose_from_buffer(self, frame, row, positions=None, rotations=None):

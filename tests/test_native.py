@@ -114,11 +114,12 @@ def test_pipeline_output_is_the_same_with_and_without_the_compiled_core(samples,
         for t in range(400):
             pose = pipe.step(sig.slice(t, t + 1))
             if pose is not None:
-                poses.append((pose.positions.copy(), pose.rotations.copy(), pose.sample))
+                poses.append((pose.positions.copy(), pose.rotations.copy(), pose.sample, pose.contacts.copy()))
         runs.append((poses, list(pipe.switches)))
     (a, sw_a), (b, sw_b) = runs
     assert sw_a == sw_b
     assert [p[2] for p in a] == [p[2] for p in b]
+    np.testing.assert_allclose(np.array([p[3] for p in a]), np.array([p[3] for p in b]), rtol=0, atol=1e-9)
     np.testing.assert_allclose(np.array([p[0] for p in a]), np.array([p[0] for p in b]), rtol=0, atol=1e-9)
     np.testing.assert_allclose(np.array([p[1] for p in a]), np.array([p[1] for p in b]), rtol=0, atol=1e-9)
 
@@ -159,15 +160,18 @@ def test_foot_locks_match_numpy_through_contacts_releases_and_slips():
     pos = np.zeros((B, NUM_JOINTS, 3))
     goal = np.zeros((B, 2, 3))
     contacts = np.zeros((B, 2), np.float32)
-    walk = np.zeros((B, 2, 3))
+    walk = np.zeros((B, 2, 3)) + [0, 0.12, 0]
     for t in range(T):
         walk += rng.normal(0, 0.01, walk.shape) + (rng.uniform(size=(B, 2, 1)) < 0.02) * 0.1   # drifts and slips
         pos[:, ANKLES] = walk
+        pos[:, ANKLES, 1] = 0.09 + rng.uniform(-0.04, 0.08, (B, 2))          # on, under and above the floor
+        drop = np.ascontiguousarray(rng.uniform(-0.1, 0.05, (B, 2)))       # toes below or above their ankles
         contacts[:] = (np.sin(t / 9.0 + np.arange(B)[:, None] + [0, 1.5]) + rng.normal(0, 0.3, (B, 2))) > 0
-        lock, w = ref.update(contacts, pos[:, ANKLES])
+        lock, w = ref.update(contacts, pos[:, ANKLES], drop)
         want = (lock - pos[:, ANKLES]) * w[..., None] + pos[:, ANKLES]
-        lib.ep_foot_locks(B, 2, A(contacts), A(pos), NUM_JOINTS, A(ankles64), nat.release_frames, nat.max_slip,
-                          A(nat.lock_pos), A(nat.locked), A(nat.raw), A(nat.since_release), A(nat.weight), A(goal))
+        lib.ep_foot_locks(B, 2, A(contacts), A(pos), NUM_JOINTS, A(ankles64), A(drop), nat.release_frames,
+                          nat.max_slip, A(nat.lock_pos), A(nat.locked), A(nat.raw), A(nat.since_release),
+                          A(nat.weight), A(goal))
         assert np.array_equal(nat.locked, ref.locked) and np.array_equal(nat.raw, ref.raw)
         np.testing.assert_allclose(nat.weight, ref.weight, rtol=0, atol=1e-15)
         np.testing.assert_allclose(goal, want, rtol=0, atol=1e-12)

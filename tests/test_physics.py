@@ -6,7 +6,7 @@ import pytest
 from edge import metrics
 from edge.criteria import FrameContext, PhysicalPlausibility
 from edge.physics import FLOOR_ANKLE, FLOOR_TOE, foot_height, leg_gap, segment_distance
-from edge.pipeline import Pipeline
+from edge.pipeline import Pipeline, supported_contacts
 from edge.skeleton import ANKLES, JOINT, REST, TOES, PELVIS_HEIGHT
 from edge.takes import from_sample
 from conftest import SAMPLE
@@ -67,3 +67,12 @@ def test_physical_criterion_prefers_the_clean_sample_and_the_core_agrees_with_nu
     assert fast[5] > 0.05 and fast[6] > 0.2 and fast[7] == pytest.approx(0.08)
     clean = np.delete(fast, [5, 6, 7])
     assert clean.max() < 0.01
+
+
+def test_a_foot_in_the_air_is_not_reported_in_contact_whatever_the_decoder_says():
+    pose = STANDING.copy()
+    assert np.allclose(supported_contacts(np.array([1.0, 0.8]), pose), [1.0, 0.8])      # both on the floor
+    pose[[JOINT["r_ankle"], JOINT["r_toe"]], 1] += 0.055                                # right foot 5.5 cm up
+    assert np.allclose(supported_contacts(np.array([1.0, 1.0]), pose), [1.0, 0.5])      # fading
+    pose[[JOINT["r_ankle"], JOINT["r_toe"]], 1] += 0.1
+    assert np.allclose(supported_contacts(np.array([1.0, 1.0]), pose), [1.0, 0.0])      # in the air

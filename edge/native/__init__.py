@@ -105,7 +105,7 @@ _SIGNATURES = {
     "ep_forward": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _P, _I, _P, _P, _P, _P, _P],
     "ep_local_pose": [_I, _I, _P, _P, _I, _P, _P, _P],
     "ep_leg_error": [_I, _I, _P, _I, _P, _P, _P, _P, _P, _P],
-    "ep_foot_locks": [_I, _I, _P, _P, _I, _P, _D, _D, _P, _P, _P, _P, _P, _P],
+    "ep_foot_locks": [_I, _I, _P, _P, _I, _P, _P, _D, _D, _P, _P, _P, _P, _P, _P],
     "ep_frame_features": [_P, _P, _P, _D, _P, _P, _P],
     "ep_imu_features": [_I, _P, _P, _P, _P],
     "ep_physical_cost": [_I, _I, _P, _P, _P, _P, _P, _D, _D, _D, _D, _D, _D, _D, _P],

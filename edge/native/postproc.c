@@ -59,6 +59,12 @@ int ep_max_joints(void) { return MAX_JOINTS; }
 /* edge.pipeline.FLOOR_ANKLE / FLOOR_TOE: the lowest an ankle and a toe joint may go (m above the floor) */
 #define FLOOR_ANKLE 0.07
 #define FLOOR_TOE 0.0
+/* edge.physics: the rest heights of the toe and ankle joints, and FootLock's floor snap */
+#define TOE_HEIGHT 0.02
+#define ANKLE_HEIGHT 0.09
+#define LOCK_SNAP 0.12
+#define SUPPORT_FULL 0.03
+#define SUPPORT_NONE 0.08
 
 /* dst[k][l] = src[row_l * stride + k] for k < n: row_l is r0 + l, or the block's last real row in a
  * spare lane (nl real rows). stride 0 gives every lane the same values. */
@@ -477,16 +483,32 @@ void ep_leg_error(int B, int J, const float *ae_out, int rot_dim, const int64_t 
 }
 
 /* edge.ik.FootLock.update for foot i (state arrays FootLock's; locked and raw are numpy bools) at
- * this ankle position, and the foot goal the pipeline hands the leg IK: the ankle drawn towards its
+ * this ankle position (toe_drop: its toe's height relative to it, for the floor snap; NULL: none), and the foot goal the pipeline hands the leg IK: the ankle drawn towards its
  * lock by the lock's weight (edge.pipeline.Pipeline._foot_goals). */
-static void foot_lock(int i, int contact, const double *ankle, double release_frames, double max_slip,
-                      double *lock_pos, uint8_t *locked, uint8_t *raw, double *since, double *weight, double *goal) {
+/* edge.physics.support of a foot's lowest point h above the floor */
+static double support(double h) { return clamp((SUPPORT_NONE - h) / (SUPPORT_NONE - SUPPORT_FULL), 0.0, 1.0); }
+
+/* edge.physics.lowest_point */
+static double lowest_point(double ankle_y, double toe_drop) {
+    double t = ankle_y + toe_drop - TOE_HEIGHT, a = ankle_y - ANKLE_HEIGHT;
+    return t < a ? t : a;
+}
+
+static void foot_lock(int i, double p, const double *ankle, const double *toe_drop, double release_frames,
+                      double max_slip, double *lock_pos, uint8_t *locked, uint8_t *raw, double *since, double *weight,
+                      double *goal) {
     double *lock = lock_pos + (int64_t)i * 3;
+    int contact = toe_drop ? p * support(lowest_point(ankle[1], *toe_drop)) > 0.5 : p > 0.5;
     double d[3] = {ankle[0] - lock[0], ankle[1] - lock[1], ankle[2] - lock[2]};
-    int slipped = locked[i] && sqrt(dot3(d, d)) > max_slip;
+    int slipped = locked[i] && sqrt(d[0] * d[0] + d[2] * d[2]) > max_slip;
     int start = contact && !locked[i] && (!raw[i] || weight[i] == 0.0);
-    if (start)
+    if (start) {
         for (int k = 0; k < 3; k++) lock[k] = ankle[k] + weight[i] * (lock[k] - ankle[k]);
+        if (toe_drop) {         /* onto the floor when within LOCK_SNAP of it */
+            double h = lowest_point(lock[1], *toe_drop);
+            if (fabs(h) <= LOCK_SNAP) lock[1] -= h;
+        }
+    }
     locked[i] = (locked[i] && contact && !slipped) || start;
     raw[i] = contact;
     since[i] = locked[i] ? 0.0 : since[i] + 1.0;
@@ -497,12 +519,13 @@ static void foot_lock(int i, int contact, const double *ankle, double release_fr
 
 /* FootLock.update for B samples and F feet from the decoder's contacts [B,F] and the FK ankles. */
 void ep_foot_locks(int B, int F, const float *contacts, const double *pos, int J, const int64_t *ankles,
-                   double release_frames, double max_slip, double *lock_pos, uint8_t *locked, uint8_t *raw,
-                   double *since, double *weight, double *goal) {
+                   const double *toe_drop, double release_frames, double max_slip, double *lock_pos, uint8_t *locked,
+                   uint8_t *raw, double *since, double *weight, double *goal) {
     for (int r = 0; r < B; r++)
         for (int f = 0; f < F; f++)
-            foot_lock(r * F + f, contacts[r * F + f] > 0.5f, pos + ((int64_t)r * J + ankles[f]) * 3, release_frames,
-                      max_slip, lock_pos, locked, raw, since, weight, goal);
+            foot_lock(r * F + f, contacts[r * F + f], pos + ((int64_t)r * J + ankles[f]) * 3,
+                      toe_drop ? toe_drop + r * F + f : 0, release_frames, max_slip, lock_pos, locked, raw, since,
+                      weight, goal);
 }
 
 /* ------------------------------------------------------------------ the live frame in one call */
@@ -582,9 +605,13 @@ void ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n,
             for (int l = 0; l < nl && r0 + l < N; l++)
                 for (int f = 0; f < 2; f++) {
                     int i = (r0 + l) * 2 + f;
-                    double ankle[3] = {k.P[x->ankles[f]][0][l], k.P[x->ankles[f]][1][l], k.P[x->ankles[f]][2][l]};
-                    foot_lock(i, x->contacts[i] > 0.5f, ankle, x->release_frames, x->max_slip, x->lock_pos, x->locked,
-                              x->raw, x->since, x->lock_weight, x->goals);
+                    int a = (int)x->ankles[f], toe = a + 1;
+                    while (toe < J && x->parents[toe] != a) toe++;
+                    const double *o = x->offsets + toe * 3;
+                    double ankle[3] = {k.P[a][0][l], k.P[a][1][l], k.P[a][2][l]};
+                    double drop = k.W[a][3][l] * o[0] + k.W[a][4][l] * o[1] + k.W[a][5][l] * o[2];
+                    foot_lock(i, x->contacts[i], ankle, &drop, x->release_frames, x->max_slip, x->lock_pos,
+                              x->locked, x->raw, x->since, x->lock_weight, x->goals);
                     x->weights[i] = 1.0;
                 }
             if (R > N && r0 + nl > N)
@@ -638,15 +665,19 @@ void ep_row_pose(const core_context *x, const float *rot6d, const double *goals,
 }
 
 /* Pipeline._emit: ep_row_pose of row `row` of ring slot `slot`, into out_local and out_pos, and its
- * foot contacts into out_contacts. */
+ * foot contacts, as far as each foot is on the floor to bear them, into out_contacts. */
 void ep_emit(const core_context *x, int slot, int row) {
     int64_t r = (int64_t)slot * x->ring_rows + row;
-    x->out_contacts[0] = x->ring_contacts[r * 2];
-    x->out_contacts[1] = x->ring_contacts[r * 2 + 1];
     ep_row_pose(x, x->ring_rot6d + r * x->rot6d_stride, x->ring_goal + r * 6, x->ring_weight + r * 2,
                 x->ring_waist + slot * 9, x->ring_anchor + slot * 3, x->ring_wrists + slot * 6, x->ring_hand + slot * 18,
                 x->ring_head + slot * 9, x->ring_seg_m + (int64_t)slot * x->J * 9, x->ring_seg_flag + (int64_t)slot * x->J,
                 x->out_local, x->out_world, x->out_pos);
+    for (int f = 0; f < 2; f++) {       /* edge.pipeline.supported_contacts */
+        int a = (int)x->ankles[f], toe = a + 1;
+        while (toe < x->J && x->parents[toe] != a) toe++;
+        double h = lowest_point(x->out_pos[a * 3 + 1], x->out_pos[toe * 3 + 1] - x->out_pos[a * 3 + 1]);
+        x->out_contacts[f] = x->ring_contacts[r * 2 + f] * support(h);
+    }
 }
 
 /* edge.quat.rotate, in its order of operations: t = 2 (u x v); v + w t + u x t. */
