@@ -130,7 +130,7 @@ def test_extra_trackers_ride_the_simulated_hub_and_can_and_feed_the_model(take):
     assert session.meta["placement"] == {"i2c": ["waist"], "hub": ["l_shin", "r_shin"], "can": ["l_foot", "r_foot"]}
     result = replay(session, "max", samples=8, lookahead=LOOKAHEAD, seconds=SECONDS)
     assert set(result["trackers"]) == {"waist", "l_shin", "r_shin", "l_foot", "r_foot"}
-    assert result["errors"] == [] and result["deadline_misses"] == 0
+    assert result["errors"] == [] and result["poses_decoded"] > 0
     if Pipeline(samples=1).imus:
         assert result["trackers_used_by_model"] == ["l_shin", "r_shin", "l_foot", "r_foot"]
         bare = replay(synthesize(take, ("serial", "i2c", "can"), {}, 0, trackers=()), "max", samples=8,
