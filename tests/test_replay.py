@@ -138,3 +138,14 @@ def test_extra_trackers_ride_the_simulated_hub_and_can_and_feed_the_model(take):
         assert result["mpjpe_cm"] < bare["mpjpe_cm"]
     with pytest.raises(ValueError, match="need the serial hub or CAN"):
         synthesize(take, ("i2c",), {}, 0, trackers=("l_shin",))
+
+
+def test_unplugging_a_foot_tracker_mid_replay_changes_the_pose_without_a_pop(take):
+    """unplug-foot: the left foot's CAN tracker goes silent for good at 4 s; the replay reports the
+    largest joint move per frame in the second before and after, and the fade keeps them alike."""
+    f = fault_profile("unplug-foot")
+    result = replay(synthesize(take, ("serial", "i2c", "can"), f, 0), "max", samples=8, lookahead=LOOKAHEAD,
+                    seconds=7.0, faults=f)
+    u = result["tracker_unplug"]
+    assert u["tracker"] == "l_foot" and result["tracker_lost_events"] >= 1
+    assert u["largest_step_before_m"] > 0 and u["ratio"] < 1.5

@@ -134,6 +134,7 @@ class StreamMetrics:
         self.latency = np.full(ticks + 2, np.nan)
         self.error = np.full(ticks + 2, np.nan)
         self.t = np.full(ticks + 2, np.nan)
+        self.step = np.full(ticks + 2, np.nan)           # the largest joint move from the previous frame (m)
         self.jerk_sum, self.jerk_n, self.decoded = 0.0, 0, 0
         self.window = np.zeros((4, 21, 3))
         self.window_frames = np.full(4, -10)
@@ -160,6 +161,8 @@ class StreamMetrics:
         self.window = np.roll(self.window, -1, axis=0)
         self.window_frames = np.roll(self.window_frames, -1)
         self.window[-1], self.window_frames[-1] = pos, o
+        if self.window_frames[-2] == o - 1:
+            self.step[o] = np.linalg.norm(pos - self.window[-2], axis=-1).max()
         if g >= self.hz and np.all(np.diff(self.window_frames) == 1):
             jerk = (self.window[3] - 3 * self.window[2] + 3 * self.window[1] - self.window[0]) * self.hz ** 3
             self.jerk_sum += np.linalg.norm(jerk, axis=-1).mean()
@@ -343,6 +346,14 @@ def report(session, summary, m, service, ear, opened, errors, faults, speed, dur
         "latency_ms_samples": [round(float(x), 3) for x in lat[:20000]],
         "health_timeline": health_timeline(service.health_changes, duration, faults),
     }
+    if "tracker_unplug_at" in faults:       # the pose around an extra IMU's loss: no pop
+        at, ok = faults["tracker_unplug_at"], np.isfinite(m.step)
+        before = m.step[ok & (m.t >= at - 1) & (m.t < at)]
+        after = m.step[ok & (m.t >= at) & (m.t < at + 1)]
+        if len(before) and len(after):
+            out["tracker_unplug"] = {"tracker": faults.get("tracker_unplug"), "at_s": at,
+                                     "largest_step_before_m": float(before.max()), "largest_step_after_m": float(after.max()),
+                                     "ratio": float(after.max() / before.max())}
     err = m.error[np.isfinite(m.error)]
     if len(err):
         out["mpjpe_cm"] = float(err.mean() * 100)

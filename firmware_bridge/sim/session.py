@@ -170,6 +170,7 @@ FAULTS = {
     "i2c-errors": {"i2c_error_rate": 0.05},
     "can-busoff": {"busoff_at": 2.0, "busoff_s": 1.0},
     "clock-jump": {"clock_jump_at": 2.0, "clock_jump_s": 0.75},
+    "unplug-foot": {"tracker_unplug": "l_foot", "tracker_unplug_at": 4.0},  # an extra IMU goes silent for good
 }
 
 
@@ -254,6 +255,8 @@ def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, see
     for tracker in ("waist",) + IMU_LOCATIONS:
         dropped[tracker] = (gaps(rng, frames60, faults["disconnect"], lambda r: faults.get("disconnect_frames", 100))
                             if "disconnect" in faults else np.zeros(frames60, bool))
+    if faults.get("tracker_unplug") in dropped:
+        dropped[faults["tracker_unplug"]][int(faults["tracker_unplug_at"] * fps):] = True
     hands_gone = [gaps(rng, frames60, faults["hand_loss"], lambda r: r.uniform(*faults.get("hand_gap_s", [0.5, 2.0])) * fps)
                   if "hand_loss" in faults else np.zeros(frames60, bool) for _ in range(2)]
     loss, ber = faults.get("loss", 0.0), faults.get("ber", 0.0)
