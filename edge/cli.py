@@ -125,6 +125,9 @@ def main(argv=None):
             return record.main(args)
         if args.cmd == "replay":
             from firmware_bridge.sim import replay
+            if args.report:
+                from viz.canvas import require_plotting
+                require_plotting()                   # say what to install before replaying, not after
             code = replay.main(args)
             if code == 0 and args.report:
                 from viz.report import build_report
