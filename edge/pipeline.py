@@ -35,7 +35,7 @@ from edge.ik import FootLock, apply_limb_ik, smoothstep
 from edge.inference import DEFAULT_PRECISION, Autoencoder, Decoder, open_models
 from edge.physics import floor_lift, lowest_point, support
 from edge.plausibility import PlausibilityScorer
-from edge.signals import EYE_OFFSET, GRIP_OFFSET
+from edge.signals import EYE_OFFSET, GRIP_OFFSET, Signals
 from edge.skeleton import (ANKLES, HEAD, JOINT, LEVELS, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, PELVIS_TO_HEAD,
                            TOES, fk)
 
@@ -45,6 +45,7 @@ LIMB_CHAINS = np.array([[JOINT[f"{s}_{a}"], JOINT[f"{s}_{b}"], JOINT[f"{s}_{c}"]
 LIMB_POLES = np.array([[0.0, 0.0, 1.0]] * 2 + [[0.0, 0.0, -1.0]] * 2)   # knees bend forward, elbows back
 NECK = JOINT["neck"]
 _FRAME_INPUTS = ("waist_m", "anchor", "wrists", "hand_m", "head_m", "seg_m", "seg_flag")  # a frame's inputs to FK and IK, in ep_row_pose's order
+POSITION_LIMIT_M = 50.0     # a tracked position farther from the origin is not a room-scale one (step refuses it)
 SWITCH_HISTORY = 10_000     # switches kept in Pipeline.switches (hours of a take; edge eval reads them per take)
 
 
@@ -210,10 +211,19 @@ class Pipeline:
         self._limb_weights[:, 2:] = 1.0 if arm_ik else 0.0
         self._limb_ends = np.zeros((R, 4, 3, 3))
         self._floor_lift = np.zeros((R, 2))           # how far the floor lifted each row's feet (m), per frame
+        self._rest6d = np.tile(np.array([1, 0, 0, 0, 1, 0], np.float32), NUM_PREDICTED)   # the rest pose's 6D
         self._toe_offsets = OFFSETS[TOES][:, :, None]
         # Every sample's pelvis is the waist IMU's rotation: a read-only [N,3,3] view of slot s's.
         self._pelvis = [np.broadcast_to(self.buffer.waist_m[k], (N, 3, 3)) for k in range(lookahead + 1)]
         self.out = Pose()
+        # One frame's tracker signals in (the extra IMUs' orientations and flags after the 25): the C
+        # calls' input, and what step() checks before anything uses it (_sane_frame).
+        self._frame_in = np.zeros(25 + 5 * NUM_IMUS)
+        self._good_in = np.zeros_like(self._frame_in)     # the last frame that passed
+        self._in = {k: self._frame_in[i:j].reshape(shape) for k, i, j, shape in (
+            ("head_pos", 0, 3, (3,)), ("head_rot", 3, 7, (4,)), ("hand_pos", 7, 13, (2, 3)),
+            ("hand_rot", 13, 21, (2, 4)), ("waist_rot", 21, 25, (4,)),
+            ("imu_rot", 25, 25 + 4 * NUM_IMUS, (NUM_IMUS, 4)), ("imu_flag", 25 + 4 * NUM_IMUS, 25 + 5 * NUM_IMUS, (NUM_IMUS,)))}
         self._ae_ready = None       # the scorer whose input the compiled core prepares (see _setup_native)
         # The compiled core (edge/native) runs the whole frame around the two ONNX calls when a C
         # compiler is there; the numpy stages below are the reference and the fallback.
@@ -247,13 +257,6 @@ class Pipeline:
             self._addr[k] = native.addr(getattr(self, k))
         for k in ("lock_pos", "locked", "raw", "since_release", "weight"):     # FootLock's state
             self._addr[k] = native.addr(getattr(self.feet, k))
-        # One frame's tracker signals in (the extra IMUs' orientations and flags after the 25), and what
-        # ep_frame_features makes of them.
-        self._frame_in = np.zeros(25 + 5 * NUM_IMUS)
-        self._in = {k: self._frame_in[i:j].reshape(shape) for k, i, j, shape in (
-            ("head_pos", 0, 3, (3,)), ("head_rot", 3, 7, (4,)), ("hand_pos", 7, 13, (2, 3)),
-            ("hand_rot", 13, 21, (2, 4)), ("waist_rot", 21, 25, (4,)),
-            ("imu_rot", 25, 25 + 4 * NUM_IMUS, (NUM_IMUS, 4)), ("imu_flag", 25 + 4 * NUM_IMUS, 25 + 5 * NUM_IMUS, (NUM_IMUS,)))}
         self._frame_offsets = np.concatenate([EYE_OFFSET[None], GRIP_OFFSET, (PELVIS_TO_HEAD * body_scale)[None]])
         self._points, self._prev = np.zeros((4, 3)), np.zeros((4, 3))
         self._feat32, self._mats = np.zeros(self.n_features, np.float32), np.zeros((4, 3, 3))
@@ -322,6 +325,8 @@ class Pipeline:
         self.switches = deque(maxlen=SWITCH_HISTORY)
         self.switch_count = 0
         self._prev_points = None
+        self.state_resets = 0       # decoder rows whose GRU state or output went non-finite (see _heal)
+        self.inputs_held = 0        # frames whose signals were non-finite or out of range (see _sane_frame)
 
     # ------------------------------------------------------------------ per frame
     def step(self, sig):
@@ -332,8 +337,10 @@ class Pipeline:
         b.frame[s] = t
         b.override[s] = False
         dec = self.decoder
+        self._load_frame_in(sig)
+        if not self._sane_frame():  # a frame no range check upstream caught: the last good one again
+            sig = self._held_frame()
         if self.native:             # features and tracker matrices, into slot s and the decoder, in one call
-            self._load_frame_in(sig)
             self.native.ep_frame_inputs(self._core, s, self._prev_points is None)
             self._prev_points = self._prev
         else:
@@ -364,6 +371,8 @@ class Pipeline:
             dec.latent[N] = (1 - a) * self.latents[c] + a * self.latents[n]
             dec.state[N] = (1 - a) * dec.state[c] + a * dec.state[n]
         dec.step()
+        if not (np.isfinite(dec.state[:dec.rows]).all() and np.isfinite(dec.rot6d[:dec.rows]).all()):
+            self._heal(dec, s)
 
         # Post-processing for every row at once; the transition row (row N) blends the two samples' foot
         # goals (not lock positions, which are stale for a foot that is free) and, like the samples, runs
@@ -408,6 +417,48 @@ class Pipeline:
         elif self.ssi and N > 1 and t - self.lookahead > self.trans_end:
             self._maybe_switch(t, s)
         return self._emit(t - self.lookahead)
+
+    def _sane_frame(self):
+        """Whether this frame's signals are finite and inside POSITION_LIMIT_M of the origin (no play
+        space is larger); the last one that was is kept to stand in for one that is not."""
+        v, head, hands = self._frame_in, self._in["head_pos"], self._in["hand_pos"]
+        total = float(v.sum())
+        ok = (total - total == 0.0 and -POSITION_LIMIT_M < head.min() and head.max() < POSITION_LIMIT_M
+              and -POSITION_LIMIT_M < hands.min() and hands.max() < POSITION_LIMIT_M)
+        if ok:
+            np.copyto(self._good_in, v)
+        return ok
+
+    def _held_frame(self):
+        """Stand the last good frame in for this one (counted in inputs_held); before any, a neutral
+        one: standing at the origin, facing +Z, no extra IMUs."""
+        self.inputs_held += 1
+        if not self._good_in.any():
+            self._good_in[:] = 0.0
+            self._good_in[[1, 3, 13, 17, 21]] = [1.6, 1.0, 1.0, 1.0, 1.0]
+            self._good_in[7:13] = [0.3, 1.0, 0.2, -0.3, 1.0, 0.2]
+        np.copyto(self._frame_in, self._good_in)
+        v = self._in
+        return Signals(v["head_pos"][None].copy(), v["head_rot"][None].copy(), v["hand_pos"][None].copy(),
+                       v["hand_rot"][None].copy(), v["waist_rot"][None].copy(), np.zeros((1, 3)),
+                       v["imu_rot"][None].copy(), v["imu_flag"][None].copy())
+
+    def _heal(self, dec, s):
+        """Rows whose GRU state or output went non-finite (an input no range check caught, or a state
+        that blew up): their state goes back to the start-of-clip state, and their output for this
+        frame is the row's previous one, so no NaN reaches a pose; the row recovers within a few
+        frames from there. Counted in state_resets. Off the per-frame path: only runs on a bad row."""
+        R = dec.rows
+        bad = ~(np.isfinite(dec.state[:R]).all(1) & np.isfinite(dec.rot6d[:R]).all(1) & np.isfinite(dec.contacts[:R]).all(1))
+        prev = self.buffer.slot(self.t - 1)
+        held = self.buffer.frame[prev] == self.t - 1
+        for r in np.flatnonzero(bad):
+            dec.state[r] = 0.0
+            dec.rot6d[r] = self.buffer.rot6d[prev, r] if held else self._rest6d
+            dec.contacts[r] = 0.0
+        if not np.isfinite(dec.features).all():     # the ring must not keep what a recompute would re-run
+            self.buffer.features[s] = self.buffer.features[prev] if held else 0.0
+        self.state_resets += int(bad.sum())
 
     def _frame_inputs_native(self, sig):
         """body_points, heading, features and the tracker matrices of one frame in C calls

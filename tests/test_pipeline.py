@@ -201,3 +201,48 @@ def test_switch_history_is_bounded_for_long_runs_but_every_switch_is_counted(tak
         pipe.step(take.signals.slice(t, t + 1))
     assert pipe.switch_count == 30 and len(pipe.switches) == 5
     assert [s[0] for s in pipe.switches] == list(range(25, 30))
+
+
+def _run_pair(take, native, hurt_frame, frames=260, samples=1):
+    """A clean pipeline and one whose frames `hurt_frame(t, pipe, sig)` may spoil; their outputs by frame."""
+    clean, hurt = Pipeline(samples=samples, use_native=native), Pipeline(samples=samples, use_native=native)
+    out_clean, out_hurt = {}, {}
+    for t in range(frames):
+        sig = take.signals.slice(t, t + 1)
+        a = clean.step(sig)
+        b = hurt.step(hurt_frame(t, hurt, sig))
+        if a is not None:
+            out_clean[a.frame], out_hurt[b.frame] = a.positions.copy(), b.positions.copy()
+            assert np.isfinite(b.positions).all() and np.isfinite(b.rotations).all() and np.isfinite(b.contacts).all()
+    err = {f: np.linalg.norm(out_hurt[f] - out_clean[f], axis=-1).mean() for f in out_clean}   # mean joint distance
+    return clean, hurt, err
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_a_hostile_frame_is_refused_at_the_door_and_never_reaches_a_pose(take, native):
+    """A headset position of 3e38 (finite, valid on the wire), NaN, or a 1e6 m jump: the frame is
+    replaced by the last good one (counted), no NaN reaches a pose, and 60 frames on the output is the
+    clean run's again (2 cm mean joint distance; a foot lock taken elsewhere can differ for a step)."""
+    from edge.signals import Signals
+    bad = {60: 3e38, 61: np.nan, 140: 1e6}
+
+    def spoil(t, pipe, sig):
+        return Signals(**{**vars(sig), "head_pos": np.full((1, 3), bad[t])}) if t in bad else sig
+    clean, hurt, err = _run_pair(take, native, spoil)
+    assert hurt.inputs_held == 3 and clean.inputs_held == 0
+    assert _run_pair(take, native, spoil, frames=160, samples=8)[1].inputs_held == 3      # no NaN with SSI either
+    assert max(err[f] for f in range(121, 135)) < 0.02 and max(err[f] for f in range(200, 250)) < 0.02
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_a_blown_up_gru_state_is_reset_and_the_pose_recovers(take, native):
+    """What the door cannot catch (a state that goes non-finite by itself): the rows are reset to the
+    start-of-clip state, counted, their pose held for the frame, and the output converges back."""
+    def blow_up(t, pipe, sig):
+        if t == 80:
+            pipe.decoder.state[:] = np.nan      # what the next step reads
+        return sig
+    clean, hurt, err = _run_pair(take, native, blow_up)
+    assert hurt.state_resets == 1 and clean.state_resets == 0
+    assert max(err[f] for f in range(141, 200)) < 0.02
+    assert _run_pair(take, native, blow_up, frames=160, samples=8)[1].state_resets >= 8   # every sample's row
