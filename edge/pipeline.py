@@ -422,9 +422,12 @@ class Pipeline:
         """Whether this frame's signals are finite and inside POSITION_LIMIT_M of the origin (no play
         space is larger); the last one that was is kept to stand in for one that is not."""
         v, head, hands = self._frame_in, self._in["head_pos"], self._in["hand_pos"]
-        total = float(v.sum())
-        ok = (total - total == 0.0 and -POSITION_LIMIT_M < head.min() and head.max() < POSITION_LIMIT_M
-              and -POSITION_LIMIT_M < hands.min() and hands.max() < POSITION_LIMIT_M)
+        if self.native:
+            ok = bool(self.native.ep_frame_sane(self._addr["_frame_in"], len(v), POSITION_LIMIT_M))
+        else:
+            total = float(v.sum())
+            ok = (total - total == 0.0 and -POSITION_LIMIT_M < head.min() and head.max() < POSITION_LIMIT_M
+                  and -POSITION_LIMIT_M < hands.min() and hands.max() < POSITION_LIMIT_M)
         if ok:
             np.copyto(self._good_in, v)
         return ok

@@ -811,6 +811,16 @@ void ep_physical_cost(int N, int J, const double *pos, const float *contacts, co
     }
 }
 
+/* edge.pipeline.Pipeline._sane_frame: 1 when the frame's n signal values are all finite and its
+ * head and controller positions (in[0..3), in[7..13)) lie within `limit` metres of the origin. */
+int ep_frame_sane(const double *in, int n, double limit) {
+    for (int i = 0; i < n; i++)
+        if (!(in[i] - in[i] == 0.0)) return 0;
+    for (int i = 0; i < 13; i++)
+        if ((i < 3 || i >= 7) && !(in[i] > -limit && in[i] < limit)) return 0;
+    return 1;
+}
+
 /* The k-th smallest of x[0..n) (x is reordered): Hoare's quickselect. */
 static double kth_smallest(double *x, int n, int k) {
     int lo = 0, hi = n - 1;
