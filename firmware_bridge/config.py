@@ -94,8 +94,14 @@ def id_map(text):
 
 def tracker_names_of(url):
     """Tracker names a source URL declares: ?tracker=NAME (I2C), ?nodes=1:a,2:b (CAN), ?trackers=0:a,1:b
-    (serial hub). A serial hub without a map carries the waist as id 0."""
+    (serial hub), ?trackers=MAC/SENSOR:NAME,... (SlimeVR). A serial hub without a map carries the waist as id 0."""
     scheme, _, _, query = parse_url(url)
+    if scheme == "slimevr":                 # trackers=MAC/SENSOR:NAME,...
+        from firmware_bridge.transports.slimevr import parse_tracker_map
+        try:
+            return list(parse_tracker_map(query.get("trackers", "")).values())
+        except ValueError as e:
+            raise ConfigError(str(e)) from None
     if "tracker" in query:
         return [query["tracker"]]
     if "nodes" in query:

@@ -32,7 +32,7 @@ class Source(ABC):
 
 
 # scheme -> module under firmware_bridge.transports that defines `open(url, parsed, **kw) -> Source`
-SCHEMES = {"serial": "serial_port", "i2c": "i2c", "can": "can_bus"}
+SCHEMES = {"serial": "serial_port", "i2c": "i2c", "can": "can_bus", "slimevr": "slimevr"}
 
 
 def parse_url(url):
