@@ -11,6 +11,7 @@ tick at a time (the same bytes, just faster), which is what the tests use.
 """
 import json
 import os
+import socket
 import sys
 import tempfile
 import threading
@@ -106,6 +107,61 @@ class CanDevice:
         self.bus.shutdown()
 
 
+class SlimeVRDevice:
+    """One SlimeVR tracker on a UDP socket of its own, on loopback: it broadcasts its handshake (here:
+    to the board's address) once a second until the board answers, then sends its recorded datagrams
+    on time; a tracker that has heard nothing from the board for 3 s searches again, as the firmware
+    does. unplug(seconds) makes it go silent and then restart (a new handshake)."""
+
+    def __init__(self, mac, log, server, clock):
+        from firmware_bridge.slimevr_wire import TrackerEncoder
+        self.mac, self.log, self.server, self.clock = mac, log, server, clock
+        self.enc = TrackerEncoder(mac)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.setblocking(False)
+        self.connected, self.next, self.last_try, self.last_heard, self.silent_until = False, 0, -1e9, 0.0, -1.0
+        self.handshakes = 0
+
+    def emit_until(self, t):
+        from firmware_bridge.slimevr_wire import HANDSHAKE_REPLY
+        while True:                                 # what the board sent
+            try:
+                data = self.sock.recv(2048)
+            except (BlockingIOError, OSError):
+                break
+            self.last_heard = t
+            if data[:13] == HANDSHAKE_REPLY[:13]:
+                self.connected = True
+        if t < self.silent_until:                   # unplugged: nothing in, nothing out
+            while self.next < len(self.log.t) and self.log.t[self.next] <= t:
+                self.next += 1
+            return
+        if self.connected and t - self.last_heard > 3.0:
+            self.connected = False                  # the firmware's TIMEOUT: search for the server again
+        if not self.connected:
+            if t - self.last_try >= 1.0:
+                self.last_try = t
+                self.handshakes += 1
+                self.sock.sendto(self.enc.handshake(), self.server)
+            while self.next < len(self.log.t) and self.log.t[self.next] <= t:
+                self.next += 1                      # what it measured meanwhile is not sent
+            return
+        while self.next < len(self.log.t) and self.log.t[self.next] <= t:
+            try:
+                self.sock.sendto(self.log.frames[self.next], self.server)
+            except OSError:
+                pass
+            self.next += 1
+
+    def unplug(self, t, seconds):
+        """Silent for `seconds` from t, then a fresh start: a new handshake."""
+        self.silent_until, self.connected, self.last_try = t + seconds, False, -1e9
+
+    def close(self):
+        self.sock.close()
+
+
 def bno055_for(session, clock, faults):
     """The waist puck: the fake serves the recorded output registers; outages become bus failures."""
     q, a, rate = session.i2c_quat, session.i2c_accel, 100.0
@@ -188,6 +244,9 @@ def board_config(session, devices, can_channel, samples, lookahead, bvh, adaptiv
         trackers.append({"url": "i2c://1/0x28?tracker=waist&rate=100"})
     if place["can"]:
         trackers.append({"url": f"can://virtual/{can_channel}?nodes={pairs(CAN_NODES, place['can'])}"})
+    if place.get("slimevr"):
+        macs = session.meta.get("slimevr_trackers", {})
+        trackers.append({"url": "slimevr://127.0.0.1:0?trackers=" + ",".join(f"{m}/0:{n}" for m, n in macs.items())})
     return config_mod.from_dict({
         "headset": {"url": f"serial://{devices['headset'].path}?role=headset"},
         "trackers": trackers,
@@ -212,11 +271,16 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
     chip = bno055_for(session, clock, faults) if len(session.i2c_t) else None
     opened, errors = [], []
 
+    slimevr_devices = []
+
     def opener(url):
         opened.append(url)
         if url.startswith("i2c://"):
             return open_source(url, bus=chip, clock=clock, sleep=clock.sleep)
-        return open_configured(url)
+        source = open_source(url, clock=clock) if url.startswith("slimevr://") else open_configured(url)
+        if url.startswith("slimevr://"):         # the simulated trackers talk to the port it got
+            slimevr_devices[:] = [SlimeVRDevice(mac, log, source.address, clock) for mac, log in session.slimevr.items()]
+        return source
 
     try:
         cfg = board_config(session, devices, can_channel, samples, lookahead, bvh, adaptive, precision)
@@ -276,6 +340,11 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
                 replug[0] = now
             for dev in devices.values():
                 dev.emit_until(now)
+            for dev in slimevr_devices:
+                if faults.get("tracker_unplug") == "slimevr" and dev is slimevr_devices[-1] and \
+                        dev.silent_until < 0 and now >= faults.get("tracker_unplug_at", np.inf):
+                    dev.unplug(now, faults.get("tracker_unplug_s", 2.0))
+                dev.emit_until(now)
             if can_dev:
                 can_dev.emit_until(now)
             step_now, index, wall = clock(), service.pipeline.t + 1, time.perf_counter()
@@ -305,7 +374,7 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
         service.close()
         if can_dev:
             can_dev.close()
-        for dev in devices.values():
+        for dev in list(devices.values()) + slimevr_devices:
             dev.close()
         try:
             os.rmdir(folder)
@@ -327,6 +396,7 @@ def report(session, summary, m, service, ear, opened, errors, faults, speed, dur
     out = {
         "source": session.name, "speed": speed, "seconds": duration, "faults": faults,
         "trackers": list(service.sync.trackers), "placement": session.meta.get("placement"),
+        "slimevr": summary.get("slimevr", {}),
         "trackers_used_by_model": [n for n, _ in service._imu_slots] if service.pipeline.imus else [],
         "frames_in": summary["frames_in"], "frames_out": summary["frames_out"], "poses_decoded": m.decoded,
         "packets_corrupt": int(summary["packets_corrupt"] + ear.stats["corrupt"]),
@@ -341,11 +411,19 @@ def report(session, summary, m, service, ear, opened, errors, faults, speed, dur
         "samples": service.pipeline.samples, "samples_max": summary["samples_max"], "precision": service.cfg.precision,
         "samples_changes": summary["samples_changes"], "frame_ms": summary["frame_ms"], "reopens": summary["reopens"],
         "output_errors": summary["output_errors"], "resume_after_replug_s": resume_s,
+        "devices_down_at_start": summary.get("start_errors", {}),
         "missing_output_frames": int(len(seen) and (seen[-1] - seen[0] + 1 - len(seen))),
         "transports": {"opened": sorted(set(opened))}, "errors": errors,
         "latency_ms_samples": [round(float(x), 3) for x in lat[:20000]],
         "health_timeline": health_timeline(service.health_changes, duration, faults),
     }
+    if faults.get("tracker_unplug") == "slimevr":      # a SlimeVR tracker silent, then re-handshaking
+        macs = session.meta.get("slimevr_trackers", {})
+        name = list(macs.values())[-1] if macs else None
+        back_at = faults.get("tracker_unplug_at", 0) + faults.get("tracker_unplug_s", 2.0)
+        back = [t for t, src, lost in service.health_changes if src == name and not lost and t >= back_at]
+        out["slimevr_restart"] = {"tracker": name, "silent_from_s": faults.get("tracker_unplug_at"),
+                                  "restarts_at_s": back_at, "in_use_again_after_s": (back[0] - back_at) if back else None}
     if "tracker_unplug_at" in faults:       # the pose around an extra IMU's loss: no pop
         at, ok = faults["tracker_unplug_at"], np.isfinite(m.step)
         before = m.step[ok & (m.t >= at - 1) & (m.t < at)]
@@ -430,9 +508,9 @@ def main(args):
         print(f"edge replay: {e}", file=sys.stderr)
         return 2
     transports = tuple(args.transport.split(","))
-    bad = set(transports) - {"serial", "i2c", "can"}
+    bad = set(transports) - {"serial", "i2c", "can", "slimevr"}
     if bad:
-        print(f"edge replay: unknown transport {sorted(bad)[0]!r}; use serial, i2c, can", file=sys.stderr)
+        print(f"edge replay: unknown transport {sorted(bad)[0]!r}; use serial, i2c, can, slimevr", file=sys.stderr)
         return 2
     try:
         from edge.imus import parse_set

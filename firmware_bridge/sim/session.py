@@ -36,7 +36,10 @@ def placement(transports, trackers=None):
     CAN foot trackers when there is a bus for them)."""
     if trackers is None:
         trackers = DEFAULT_TRACKERS if {"serial", "can"} & set(transports) else ()
-    place = {"i2c": [], "hub": [], "can": []}
+    place = {"i2c": [], "hub": [], "can": [], "slimevr": []}
+    if "slimevr" in transports:         # SlimeVR trackers over Wi-Fi: the waist and every extra IMU
+        place["slimevr"] = ["waist", *trackers]
+        return place
     waist_on = "i2c" if "i2c" in transports else "hub" if "serial" in transports else "can"
     place[waist_on].append("waist")
     for name in trackers:
@@ -45,7 +48,9 @@ def placement(transports, trackers=None):
     if not {"serial", "can"} & set(transports) and trackers:
         raise ValueError(f"extra trackers {', '.join(trackers)} need the serial hub or CAN (--transport)")
     return place
-RATES = {"headset": 72.0, "hub": 100.0, "can": 100.0, "i2c": 100.0}
+RATES = {"headset": 72.0, "hub": 100.0, "can": 100.0, "i2c": 100.0, "slimevr": 100.0}
+# The simulated SlimeVR trackers' MACs, one tracker (sensor 0) per body location.
+SLIMEVR_MACS = {name: f"02:ed:9e:00:00:{k + 1:02x}" for k, name in enumerate(("waist",) + IMU_LOCATIONS)}
 
 
 @dataclass
@@ -74,6 +79,7 @@ class Session:
     i2c_accel: np.ndarray
     gt_pos: np.ndarray = None                     # [T,J,3] at fps, when known
     meta: dict = field(default_factory=dict)
+    slimevr: dict = field(default_factory=dict)   # SlimeVR tracker MAC -> SerialLog of its datagrams (after its handshake)
 
     def save(self, path):
         def pack(log):
@@ -83,9 +89,12 @@ class Session:
         ht, hl, hd = pack(self.headset)
         bt, bl, bd = pack(self.hub)
         extra = {} if self.gt_pos is None else {"gt_pos": self.gt_pos.astype(np.float32)}
+        for i, (mac, log) in enumerate(self.slimevr.items()):
+            extra.update(zip((f"slimevr{i}_t", f"slimevr{i}_len", f"slimevr{i}_bytes"), pack(log)))
+        slimevr_macs = list(self.slimevr)
         np.savez_compressed(path, kind="edgepose-session", version=1, meta=json.dumps(
             {"name": self.name, "fps": self.fps, "duration": self.duration, "transports": list(self.transports),
-             **self.meta}), headset_t=ht, headset_len=hl, headset_bytes=hd, hub_t=bt, hub_len=bl, hub_bytes=bd,
+             "slimevr_macs": slimevr_macs, **self.meta}), headset_t=ht, headset_len=hl, headset_bytes=hd, hub_t=bt, hub_len=bl, hub_bytes=bd,
             can_t=self.can_t, can_id=self.can_id, can_data=self.can_data, i2c_t=self.i2c_t,
             i2c_quat=self.i2c_quat.astype(np.float32), i2c_accel=self.i2c_accel.astype(np.float32), **extra)
 
@@ -101,16 +110,17 @@ class Session:
             data = d[f"{prefix}_bytes"].tobytes()
             starts = ends - d[f"{prefix}_len"]
             return SerialLog(list(d[f"{prefix}_t"]), [data[a:b] for a, b in zip(starts, ends)])
+        slimevr = {mac: unpack(f"slimevr{i}") for i, mac in enumerate(meta.pop("slimevr_macs", []))}
         return cls(meta.pop("name"), meta.pop("fps"), meta.pop("duration"), tuple(meta.pop("transports")),
                    unpack("headset"), unpack("hub"), d["can_t"], d["can_id"], d["can_data"], d["i2c_t"],
                    d["i2c_quat"].astype(np.float64), d["i2c_accel"].astype(np.float64),
-                   d["gt_pos"].astype(np.float64) if "gt_pos" in d.files else None, meta)
+                   d["gt_pos"].astype(np.float64) if "gt_pos" in d.files else None, meta, slimevr)
 
     def digest(self):
         """sha256 over every byte each transport carried, in order."""
         import hashlib
         h = hashlib.sha256()
-        for log in (self.headset, self.hub):
+        for log in (self.headset, self.hub, *self.slimevr.values()):
             for t, f in zip(log.t, log.frames):
                 h.update(np.float64(t).tobytes() + f)
         for arr in (self.can_t, self.can_id, self.can_data, self.i2c_t, self.i2c_quat.astype(np.float32),
@@ -171,6 +181,8 @@ FAULTS = {
     "can-busoff": {"busoff_at": 2.0, "busoff_s": 1.0},
     "clock-jump": {"clock_jump_at": 2.0, "clock_jump_s": 0.75},
     "unplug-foot": {"tracker_unplug": "l_foot", "tracker_unplug_at": 4.0},  # an extra IMU goes silent for good
+    # the last SlimeVR tracker goes silent for 2 s, then restarts (a new handshake)
+    "slimevr-restart": {"tracker_unplug": "slimevr", "tracker_unplug_at": 4.0, "tracker_unplug_s": 2.0},
 }
 
 
@@ -232,7 +244,7 @@ def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, see
     faults = faults or {}
     rng = np.random.default_rng(seed)
     place = placement(transports, trackers)
-    trackers = tuple(n for n in place["hub"] + place["can"] if n != "waist")
+    trackers = tuple(n for n in place["hub"] + place["can"] + place["slimevr"] if n != "waist")
     missing = [n for n in trackers if n not in (take.imu or {})]
     if missing:
         raise ValueError(f"{take.name} carries no orientation for {', '.join(missing)} (an older sample file: "
@@ -253,8 +265,12 @@ def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, see
     frames60 = int(np.ceil(duration * fps)) + 1
     dropped = {}
     for tracker in ("waist",) + IMU_LOCATIONS:
-        dropped[tracker] = (gaps(rng, frames60, faults["disconnect"], lambda r: faults.get("disconnect_frames", 100))
-                            if "disconnect" in faults else np.zeros(frames60, bool))
+        dropped[tracker] = np.zeros(frames60, bool)
+    if "disconnect" in faults:      # DragPoser's protocol: each frame one worn IMU drops w.p. p, back after n frames
+        worn = ["waist", *trackers]
+        n = int(faults.get("disconnect_frames", 100))
+        for f in np.flatnonzero(rng.random(frames60) < faults["disconnect"]):
+            dropped[worn[rng.integers(len(worn))]][f:f + n] = True
     if faults.get("tracker_unplug") in dropped:
         dropped[faults["tracker_unplug"]][int(faults["tracker_unplug_at"] * fps):] = True
     hands_gone = [gaps(rng, frames60, faults["hand_loss"], lambda r: r.uniform(*faults.get("hand_gap_s", [0.5, 2.0])) * fps)
@@ -300,6 +316,23 @@ def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, see
                     can_id.append(m.arbitration_id)
                     can_data.append(np.frombuffer(flip_bits(bytes(m.data), ber, rng), np.uint8))
 
+    slimevr = {}
+    from firmware_bridge.slimevr_wire import TrackerEncoder
+    from firmware_bridge.transports.slimevr import AXES_OFFSET
+    to_wire = quat.inv(AXES_OFFSET)            # the board turns Z-up to Y-up; the tracker sends Z-up
+    for name in place["slimevr"]:
+        log, enc = SerialLog(), TrackerEncoder(SLIMEVR_MACS[name])
+        log.add(0.0, enc.sensor_info(0))
+        for k, t in enumerate(emission_times(RATES["slimevr"], duration, clocks["hub"].jitter, rng)):
+            f = min(int(t * fps), frames60 - 1)
+            if dropped[name][f] or rng.random() < loss:
+                enc.number += 1                    # a lost datagram still used its number
+                continue
+            q = quat.mul(to_wire, imu_at(take, name, t, imus))
+            log.add(t, flip_bits(enc.rotation(0, q), ber, rng))
+            if k % 100 == 99:
+                log.add(t, enc.battery(3.9, 0.8))
+        slimevr[SLIMEVR_MACS[name]] = log
     i2c_t = np.arange(0.0, duration, 1.0 / RATES["i2c"]) if "i2c" in transports else np.zeros(0)
     i2c_q = np.array([imu_at(take, "waist", t) for t in i2c_t]).reshape(-1, 4)
     i2c_a = np.array([signal_at(sig, fps, t)[5] for t in i2c_t]).reshape(-1, 3)
@@ -311,5 +344,6 @@ def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, see
     meta = {"faults": faults, "seed": seed, "placement": place, "trackers": ["waist", *trackers],
             "clocks": {k: {"offset": c.offset, "drift": c.drift} for k, c in clocks.items()},
             "source": take.name}
+    meta["slimevr_trackers"] = {SLIMEVR_MACS[n]: n for n in place["slimevr"]}
     return Session(take.name, fps, duration, tuple(transports), headset, hub, np.array(can_t), np.array(can_id, np.int64),
-                   np.array(can_data, np.uint8).reshape(-1, 8), i2c_t, i2c_q, i2c_a, gt, meta)
+                   np.array(can_data, np.uint8).reshape(-1, 8), i2c_t, i2c_q, i2c_a, gt, meta, slimevr)
