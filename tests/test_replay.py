@@ -173,3 +173,18 @@ def test_the_documented_disconnect_replay_runs_to_the_end_in_real_time(tmp_path)
     import json
     r = json.loads(out.read_text())
     assert r["errors"] == [] and r["poses_decoded"] > 900 and r["tracker_lost_events"] > 0
+
+
+def test_slimevr_trackers_replay_over_loopback_udp_and_a_restarted_one_is_back_at_once(take):
+    """--transport slimevr: the waist and both shins are simulated SlimeVR trackers on loopback UDP;
+    the right shin goes silent at 4 s for 2 s and then handshakes again."""
+    f = fault_profile("slimevr-restart")
+    session = synthesize(take, ("slimevr",), f, 0, trackers=("l_shin", "r_shin"))
+    assert sorted(session.meta["slimevr_trackers"].values()) == ["l_shin", "r_shin", "waist"]
+    result = replay(session, "max", samples=8, lookahead=LOOKAHEAD, seconds=8.0, faults=f)
+    assert result["errors"] == [] and result["poses_decoded"] > 400
+    assert set(result["trackers"]) == {"waist", "l_shin", "r_shin"}
+    assert all(t["in_use"] and t["packets_per_s"] > 50 for t in result["slimevr"].values())
+    back = result["slimevr_restart"]
+    assert back["tracker"] == "r_shin" and back["in_use_again_after_s"] is not None
+    assert back["in_use_again_after_s"] < 1.0

@@ -131,8 +131,9 @@ class SlimeVRDevice:
             except (BlockingIOError, OSError):
                 break
             self.last_heard = t
-            if data[:13] == HANDSHAKE_REPLY[:13]:
+            if data[:13] == HANDSHAKE_REPLY[:13] and not self.connected:
                 self.connected = True
+                self.sock.sendto(self.enc.sensor_info(0), self.server)    # as the firmware does, until acked
         if t < self.silent_until:                   # unplugged: nothing in, nothing out
             while self.next < len(self.log.t) and self.log.t[self.next] <= t:
                 self.next += 1
@@ -160,6 +161,35 @@ class SlimeVRDevice:
 
     def close(self):
         self.sock.close()
+
+
+def flood(address, pps, done, seed=7):
+    """A hostile device on the network: `pps` datagrams a second of random bytes, truncated and
+    bit-flipped SlimeVR packets, at the board's SlimeVR port, until `done` (loopback only)."""
+    from firmware_bridge.slimevr_wire import TrackerEncoder
+    rng = np.random.default_rng(seed)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    real = TrackerEncoder("02:00:00:00:00:99").rotation(0, np.array([1.0, 0, 0, 0]))
+    t0, n = time.perf_counter(), 0
+    while not done.is_set():
+        kind = n % 3
+        if kind == 0:
+            data = rng.bytes(int(rng.integers(1, 200)))
+        elif kind == 1:
+            data = real[:int(rng.integers(0, len(real)))]
+        else:
+            b = bytearray(real)
+            b[int(rng.integers(len(b)))] ^= 1 << int(rng.integers(8))
+            data = bytes(b)
+        try:
+            sock.sendto(data, address)
+        except OSError:
+            pass
+        n += 1
+        lag = n / pps - (time.perf_counter() - t0)
+        if lag > 0:
+            time.sleep(lag)
+    sock.close()
 
 
 def bno055_for(session, clock, faults):
@@ -271,7 +301,7 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
     chip = bno055_for(session, clock, faults) if len(session.i2c_t) else None
     opened, errors = [], []
 
-    slimevr_devices = []
+    slimevr_devices, flooding = [], []
 
     def opener(url):
         opened.append(url)
@@ -280,6 +310,12 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
         source = open_source(url, clock=clock) if url.startswith("slimevr://") else open_configured(url)
         if url.startswith("slimevr://"):         # the simulated trackers talk to the port it got
             slimevr_devices[:] = [SlimeVRDevice(mac, log, source.address, clock) for mac, log in session.slimevr.items()]
+            if faults.get("slimevr_flood_pps"):        # a process of its own: the board's, not the flood's, GIL
+                import multiprocessing as mp
+                ctx = mp.get_context("fork")
+                flooding.append(ctx.Event())
+                ctx.Process(target=flood, args=(source.address, faults["slimevr_flood_pps"], flooding[0]),
+                            daemon=True).start()
         return source
 
     try:
@@ -369,6 +405,8 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
         score(inbox, metrics, ticks_by_us, replug)
     finally:
         done.set()
+        for f in flooding:
+            f.set()
         reader.join(1.0)
         summary = service.summary()
         service.close()

@@ -183,6 +183,7 @@ FAULTS = {
     "unplug-foot": {"tracker_unplug": "l_foot", "tracker_unplug_at": 4.0},  # an extra IMU goes silent for good
     # the last SlimeVR tracker goes silent for 2 s, then restarts (a new handshake)
     "slimevr-restart": {"tracker_unplug": "slimevr", "tracker_unplug_at": 4.0, "tracker_unplug_s": 2.0},
+    "slimevr-flood": {"slimevr_flood_pps": 10000},   # a device sending 10,000 garbage datagrams a second
 }
 
 
