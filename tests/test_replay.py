@@ -188,3 +188,12 @@ def test_slimevr_trackers_replay_over_loopback_udp_and_a_restarted_one_is_back_a
     back = result["slimevr_restart"]
     assert back["tracker"] == "r_shin" and back["in_use_again_after_s"] is not None
     assert back["in_use_again_after_s"] < 1.0
+
+
+def test_a_garbage_flood_at_the_slimevr_port_is_counted_and_the_board_keeps_streaming(take):
+    f = fault_profile("slimevr-flood")
+    session = synthesize(take, ("slimevr",), f, 0, trackers=("l_shin", "r_shin"))
+    result = replay(session, "realtime", samples=8, lookahead=LOOKAHEAD, seconds=2.5, faults=f)
+    assert result["errors"] == [] and result["poses_decoded"] > 100
+    assert result["packets_corrupt"] > 1000                     # counted and dropped, every one
+    assert all(t["in_use"] for t in result["slimevr"].values())

@@ -361,8 +361,11 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
             now = k / hz
             if clock.realtime:
                 delay = now - clock()
-                if delay > 0:
-                    time.sleep(delay)
+                while delay > 0:            # SlimeVR trackers send when they measure, not at our ticks
+                    time.sleep(min(delay, 0.002) if slimevr_devices else delay)
+                    for dev in slimevr_devices:
+                        dev.emit_until(clock())
+                    delay = now - clock()
             else:
                 clock.advance_to(now)
             if plugged.is_set() and unplug[0] <= now < unplug[1]:

@@ -11,14 +11,15 @@ the SlimeVR server does, so their firmware and settings stay as they are (docs/s
 - Packet numbers must grow: a duplicate or an older packet is dropped and counted.
 - Rotations (type 17, legacy 1 and 16, and bundles) of the configured MAC/sensor pairs become
   TrackerSamples, turned from the IMU's Z-up frame into ours (Y-up), as the server turns them; the
-  calibration then handles mounting like any IMU's. Without a timestamp on the wire, the board's
-  receive time is the sample's time. Unconfigured trackers are answered (accept=any) or ignored, and
+  calibration then handles mounting like any IMU's. Without a timestamp on the wire, the time the
+  kernel received the datagram is the sample's time. Unconfigured trackers are answered (accept=any) or ignored, and
   listed in `trackers()` either way; they never feed the model.
 Every datagram is untrusted: what does not parse is counted and dropped (firmware_bridge.slimevr_wire).
 """
 import math
 import select
 import socket
+import struct
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -84,6 +85,11 @@ class SlimeVRSource(Source):
             self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             self.sock.setblocking(False)
             self.sock.bind((host, port))
+            # The kernel stamps each datagram when it arrives (SCM_TIMESTAMPNS): the wire has no time of
+            # its own, and a datagram read at the next tick would otherwise be up to a frame late.
+            self._stamps = hasattr(socket, "SO_TIMESTAMPNS")
+            if self._stamps:
+                self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_TIMESTAMPNS, 1)
         except OSError as e:
             raise TransportError(f"cannot listen for SlimeVR trackers on {host}:{port}: {e.strerror or e}; "
                                  f"is another SlimeVR server running, or the address not this board's?") from None
@@ -112,15 +118,25 @@ class SlimeVRSource(Source):
         got = False
         while ready:
             try:
-                data, addr = self.sock.recvfrom(2048)
+                data, anc, _, addr = self.sock.recvmsg(2048, 64)
             except BlockingIOError:
                 break
             got = True
-            self._handle(data, addr)
+            self._handle(data, addr, self._arrival(anc))
         return got
 
-    def _handle(self, data, addr):
+    def _arrival(self, anc):
+        """When the datagram arrived, on our clock: now minus its age by the kernel's stamp."""
         now = self.clock()
+        for level, kind, raw in anc:
+            if level == socket.SOL_SOCKET and kind == getattr(socket, "SCM_TIMESTAMPNS", -1) and len(raw) >= 16:
+                sec, nsec = struct.unpack("qq", raw[:16])
+                age = time.time() - (sec + nsec * 1e-9)
+                return now - min(max(age, 0.0), 1.0)
+        return now
+
+    def _handle(self, data, addr, now=None):
+        now = self.clock() if now is None else now
         try:
             packet = wire.parse(data)
         except wire.WireError:
