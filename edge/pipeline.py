@@ -43,7 +43,7 @@ from edge.skeleton import (ANKLES, HEAD, JOINT, LEVELS, NUM_JOINTS, NUM_PREDICTE
 LIMB_CHAINS = np.array([[JOINT[f"{s}_{a}"], JOINT[f"{s}_{b}"], JOINT[f"{s}_{c}"]]
                         for a, b, c in (("hip", "knee", "ankle"), ("shoulder", "elbow", "wrist")) for s in "lr"])
 LIMB_POLES = np.array([[0.0, 0.0, 1.0]] * 2 + [[0.0, 0.0, -1.0]] * 2)   # knees bend forward, elbows back
-NECK = JOINT["neck"]
+NECK, SPINE, CHEST = JOINT["neck"], JOINT["spine"], JOINT["chest"]
 _FRAME_INPUTS = ("waist_m", "anchor", "wrists", "hand_m", "head_m", "seg_m", "seg_flag")  # a frame's inputs to FK and IK, in ep_row_pose's order
 POSITION_LIMIT_M = 50.0     # a tracked position farther from the origin is not a room-scale one (step refuses it)
 SWITCH_HISTORY = 10_000     # switches kept in Pipeline.switches (hours of a take; edge eval reads them per take)
@@ -83,6 +83,22 @@ def supported_contacts(contacts, positions):
     (edge.physics.support): a foot in the air is not in contact, whatever the contact head says."""
     toe_drop = positions[TOES, 1] - positions[ANKLES, 1]
     return contacts * support(lowest_point(positions[ANKLES, 1], toe_drop))
+
+
+def midway_rotation(a, b):
+    """The rotation halfway between a and b [3,3]: the mean of their 6D, Gram-Schmidt-ed back."""
+    return quat.matrix_from_6d(0.5 * (quat.matrix_to_6d(a) + quat.matrix_to_6d(b)))
+
+
+def torso_segments(seg_m, seg_flag, waist_m, head_m):
+    """With the chest measured, the two torso segments no IMU sees follow from those that are: the
+    spine's halfway between the waist and the chest, the neck's halfway between the chest and the
+    headset, at the chest's flag (fk_with_segments then sets them). The body hangs from the head
+    along this chain, so it places the pelvis."""
+    seg_flag[SPINE] = seg_flag[NECK] = seg_flag[CHEST]
+    if seg_flag[CHEST] > 0:
+        seg_m[SPINE] = midway_rotation(waist_m, seg_m[CHEST])
+        seg_m[NECK] = midway_rotation(seg_m[CHEST], head_m)
 
 
 def transition_weight(k, T):
@@ -362,6 +378,7 @@ class Pipeline:
             if self.segments:
                 b.seg_m[s, IMU_JOINTS] = quat.to_matrix(sig.imu_rot[0])
                 b.seg_flag[s, IMU_JOINTS] = sig.imu_flag[0]
+                torso_segments(b.seg_m[s], b.seg_flag[s], m[0], m[3])
             dec.features[:] = feat
             b.hidden_in[s, :N] = dec.state[:N]      # (the compiled core copies it after the step)
         live = self.trans is not None and t <= self.trans_end

@@ -867,6 +867,30 @@ int ep_switch_to(int N, const double *cost, int c) {
     return best;
 }
 
+/* edge.pipeline.midway_rotation: the rotation halfway between a and b [9] (row-major), as the mean of
+ * their 6D (first two columns) Gram-Schmidt-ed back, in edge.quat.matrix_from_6d's order. */
+static void midway_rotation(const double *a, const double *b, double *out) {
+    double u[3], v[3], x[3], y[3];
+    for (int i = 0; i < 3; i++) {
+        u[i] = 0.5 * (a[i * 3] + b[i * 3]);
+        v[i] = 0.5 * (a[i * 3 + 1] + b[i * 3 + 1]);
+    }
+    double nu = sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
+    nu = nu > 1e-8 ? nu : 1e-8;
+    for (int i = 0; i < 3; i++) x[i] = u[i] / nu;
+    double d = x[0] * v[0] + x[1] * v[1] + x[2] * v[2];
+    for (int i = 0; i < 3; i++) v[i] = v[i] - d * x[i];
+    double nv = sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+    nv = nv > 1e-8 ? nv : 1e-8;
+    for (int i = 0; i < 3; i++) y[i] = v[i] / nv;
+    double z[3] = {x[1] * y[2] - x[2] * y[1], x[2] * y[0] - x[0] * y[2], x[0] * y[1] - x[1] * y[0]};
+    for (int i = 0; i < 3; i++) {
+        out[i * 3] = x[i];
+        out[i * 3 + 1] = y[i];
+        out[i * 3 + 2] = z[i];
+    }
+}
+
 /* Pipeline._frame_inputs_native for the live frame, straight into ring slot `slot` and the decoder's
  * input: ep_frame_features (first: no previous frame, velocity 0), then the points, features and
  * tracker matrices where Pipeline.step keeps them. */
@@ -877,12 +901,22 @@ void ep_frame_inputs(const core_context *x, int slot, int first) {
     ep_frame_features(x->frame_in, x->frame_offsets, first ? points : x->prev, x->fps, points, feat, mats);
     if (F > 24)                 /* the extra IMUs: frame_in[25..] holds their orientations [K,4] and flags [K] */
         ep_imu_features(x->imus, x->frame_in + 25, x->frame_in + 25 + 4 * x->imus, x->frame_in + 21, feat + 24);
-    if (x->segments)
+    if (x->segments) {
+        double *seg = x->ring_seg_m + (int64_t)slot * x->J * 9, *flag = x->ring_seg_flag + (int64_t)slot * x->J;
         for (int k = 0; k < x->imus; k++) {
             int64_t j = x->imu_joints[k];
-            quat_to_matrix(x->frame_in + 25 + 4 * k, x->ring_seg_m + ((int64_t)slot * x->J + j) * 9);
-            x->ring_seg_flag[(int64_t)slot * x->J + j] = x->frame_in[25 + 4 * x->imus + k];
+            quat_to_matrix(x->frame_in + 25 + 4 * k, seg + j * 9);
+            flag[j] = x->frame_in[25 + 4 * x->imus + k];
         }
+        /* edge.pipeline.torso_segments: with the chest measured, the spine segment halfway between the
+         * waist and the chest, the neck's halfway between the chest and the headset */
+        const int spine = 1, chest = 2, neck = 3;
+        flag[spine] = flag[neck] = flag[chest];
+        if (flag[chest] > 0.0) {
+            midway_rotation(mats, seg + chest * 9, seg + spine * 9);
+            midway_rotation(seg + chest * 9, mats + 27, seg + neck * 9);
+        }
+    }
     copy_f64(x->prev, points, 12);
     copy_f64(x->ring_anchor + slot * 3, points, 3);
     copy_f64(x->ring_wrists + slot * 6, points + 3, 6);
