@@ -108,12 +108,13 @@ def transition_weight(k, T):
     return smoothstep((np.asarray(k) + 1.0) / T)
 
 
-def is_outlier(cost, c):
+def is_outlier(cost, c, margin=0.0):
     """SSI eq. 2: r = median - min over all samples. We test the current sample's excess over the best,
     cost[c] - min > 2r; the literal cost[c] > 2r compares an absolute error with a spread and fires on
-    nearly every frame."""
+    nearly every frame. The excess must also exceed `margin` (the manifest's `switch_margin`): where
+    most samples cost nothing (the physical criterion), r is 0 and any blemish would switch."""
     lo = cost.min()
-    return bool(cost[c] - lo > 2.0 * (_median(cost) - lo))
+    return bool(cost[c] - lo > max(2.0 * (_median(cost) - lo), margin))
 
 
 def _median(x):
@@ -206,11 +207,14 @@ class Pipeline:
         self.threshold = m["plausibility_threshold_m"]
         self.scorer = PlausibilityScorer(self.autoencoder, self.threshold, use_native)
         self.criteria = Composite(criteria if criteria is not None else self.default_criteria(m, use_native, selection))
+        self.switch_margin = float((selection or m.get("selection", {})).get("switch_margin", 0.0))
 
-        # N=1 is the plain CVAE at the prior mean; more samples draw fixed latents once (SSI 3.2).
+        # N=1 is the plain CVAE at the prior mean; more samples draw fixed latents once (SSI 3.2), and
+        # sample 0, the one shown first, stays the prior mean: SSI moves away from what N=1 shows only
+        # when that is an outlier.
         self.latents = np.zeros((N, m["latent"]), np.float32)
         if N > 1:
-            self.latents[:] = np.random.default_rng(seed).standard_normal(self.latents.shape)
+            self.latents[1:] = np.random.default_rng(seed).standard_normal((N - 1, m["latent"]))
         self.decoder.latent[:N] = self.latents
         self.buffer = LookaheadBuffer(lookahead + 1, N, m["hidden"], m["features"], self.decoder.rot6d.shape[1])
         self.feet = FootLock(N)
@@ -619,12 +623,12 @@ class Pipeline:
         c = self.current
         if self.native:             # is_outlier and best_other in one call
             c0, cs = self._cost_addr
-            n = self.native.ep_switch_to(self.samples, c0 + s * cs, c)
+            n = self.native.ep_switch_to(self.samples, c0 + s * cs, c, self.switch_margin)
             if n >= 0:
                 self._start_transition(c, n, t)
             return
         cost = self.buffer.cost[s, :self.samples]
-        if is_outlier(cost, c):
+        if is_outlier(cost, c, self.switch_margin):
             self._start_transition(c, best_other(cost, c), t)
 
     def _apply_samples(self, t, s):

@@ -400,7 +400,7 @@ def micro_stages(pipe, feeder, reps=300):
     def selection():
         if N > 1 and pipe.native:            # the live decision: ep_switch_to on the slot's costs
             c0, cs = pipe._cost_addr
-            pipe.native.ep_switch_to(N, c0 + s * cs, pipe.current)
+            pipe.native.ep_switch_to(N, c0 + s * cs, pipe.current, pipe.switch_margin)
         elif N > 1:
             cost = b.cost[s].copy()
             if is_outlier(cost, pipe.current):

@@ -119,7 +119,7 @@ def test_ring_buffer_memory_is_fixed_over_20000_frames(take):
 # the other rows by a little, so with int8 a change of N moves the shown sample by millimetres; and
 # where a foot's contact probability sits at 0.5, that can tip its lock one way or the other for a
 # step (a few centimetres at the foot). fp32 must be exact; int8 close on all but a few frames.
-@pytest.mark.parametrize("precision,tol,tail", [("fp32", 1e-5, 1e-5), ("int8", 0.01, 0.08)])
+@pytest.mark.parametrize("precision,tol,tail", [("fp32", 1e-5, 1e-5), ("int8", 0.015, 0.08)])
 def test_changing_n_leaves_the_shown_sample_untouched(take, precision, tol, tail):
     """Without SSI the shown sample is sample 0: lowering and raising N around it must not move it."""
     fixed, adaptive = (Pipeline(samples=16, ssi=False, precision=precision) for _ in range(2))

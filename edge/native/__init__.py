@@ -110,7 +110,7 @@ _SIGNATURES = {
     "ep_imu_features": [_I, _P, _P, _P, _P],
     "ep_physical_cost": [_I, _I, _P, _P, _P, _P, _P, _D, _D, _D, _D, _D, _D, _D, _P],
     "ep_post": [_I, _I, _P, _P, _P, _P, _P, _P, _I, _I, _P, _I, _P, _I, _P, _I, _I, _I, _P, _P, _P, _P],
-    "ep_switch_to": [_I, _P, _I],
+    "ep_switch_to": [_I, _P, _I, _D],
     "ep_frame_sane": [_P, _I, _D],
     "ep_frame_poses": [ctypes.POINTER(CoreContext), _I, _I, _I, _I, _I, _D, _P, _P, _P],
     "ep_emit": [ctypes.POINTER(CoreContext), _I, _I],

@@ -843,9 +843,10 @@ static double kth_smallest(double *x, int n, int k) {
 }
 
 /* edge.pipeline.is_outlier and best_other in one call (SSI eq. 2, 3.2.2): the sample to switch to
- * from c, or -1 when c's cost is not an outlier (or a cost is NaN, where numpy's test is false too).
+ * from c, or -1 when c's cost is not an outlier (its excess over the best must also exceed margin;
+ * or a cost is NaN, where numpy's test is false too).
  * N <= 1024. */
-int ep_switch_to(int N, const double *cost, int c) {
+int ep_switch_to(int N, const double *cost, int c, double margin) {
     double x[1024], lo = cost[0];
     if (N < 2 || N > 1024) return -1;
     for (int i = 0; i < N; i++) {
@@ -860,7 +861,8 @@ int ep_switch_to(int N, const double *cost, int c) {
         for (int i = 1; i < k; i++) below = x[i] > below ? x[i] : below;
         median = (below + median) / 2.0;
     }
-    if (!(cost[c] - lo > 2.0 * (median - lo))) return -1;
+    double spread = 2.0 * (median - lo);
+    if (!(cost[c] - lo > (spread > margin ? spread : margin))) return -1;
     int best = -1;
     for (int i = 0; i < N; i++)
         if (i != c && (best < 0 || cost[i] < cost[best])) best = i;
