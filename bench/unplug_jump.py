@@ -26,12 +26,15 @@ from edge.takes import find_clips, load_take
 SAMPLE = Path(__file__).resolve().parent.parent / "samples" / "cmu_09_12_walk.npz"
 
 
-def jumps(take, pipe, worn_names, unplug, at_s, seed=0):
+def jumps(take, pipe, worn_names, unplug, at_s, seed=0, control=False):
+    """(largest joint step in the second before at_s, in the second after); control=True keeps every
+    tracker: how much the motion itself changes between the two seconds."""
     fps, T = take.fps, take.frames
     worn = mask(worn_names)
     alive = np.repeat(worn[None] > 0, T, axis=0)
     t0 = int(at_s * fps)
-    alive[t0:, IMU_INDEX[unplug]] = False
+    if not control:
+        alive[t0:, IMU_INDEX[unplug]] = False
     sig = wear(take.signals, worn, fps, np.random.default_rng(seed), ImuNoise(), alive)
     pred = run_take(pipe, take, signals=sig).pred
     step = np.linalg.norm(np.diff(pred, axis=0), axis=-1).max(-1)      # largest joint move per frame [T-1]
@@ -59,14 +62,21 @@ def main():
         if take.frames < (a.at + 1.5) * take.fps:
             continue
         before, after = jumps(take, pipe, names, a.unplug, a.at)
-        rows.append({"clip": str(f), "before_m": before, "after_m": after, "ratio": after / before})
-        print(f"{Path(f).name:40} before {before * 100:6.2f} cm  after {after * 100:6.2f} cm  ratio {after / before:5.2f}")
+        c_before, c_after = jumps(take, pipe, names, a.unplug, a.at, control=True)
+        rows.append({"clip": str(f), "before_m": before, "after_m": after, "ratio": after / before,
+                     "control_ratio": c_after / c_before, "after_vs_control": after / c_after})
+        print(f"{Path(f).name:40} before {before * 100:6.2f} cm  after {after * 100:6.2f} cm  ratio {after / before:5.2f}"
+              f"  (kept: {c_after / c_before:5.2f}; after / kept's after {after / c_after:5.2f})")
     r = np.array([x["ratio"] for x in rows])
-    print(f"{len(rows)} takes: ratio median {np.median(r):.2f}, max {r.max():.2f}, "
-          f"over 1.5 in {int((r > 1.5).sum())}")
+    c = np.array([x["control_ratio"] for x in rows])
+    v = np.array([x["after_vs_control"] for x in rows])
+    print(f"{len(rows)} takes: ratio median {np.median(r):.2f}, max {r.max():.2f}, over 1.5 in {int((r > 1.5).sum())}; "
+          f"with the tracker kept: median {np.median(c):.2f}, over 1.5 in {int((c > 1.5).sum())}; "
+          f"largest step after the loss / with it kept: median {np.median(v):.2f}, max {v.max():.2f}")
     if a.json:
         Path(a.json).write_text(json.dumps({"rows": rows, "median_ratio": float(np.median(r)),
-                                            "max_ratio": float(r.max())}, indent=2) + "\n")
+                                            "max_ratio": float(r.max()), "control_median_ratio": float(np.median(c)),
+                                            "after_vs_control_max": float(v.max())}, indent=2) + "\n")
 
 
 if __name__ == "__main__":
