@@ -190,6 +190,8 @@ def flood(address, pps, done, seed=7):
         if lag > 0:
             time.sleep(lag)
     sock.close()
+    if os.environ.get("EDGEPOSE_FLOOD_LOG"):
+        Path(os.environ["EDGEPOSE_FLOOD_LOG"]).write_text(f"{n} {time.perf_counter() - t0}\n")
 
 
 def bno055_for(session, clock, faults):
@@ -442,6 +444,7 @@ def report(session, summary, m, service, ear, opened, errors, faults, speed, dur
         "frames_in": summary["frames_in"], "frames_out": summary["frames_out"], "poses_decoded": m.decoded,
         "packets_corrupt": int(summary["packets_corrupt"] + ear.stats["corrupt"]),
         "packets_lost": int(summary["packets_lost"] + ear.stats.get("missed", 0)),
+        "packets_unknown": int(summary.get("packets_unknown", 0)),
         "tracker_lost_events": summary["tracker_lost_events"], "deadline_misses": summary["deadline_misses"],
         "latency_ms": {"p50": float(np.median(lat)), "p99": float(np.percentile(lat, 99)), "max": float(lat.max())},
         "latency_note": "wall time from the start of the tick that produced a pose to its decoding by the host "

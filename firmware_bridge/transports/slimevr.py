@@ -84,6 +84,9 @@ class SlimeVRSource(Source):
         try:
             self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             self.sock.setblocking(False)
+            # Room for what arrives between two reads (a tick, or a burst): a flood must be read and
+            # counted, not overflow the buffer and take the real trackers' datagrams with it.
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 21)
             self.sock.bind((host, port))
             # The kernel stamps each datagram when it arrives (SCM_TIMESTAMPNS): the wire has no time of
             # its own, and a datagram read at the next tick would otherwise be up to a frame late.
