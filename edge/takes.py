@@ -80,7 +80,10 @@ def find_clips(paths, split=None):
         elif p.exists():
             out.append(p)
         else:
-            raise FileNotFoundError(f"no such file or folder: {p}")
+            hint = ("; the motion capture lives beside the project in ../shared/mocap (BVH files with a "
+                    "MANIFEST.tsv of train/val splits, not in this repository), or give BVH files, folders "
+                    "of them, or edgepose sample .npz files such as samples/cmu_09_12_walk.npz")
+            raise FileNotFoundError(f"no such file or folder: {p}{hint}")
     return out
 
 

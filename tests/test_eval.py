@@ -40,9 +40,10 @@ def test_pipeline_is_deterministic():
     assert np.array_equal(outs[0], outs[1])
 
 
-def test_missing_data_path_is_a_clear_error(tmp_path, capsys):
+def test_missing_data_path_is_a_clear_error_that_says_where_the_data_lives(tmp_path, capsys):
     assert main(["eval", "--data", str(tmp_path / "nope.bvh"), "--json", str(tmp_path / "m.json")]) == 2
-    assert "no such file" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "no such file" in err and "../shared/mocap" in err and "MANIFEST.tsv" in err
 
 
 def test_malformed_bvh_is_skipped_with_its_reason(tmp_path, capsys):

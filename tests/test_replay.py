@@ -197,3 +197,11 @@ def test_a_garbage_flood_at_the_slimevr_port_is_counted_and_the_board_keeps_stre
     assert result["errors"] == [] and result["poses_decoded"] > 100
     assert result["packets_corrupt"] > 1000                     # counted and dropped, every one
     assert all(t["in_use"] for t in result["slimevr"].values())
+
+
+def test_faults_a_recording_cannot_carry_name_the_profile_and_the_take_to_replay_instead(capsys):
+    from firmware_bridge.sim.replay import load_source
+    rec = str(SAMPLE).replace(".npz", ".session.npz")
+    load_source(rec, ("serial", "i2c", "can"), fault_profile("disconnect"))
+    err = capsys.readouterr().err
+    assert "fault profile(s) disconnect" in err and "replay " + str(SAMPLE) in err

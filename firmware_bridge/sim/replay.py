@@ -29,7 +29,7 @@ from firmware_bridge import config as config_mod
 from firmware_bridge.listen import Listener
 from firmware_bridge.service import Service, open_configured
 from firmware_bridge.sim.bno055_fake import FakeBNO055
-from firmware_bridge.sim.session import CAN_NODES, HUB_IDS, Session, fault_profile, placement, synthesize
+from firmware_bridge.sim.session import FAULTS, CAN_NODES, HUB_IDS, Session, fault_profile, placement, synthesize
 from firmware_bridge.transports import open_source
 
 
@@ -524,9 +524,11 @@ def load_source(source, transports, faults, seed=0, seconds=None, trackers=None)
         if "kind" in d.files:
             ignored = sorted(set(faults or {}) - REPLAY_TIME_FAULTS)
             if ignored:
-                print(f"edge replay: {path} is a recording, replayed as recorded: these faults do not apply "
-                      f"to it: {', '.join(ignored)} (only unplug and i2c-errors do; replay a take or BVH to "
-                      "inject the others)", file=sys.stderr)
+                profiles = sorted({name for name, params in FAULTS.items() if set(params) & set(ignored)})
+                take = path.replace(".session.npz", ".npz") if path.endswith(".session.npz") else "a take or BVH clip"
+                print(f"edge replay: {path} is a recording, replayed as recorded: the fault profile(s) "
+                      f"{', '.join(profiles) or ', '.join(ignored)} shape traffic as it is synthesised and do not apply "
+                      f"to it (unplug and i2c-errors do). To inject them, replay {take}", file=sys.stderr)
             session = Session.load(path)
             if trackers is not None and tuple(trackers) != tuple(session.meta.get("trackers", ["waist"])[1:]):
                 print(f"edge replay: {path} is a recording made with trackers "
