@@ -82,6 +82,8 @@ def add_arguments(p):
                         "core, outside its cgroup (a contended board)")
     p.add_argument("--hog-seconds", type=float, default=30.0, help="how long the hog runs (default 30 s)")
     p.add_argument("--hog-procs", type=int, default=4, help="busy processes in the hog (default 4)")
+    p.add_argument("--quick", action="store_true",
+                   help="an answer in under a minute: 120 probe frames per N up to N=64, then 600 measured frames")
     p.add_argument("--json", required=True, help="write the profile here")
 
 
@@ -515,6 +517,8 @@ def _worker_main(cfg_path, out_path):
 # ---------------------------------------------------------------------------------------------- main
 
 def main(args):
+    if args.quick:              # a first look; the full run (the defaults) is what to deploy with
+        args.probe_frames, args.frames, args.max_samples = 120, 600, min(args.max_samples, 64)
     if args.samples != "auto":
         try:
             n = int(args.samples)
