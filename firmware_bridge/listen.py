@@ -30,7 +30,7 @@ class Listener:
             try:
                 self._serial = serial.Serial(port, baud, timeout=0)
             except (serial.SerialException, OSError) as e:
-                raise SystemExit(f"edge listen: cannot open {port}: {e}") from None
+                raise OSError(f"cannot open {port}: {e}") from None
             fd = self._serial.fileno()
         self.fd = fd
         self.reader = protocol.FrameReader(accept=(protocol.POSE_FRAME,))
@@ -95,5 +95,10 @@ def status_loop(listener, seconds=None, every=0.25):
 
 
 def main(args):
-    with Listener(args.port, args.baud) as ear:
+    try:
+        ear = Listener(args.port, args.baud)
+    except OSError as e:            # library code raises; the command turns it into a line and an exit code
+        print(f"edge listen: {e}", file=sys.stderr)
+        return 2
+    with ear:
         return status_loop(ear, args.seconds)

@@ -205,3 +205,24 @@ def test_faults_a_recording_cannot_carry_name_the_profile_and_the_take_to_replay
     load_source(rec, ("serial", "i2c", "can"), fault_profile("disconnect"))
     err = capsys.readouterr().err
     assert "fault profile(s) disconnect" in err and "replay " + str(SAMPLE) in err
+
+
+def test_a_replay_whose_service_raised_exits_non_zero(tmp_path, monkeypatch, capsys):
+    from edge.cli import main as edge_main
+    from firmware_bridge.service import Service
+    real, calls = Service.step, []
+
+    def flaky(self, now):
+        calls.append(now)
+        if len(calls) == 10:
+            raise RuntimeError("a broken tick")
+        return real(self, now)
+    monkeypatch.setattr(Service, "step", flaky)
+    code = edge_main(["replay", str(SAMPLE), "--speed", "max", "--seconds", "1", "--json", str(tmp_path / "r.json")])
+    assert code == 1 and "a broken tick" in capsys.readouterr().err
+
+
+def test_listener_raises_and_only_the_command_exits():
+    from firmware_bridge.listen import Listener
+    with pytest.raises(OSError, match="cannot open /dev/ttyNOPE"):
+        Listener("/dev/ttyNOPE")

@@ -577,4 +577,7 @@ def main(args):
     print(f"latency p50 {result['latency_ms']['p50']:.2f} ms p99 {result['latency_ms']['p99']:.2f} ms "
           f"(+ look-ahead {result['lookahead_ms']:.0f} ms); wrote {args.json}" + (f" and {args.bvh}" if args.bvh else ""),
           file=sys.stderr)
+    if result["errors"]:        # the run went on, but something broke: say so in the exit code
+        print(f"edge replay: {len(result['errors'])} error(s), the first: {result['errors'][0]}", file=sys.stderr)
+        return 1
     return 0
