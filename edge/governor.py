@@ -17,6 +17,10 @@ lowering bring the hold back to its base. A board that has gone quiet (no frame 
 in the judged window) is climbed at the base hold whatever the doubled one says, so N comes back
 within seconds of the contention ending.
 """
+from collections import deque
+
+CHANGE_HISTORY = 1000      # a service that runs for days keeps the last thousand changes of N
+
 LADDER = (1, 2, 4, 8, 16, 24, 32, 48, 64, 96, 128)
 
 
@@ -39,7 +43,9 @@ class SampleGovernor:
         self.since_change = 0
         self.since_lower = cooldown + 1       # the first late frame acts at once
         self.last_raise_at = None
-        self.changes = []                     # (frame, from N, to N, reason): rare, kept for reports
+        # (frame, from N, to N, reason): the most recent CHANGE_HISTORY, for reports; change_count counts all
+        self.changes = deque(maxlen=CHANGE_HISTORY)
+        self.change_count = 0
 
     @property
     def samples(self):
@@ -88,5 +94,6 @@ class SampleGovernor:
 
     def _change(self, level, reason):
         self.changes.append((self.frame, self.samples, self.ladder[level], reason))
+        self.change_count += 1
         self.level = level
         self.since_change = 0

@@ -21,7 +21,7 @@ def run(governor, shares, plant=frame_ms):
 
 def test_an_idle_board_keeps_the_largest_n():
     g = SampleGovernor(PERIOD_MS, 32)
-    assert set(run(g, [0.25] * 2000)) == {32} and g.changes == []
+    assert set(run(g, [0.25] * 2000)) == {32} and list(g.changes) == []
 
 
 def test_contention_halves_n_at_once_and_slack_brings_it_back_one_step_at_a_time():
@@ -53,3 +53,12 @@ def test_a_raise_that_is_undone_doubles_the_wait_before_the_next_try():
 def test_thresholds_must_be_ordered():
     with pytest.raises(ValueError):
         SampleGovernor(PERIOD_MS, 32, high=0.4, low=0.5)
+
+
+def test_the_change_history_is_bounded_and_the_count_is_not():
+    from edge.governor import CHANGE_HISTORY
+    g = SampleGovernor(16.7, 32)
+    for k in range(3 * CHANGE_HISTORY):
+        g.changes.append((k, 32, 16, "late"))
+        g.change_count += 1
+    assert len(g.changes) == CHANGE_HISTORY and g.change_count == 3 * CHANGE_HISTORY
