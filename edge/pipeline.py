@@ -392,7 +392,7 @@ class Pipeline:
             dec.latent[N] = (1 - a) * self.latents[c] + a * self.latents[n]
             dec.state[N] = (1 - a) * dec.state[c] + a * dec.state[n]
         dec.step()
-        if not (np.isfinite(dec.state[:dec.rows]).all() and np.isfinite(dec.rot6d[:dec.rows]).all()):
+        if not self._decoder_finite(dec):
             self._heal(dec, s)
 
         # Post-processing for every row at once; the transition row (row N) blends the two samples' foot
@@ -466,6 +466,14 @@ class Pipeline:
         return Signals(v["head_pos"][None].copy(), v["head_rot"][None].copy(), v["hand_pos"][None].copy(),
                        v["hand_rot"][None].copy(), v["waist_rot"][None].copy(), np.zeros((1, 3)),
                        v["imu_rot"][None].copy(), v["imu_flag"][None].copy())
+
+    def _decoder_finite(self, dec):
+        """Whether the step's GRU state and 6D output are all finite (one C call each on the compiled path)."""
+        if self.native:
+            lib, R = self.native, dec.rows
+            return bool(lib.ep_all_finite_f32(self._hidden_addr[dec._cur], R * dec.state.shape[1])
+                        and lib.ep_all_finite_f32(self._addr["rot6d"], R * dec.rot6d.shape[1]))
+        return bool(np.isfinite(dec.state[:dec.rows]).all() and np.isfinite(dec.rot6d[:dec.rows]).all())
 
     def _heal(self, dec, s):
         """Rows whose GRU state or output went non-finite (an input no range check caught, or a state

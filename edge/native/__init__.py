@@ -112,13 +112,14 @@ _SIGNATURES = {
     "ep_post": [_I, _I, _P, _P, _P, _P, _P, _P, _I, _I, _P, _I, _P, _I, _P, _I, _I, _I, _P, _P, _P, _P],
     "ep_switch_to": [_I, _P, _I, _D],
     "ep_frame_sane": [_P, _I, _D],
+    "ep_all_finite_f32": [_P, _I],
     "ep_frame_poses": [ctypes.POINTER(CoreContext), _I, _I, _I, _I, _I, _D, _P, _P, _P],
     "ep_emit": [ctypes.POINTER(CoreContext), _I, _I],
     "ep_frame_inputs": [ctypes.POINTER(CoreContext), _I, _I],
     "ep_row_pose": [ctypes.POINTER(CoreContext)] + [_P] * 13,
     "ep_max_joints": [],
 }
-_RETURNS_INT = {"ep_switch_to", "ep_max_joints", "ep_frame_sane"}
+_RETURNS_INT = {"ep_switch_to", "ep_max_joints", "ep_frame_sane", "ep_all_finite_f32"}
 
 
 def load():

@@ -811,6 +811,13 @@ void ep_physical_cost(int N, int J, const double *pos, const float *contacts, co
     }
 }
 
+/* 1 when the n floats are all finite (Pipeline.step's check of the decoder's state and output). */
+int ep_all_finite_f32(const float *x, int n) {
+    for (int i = 0; i < n; i++)
+        if (!(x[i] - x[i] == 0.0f)) return 0;
+    return 1;
+}
+
 /* edge.pipeline.Pipeline._sane_frame: 1 when the frame's n signal values are all finite and its
  * head and controller positions (in[0..3), in[7..13)) lie within `limit` metres of the origin. */
 int ep_frame_sane(const double *in, int n, double limit) {
