@@ -76,3 +76,20 @@ def test_a_foot_in_the_air_is_not_reported_in_contact_whatever_the_decoder_says(
     assert np.allclose(supported_contacts(np.array([1.0, 1.0]), pose), [1.0, 0.5])      # fading
     pose[[JOINT["r_ankle"], JOINT["r_toe"]], 1] += 0.1
     assert np.allclose(supported_contacts(np.array([1.0, 1.0]), pose), [1.0, 0.0])      # in the air
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_the_output_never_says_contact_for_a_foot_in_the_air(native):
+    """A foot's reported contact is at most what its height lets it bear (edge.physics.support)."""
+    from edge.physics import support
+    take = from_sample(SAMPLE)
+    pipe = Pipeline(samples=4, use_native=native)
+    lifted = 0
+    for t in range(400):
+        pose = pipe.step(take.signals.slice(t, t + 1))
+        if pose is None:
+            continue
+        bearable = support(foot_height(pose.positions))
+        lifted += int((bearable < 1).sum())
+        assert np.all(pose.contacts <= bearable + 1e-12)
+    assert lifted > 50                      # a walk lifts its feet: the check saw some
