@@ -66,6 +66,7 @@ def main(argv=None):
     li.add_argument("port")
     li.add_argument("--baud", type=int, default=460800)
     li.add_argument("--seconds", type=float, default=None)
+    li.add_argument("--record", help="also write every byte read to this file, as it came (for a bug report)")
     li.add_argument("--plot", action="store_true", help="show a live 3D stick figure in a window (needs a display and the [viz] extra)")
 
     rp = sub.add_parser("replay", help="replay a session through simulated devices into the real service")
@@ -86,6 +87,7 @@ def main(argv=None):
                     help="extra IMUs on the simulated hub and CAN besides the waist: none, all, or a list such as "
                          "l_shin,r_shin (default l_foot,r_foot: the CAN foot trackers; a recording keeps its own)")
     rp.add_argument("--bvh", help="record the output as BVH here")
+    rp.add_argument("--pose-log", help="write the pose stream's bytes, as the host read them, to this file")
     rp.add_argument("--models")
     rp.add_argument("--report", help="also draw the report (latency, tracker health) into this folder ([viz] extra)")
 

@@ -5,6 +5,9 @@
         for frame in ear.poll(timeout=0.1):          # protocol.PoseFrame objects
             ...
 
+`record` (a binary file) keeps every byte read, as it came: a stream to attach to a bug report, or to
+compare byte for byte (tests/test_golden.py).
+
 It reports the frame rate, the latency (frame time to arrival, meaningful when the board and the
 listener share a clock, as in the simulator; otherwise it includes the clock offset), and lost,
 dropped and corrupt frames.
@@ -21,7 +24,7 @@ from firmware_bridge import protocol
 
 
 class Listener:
-    def __init__(self, port=None, baud=460800, fd=None):
+    def __init__(self, port=None, baud=460800, fd=None, record=None):
         if (port is None) == (fd is None):
             raise ValueError("give a serial port path or an open file descriptor")
         self._serial = None
@@ -32,7 +35,7 @@ class Listener:
             except (serial.SerialException, OSError) as e:
                 raise OSError(f"cannot open {port}: {e}") from None
             fd = self._serial.fileno()
-        self.fd = fd
+        self.fd, self.record = fd, record
         self.reader = protocol.FrameReader(accept=(protocol.POSE_FRAME,))
         self.stats = self.reader.stats
         self.arrivals = deque(maxlen=240)
@@ -48,6 +51,8 @@ class Listener:
         except OSError:
             return []
         now = time.monotonic()
+        if self.record is not None:
+            self.record.write(chunk)
         frames = self.reader.feed(chunk)
         for f in frames:
             f.received = now
@@ -95,10 +100,18 @@ def status_loop(listener, seconds=None, every=0.25):
 
 
 def main(args):
+    record = None
     try:
-        ear = Listener(args.port, args.baud)
+        record = open(args.record, "wb") if getattr(args, "record", None) else None
+        ear = Listener(args.port, args.baud, record=record)
     except OSError as e:            # library code raises; the command turns it into a line and an exit code
         print(f"edge listen: {e}", file=sys.stderr)
+        if record is not None:
+            record.close()
         return 2
     with ear:
-        return status_loop(ear, args.seconds)
+        try:
+            return status_loop(ear, args.seconds)
+        finally:
+            if record is not None:
+                record.close()

@@ -27,12 +27,13 @@ import torch
 
 from edge.progress import Progress
 from edge.imus import ImuNoise
+from edge.physics import INTERSECT_M, LEG_SEGMENTS
 from edge.signals import DeviceNoise
 from edge.skeleton import ANKLES, HEAD, LOWER_BODY, NUM_PREDICTED, TOES
 from models import dataset as ds
 from models.nets import CVAE, LATENT, PoseAE, fk_positions, matrix_from_6d
 
-LOSS = {"w_pos": 1000.0, "lambda_kl": 5.0, "gamma_bce": 0.1, "w_rot": 0.1, "w_floor": 1000.0}
+LOSS = {"w_pos": 1000.0, "lambda_kl": 5.0, "gamma_bce": 0.1, "w_rot": 0.1, "w_floor": 1000.0, "w_clear": 0.0}
 
 
 def _producer(q, root, sources, window, batch, seed):
@@ -65,6 +66,36 @@ def floor_depth(rel, anchor_y):
     return torch.relu(-(rel[..., FOOT_JOINTS, 1] + anchor_y[..., None]))
 
 
+def segment_distance(p0, p1, q0, q1):
+    """Closest distance between segments p0-p1 and q0-q1 [...,3] -> [...]: edge.physics.segment_distance
+    in torch, so the loss sees the same leg gap the eval counts."""
+    d1, d2, r = p1 - p0, q1 - q0, p0 - q0
+    a, e, f = (d1 * d1).sum(-1), (d2 * d2).sum(-1), (d2 * r).sum(-1)
+    c, b = (d1 * r).sum(-1), (d1 * d2).sum(-1)
+    denom = a * e - b * b
+    ok = denom > 1e-12
+    s = torch.where(ok, ((b * f - c * e) / torch.where(ok, denom, torch.ones_like(denom))).clamp(0, 1),
+                    torch.zeros_like(denom))
+    t = (b * s + f) / e.clamp_min(1e-12)
+    s = torch.where(t < 0, (-c / a.clamp_min(1e-12)).clamp(0, 1),
+                    torch.where(t > 1, ((b - c) / a.clamp_min(1e-12)).clamp(0, 1), s))
+    t = t.clamp(0, 1)
+    return (p0 + d1 * s[..., None] - (q0 + d2 * t[..., None])).norm(dim=-1)
+
+
+def leg_gap(pos):
+    """The smallest distance between a left-leg and a right-leg segment [...] (edge.physics.leg_gap)."""
+    L, R = pos[..., LEG_SEGMENTS[0], :], pos[..., LEG_SEGMENTS[1], :]
+    d = segment_distance(L[..., :, None, 0, :], L[..., :, None, 1, :], R[..., None, :, 0, :], R[..., None, :, 1, :])
+    return d.flatten(-2).min(-1).values
+
+
+def clearance(pos, gt):
+    """How much closer than the truth the legs come, where the truth keeps them apart (m, >= 0): the
+    legs may cross where the performer crossed them, never more (SSI sec. 4.3 collision criterion)."""
+    return torch.relu(leg_gap(gt).clamp(max=INTERSECT_M) - leg_gap(pos))
+
+
 def recipe_losses(model, b, K, eps=0.05):
     """The shipped recipe's terms (SSI eq. 1 with best-of-K sampling, see the module docstring):
     the prior mean (z = 0, what N=1 runs) regresses the pose; of K latents held fixed over each
@@ -84,10 +115,11 @@ def recipe_losses(model, b, K, eps=0.05):
     variety = (1 - eps) * per_window.min(0).values.mean() + eps * per_window.mean()
     floor = (floor_depth(pos0, b["anchor_y"]) ** 2).sum(-1).mean() + \
             (floor_depth(posk, b["anchor_y"].repeat(1, K)) ** 2).sum(-1).mean()
+    clear = (clearance(pos0, gt) ** 2).mean() + (clearance(posk, gt.repeat(1, K, 1, 1)) ** 2).mean()
     bce = torch.nn.functional.binary_cross_entropy(con0.clamp(1e-6, 1 - 1e-6), b["contacts"])
     rot = ((rot0 - b["rot6d"]) ** 2).mean()
-    return {"mse": (err0 ** 2).sum(-1).mean(), "variety": variety, "floor": floor, "bce": bce, "rot": rot,
-            "mpjpe": err0.norm(dim=-1).mean()}
+    return {"mse": (err0 ** 2).sum(-1).mean(), "variety": variety, "floor": floor, "clear": clear, "bce": bce,
+            "rot": rot, "mpjpe": err0.norm(dim=-1).mean()}
 
 
 def cvae_losses(model, b, sample=True):
@@ -159,7 +191,8 @@ class RecipeStep(torch.nn.Module):
     def forward(self, b):
         if self.best_of:
             t = recipe_losses(self.model, b, self.best_of, self.eps)
-            loss = LOSS["w_pos"] * (t["mse"] + t["variety"]) + LOSS["w_floor"] * t["floor"]
+            loss = LOSS["w_pos"] * (t["mse"] + t["variety"]) + LOSS["w_floor"] * t["floor"] \
+                + LOSS["w_clear"] * t["clear"]
         else:
             mse, kl, bce, rot, mpjpe = cvae_losses(self.model, b)
             t = {"mse": mse, "kl": kl, "bce": bce, "rot": rot, "mpjpe": mpjpe}
@@ -207,6 +240,8 @@ def main(argv=None):
                     help="relaxed best-of-K sampling (the shipped recipe); 0 = SSI eq. 1's CVAE loss")
     ap.add_argument("--eps", type=float, default=0.05, help="weight of the mean over the K samples")
     ap.add_argument("--floor", type=float, default=LOSS["w_floor"], help="weight of the floor term (m^2)")
+    ap.add_argument("--clearance", type=float, default=LOSS["w_clear"],
+                    help="weight of the leg-clearance term (m^2): legs no closer than the truth's, up to 10 cm")
     ap.add_argument("--posterior", action="store_true", help="encoder also sees the target pose (q(z|x,y))")
     ap.add_argument("--learned-prior", action="store_true",
                     help="conditional prior p(z | trackers, GRU state); implies --posterior")
@@ -237,7 +272,7 @@ def main(argv=None):
 
     torch.manual_seed(a.seed)
     torch.set_num_threads(max(1, (os.cpu_count() or 2) // world))
-    LOSS["lambda_kl"], LOSS["w_floor"] = a.kl, a.floor
+    LOSS["lambda_kl"], LOSS["w_floor"], LOSS["w_clear"] = a.kl, a.floor, a.clearance
     log(f"args: {vars(a)}  loss: {LOSS}  device: {device}  processes: {world}")
     cs_train = ds.build(a.data, "train", a.sources)
     cs_val = ds.build(a.data, "val", a.sources)

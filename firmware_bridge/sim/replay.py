@@ -9,9 +9,12 @@ Service; a host-side Listener decodes the pose stream the board sends back over 
 --speed realtime paces everything on the wall clock; --speed max advances a simulated clock one model
 tick at a time (the same bytes, just faster), which is what the tests use.
 """
+import fcntl
 import json
 import os
 import socket
+import struct
+import termios
 import sys
 import tempfile
 import threading
@@ -54,11 +57,20 @@ class SimClock:
             self.t = max(self.t, t)
 
 
-class SerialDevice:
-    """A serial device on the master side of a pty; the board sees `path` (a symlink to /dev/pts/N)."""
+def pending_bytes(fd):
+    """Bytes waiting to be read on a tty descriptor (FIONREAD)."""
+    return struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0]
 
-    def __init__(self, name, log, folder):
-        self.name, self.log, self.path = name, log, str(Path(folder) / name)
+
+class SerialDevice:
+    """A serial device on the master side of a pty; the board sees `path` (a symlink to /dev/pts/N).
+
+    The kernel hands bytes written to a pty master to the slave side from a work queue, a moment later.
+    With `settle` (--speed max) emit_until waits until they are readable there, so a simulated tick
+    always sees exactly what was sent before it and a replay is the same bytes every time."""
+
+    def __init__(self, name, log, folder, settle=False):
+        self.name, self.log, self.path, self.settle = name, log, str(Path(folder) / name), settle
         self.next = 0
         self.master = self.slave = None
         self.plug()
@@ -76,13 +88,22 @@ class SerialDevice:
         self.master = self.slave = None
 
     def emit_until(self, t):
+        sent = 0
         while self.next < len(self.log.t) and self.log.t[self.next] <= t:
             if self.master is not None:
                 try:
-                    os.write(self.master, self.log.frames[self.next])
+                    sent += os.write(self.master, self.log.frames[self.next])
                 except OSError:
                     pass
             self.next += 1
+        if self.settle and sent:
+            self.wait_readable(sent)
+
+    def wait_readable(self, sent, timeout=0.5):
+        """Until the board's end holds at least the `sent` bytes just written (it drains every tick)."""
+        give_up = time.monotonic() + timeout
+        while self.slave is not None and pending_bytes(self.slave) < sent and time.monotonic() < give_up:
+            time.sleep(0.0001)
 
     def close(self):
         if self.master is not None:
@@ -288,16 +309,18 @@ def board_config(session, devices, can_channel, samples, lookahead, bvh, adaptiv
 
 
 def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=None, bvh=None, status=None,
-           models=None, adaptive=False, precision=DEFAULT_PRECISION):
+           models=None, adaptive=False, precision=DEFAULT_PRECISION, pose_log=None):
+    """Returns the report dict; `pose_log` (a binary file) receives the pose stream's raw bytes."""
     faults = faults or {}
     # Build the compiled core (first use: seconds of cc) before the clock starts, or a real-time replay
     # begins seconds behind its own devices and the synchroniser starts on a backlog.
     native.load()
     clock = SimClock(realtime=(speed == "realtime"))
     folder = tempfile.mkdtemp(prefix="edgepose-sim-")
-    devices = {"headset": SerialDevice("headset", session.headset, folder)}
+    settle = speed != "realtime"
+    devices = {"headset": SerialDevice("headset", session.headset, folder, settle)}
     if session.hub.frames:
-        devices["hub"] = SerialDevice("hub", session.hub, folder)
+        devices["hub"] = SerialDevice("hub", session.hub, folder, settle)
     can_channel = f"edgepose-{os.getpid()}-{id(session)}"
     can_dev = CanDevice(session, can_channel, clock) if "can" in session.transports and len(session.can_t) else None
     chip = bno055_for(session, clock, faults) if len(session.i2c_t) else None
@@ -329,7 +352,7 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
         for dev in list(devices.values()) + ([can_dev] if can_dev else []):
             dev.close()
         raise
-    ear = Listener(fd=devices["headset"].master)
+    ear = Listener(fd=devices["headset"].master, record=pose_log)
     hz, duration = cfg.hz, session.duration if seconds is None else min(seconds, session.duration)
     ticks = int(duration * hz)
     metrics = StreamMetrics(ticks, hz, session.gt_pos, service.pipeline.lookahead)
@@ -407,6 +430,10 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
                 last_status = now
                 rss.append(rss_mb())
         time.sleep(0.05)
+        give_up = time.monotonic() + 1.0               # the host reads what the board sent last
+        while plugged.is_set() and pending_bytes(devices["headset"].master) and time.monotonic() < give_up:
+            time.sleep(0.005)
+        time.sleep(0.01)
         score(inbox, metrics, ticks_by_us, replug)
     finally:
         done.set()
@@ -566,8 +593,14 @@ def main(args):
         print(f"edge replay: cannot use {args.source}: {e}", file=sys.stderr)
         return 2
     samples = 32 if args.samples == "auto" else int(args.samples)
-    result = replay(session, args.speed, samples, args.lookahead, args.seconds, faults, args.bvh, sys.stderr,
-                    args.models, adaptive=args.adaptive or args.samples == "auto", precision=args.precision)
+    pose_log = open(args.pose_log, "wb") if getattr(args, "pose_log", None) else None
+    try:
+        result = replay(session, args.speed, samples, args.lookahead, args.seconds, faults, args.bvh, sys.stderr,
+                        args.models, adaptive=args.adaptive or args.samples == "auto", precision=args.precision,
+                        pose_log=pose_log)
+    finally:
+        if pose_log is not None:
+            pose_log.close()
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
     keys = ("frames_in", "frames_out", "poses_decoded", "packets_corrupt", "packets_lost", "tracker_lost_events",
