@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from edge.inference import DEFAULT_PRECISION
-from firmware_bridge.transports.base import TransportError, parse_url
+from firmware_bridge.transports.base import TransportError, parse_url, tracker_names
 
 
 class ConfigError(ValueError):
@@ -81,34 +81,14 @@ def _host_port(value, where):
     return host, int(port)
 
 
-def id_map(text):
-    """'0:waist,1:l_foot' -> {0: 'waist', 1: 'l_foot'}."""
-    out = {}
-    for pair in text.split(","):
-        wire_id, sep, name = pair.partition(":")
-        if not sep or not wire_id.strip().isdigit() or not name.strip():
-            raise ConfigError(f"expected ID:NAME pairs such as 0:waist,1:l_foot, got {text!r}")
-        out[int(wire_id)] = name.strip()
-    return out
-
-
 def tracker_names_of(url):
-    """Tracker names a source URL declares: ?tracker=NAME (I2C), ?nodes=1:a,2:b (CAN), ?trackers=0:a,1:b
-    (serial hub), ?trackers=MAC/SENSOR:NAME,... (SlimeVR). A serial hub without a map carries the waist as id 0."""
-    scheme, _, _, query = parse_url(url)
-    if scheme == "slimevr":                 # trackers=MAC/SENSOR:NAME,...
-        from firmware_bridge.transports.slimevr import parse_tracker_map
-        try:
-            return list(parse_tracker_map(query.get("trackers", "")).values())
-        except ValueError as e:
-            raise ConfigError(str(e)) from None
-    if "tracker" in query:
-        return [query["tracker"]]
-    if "nodes" in query:
-        return list(id_map(query["nodes"]).values())
-    if "trackers" in query:
-        return list(id_map(query["trackers"]).values())
-    return ["waist"] if scheme == "serial" else []
+    """Tracker names a source URL declares, as its scheme reads them: ?tracker=NAME (I2C),
+    ?nodes=1:a,2:b (CAN), ?trackers=0:a,1:b (serial hub; without it the waist as id 0),
+    ?trackers=MAC/SENSOR:NAME,... (SlimeVR)."""
+    try:
+        return tracker_names(url)
+    except TransportError as e:
+        raise ConfigError(str(e)) from None
 
 
 def load(path):

@@ -2,7 +2,7 @@
 
     from firmware_bridge.listen import Listener
     with Listener("/dev/ttyUSB0") as ear:            # or Listener(fd=...) on an open descriptor
-        for frame in ear.poll(timeout=0.1):          # protocol.PoseFrame objects
+        for frame in ear.poll(timeout=0.1):          # messages.PoseFrame objects
             ...
 
 `record` (a binary file) keeps every byte read, as it came: a stream to attach to a bug report, or to
@@ -20,7 +20,7 @@ from collections import deque
 
 import numpy as np
 
-from firmware_bridge import protocol
+from firmware_bridge.wire import messages
 
 
 class Listener:
@@ -36,7 +36,7 @@ class Listener:
                 raise OSError(f"cannot open {port}: {e}") from None
             fd = self._serial.fileno()
         self.fd, self.record = fd, record
-        self.reader = protocol.FrameReader(accept=(protocol.POSE_FRAME,))
+        self.reader = messages.FrameReader(accept=(messages.POSE_FRAME,))
         self.stats = self.reader.stats
         self.arrivals = deque(maxlen=240)
         self.latency_ms = deque(maxlen=240)

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firmware_bridge import bno055
-from firmware_bridge.bno055 import Mode, Reg
+from firmware_bridge.transports import bno055
+from firmware_bridge.transports.bno055 import Mode, Reg
 from firmware_bridge.samples import TrackerSample
 from firmware_bridge.sim.bno055_fake import FakeBNO055, ManualClock, motion_from_arrays
 from firmware_bridge.transports import TransportError, open_source

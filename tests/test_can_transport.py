@@ -9,9 +9,9 @@ import pytest
 
 from firmware_bridge.samples import TrackerSample
 from firmware_bridge.transports import TransportError, open_source
-from firmware_bridge.transports.can_bus import (TrackerFrameDecoder, TrackerNodeEncoder, bus_arguments,
-                                                classify_frame, encode_node_frames, pack_quaternion,
-                                                parse_node_map, unpack_motion, unpack_quaternion)
+from firmware_bridge.transports.can_bus import bus_arguments, parse_node_map
+from firmware_bridge.wire.can_frames import (TrackerFrameDecoder, TrackerNodeEncoder, classify_frame,
+                                             encode_node_frames, pack_quaternion, unpack_motion, unpack_quaternion)
 
 HALF_TURN_ABOUT_Y = np.array([np.cos(np.pi / 4), 0.0, np.sin(np.pi / 4), 0.0])
 

@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from firmware_bridge.sim.bno055_fake import FakeBNO055, ManualClock
 from firmware_bridge.transports import open_source
-from firmware_bridge.transports.can_bus import TrackerFrameDecoder, encode_node_frames
+from firmware_bridge.wire.can_frames import TrackerFrameDecoder, encode_node_frames
 
 FUZZ = settings(max_examples=2000, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
 

@@ -42,8 +42,8 @@ def pose_stream(samples):
 
 
 def frames(stream):
-    from firmware_bridge import protocol
-    return protocol.FrameReader(accept=(protocol.POSE_FRAME,)).feed(stream)
+    from firmware_bridge.wire import messages
+    return messages.FrameReader(accept=(messages.POSE_FRAME,)).feed(stream)
 
 
 def first_difference(got, want):

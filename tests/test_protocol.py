@@ -1,4 +1,4 @@
-"""The wire protocol: framing, the three messages, the streaming reader, and docs/protocol.md's test vectors."""
+"""The wire protocol: framing, the three messages, the streaming reader, and firmware_bridge/wire/protocol.md's test vectors."""
 import binascii
 import re
 import struct
@@ -10,21 +10,23 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from edge.skeleton import JOINT, NUM_JOINTS
-from firmware_bridge.protocol import (
-    HEADER, HEADSET_POSE, MAX_ENCODED_FRAME, MESSAGE_TYPES, POSE_FRAME, TRACKER_SAMPLES, FrameReader, PoseFrame,
-    ProtocolError, TimestampUnwrapper, cobs_decode, cobs_encode, crc16, decode_frame, decode_messages,
-    encode_frame, encode_headset_pose, encode_pose_frame, encode_tracker_samples, quat_to_q14,
-    sequence_gap,
+from firmware_bridge.wire.framing import (
+    HEADER, HEADSET_POSE, MAX_ENCODED_FRAME, MESSAGE_TYPES, POSE_FRAME, TRACKER_SAMPLES, ProtocolError,
+    TimestampUnwrapper, cobs_decode, cobs_encode, crc16, decode_frame, encode_frame, sequence_gap,
 )
+from firmware_bridge.wire.messages import (
+    FrameReader, PoseFrame, decode_messages, encode_headset_pose, encode_pose_frame, encode_tracker_samples,
+)
+from firmware_bridge.wire.q14 import to_q14 as quat_to_q14
 from firmware_bridge.samples import HeadsetSample, TrackerSample
 
-DOC = Path(__file__).resolve().parent.parent / "docs" / "protocol.md"
+DOC = Path(__file__).resolve().parent.parent / "firmware_bridge" / "wire" / "protocol.md"
 # database=None: no .hypothesis/ folder in the working tree.
 FUZZ = settings(max_examples=2000, deadline=None, database=None, suppress_health_check=[HealthCheck.too_slow])
 S45 = np.sqrt(0.5)
 
 
-# --- the example messages of docs/protocol.md ----------------------------------------------------
+# --- the example messages of firmware_bridge/wire/protocol.md ----------------------------------------------------
 
 def example_tracker_samples():
     return [
@@ -62,7 +64,7 @@ EXAMPLE_VALUES = {
 
 
 def doc_vectors():
-    """{(message, 'body'|'wire'): bytes} from the ```hex MESSAGE body|wire blocks of docs/protocol.md."""
+    """{(message, 'body'|'wire'): bytes} from the ```hex MESSAGE body|wire blocks of firmware_bridge/wire/protocol.md."""
     blocks = re.findall(r"```hex (\w+) (body|wire)\n(.*?)```", DOC.read_text(encoding="utf-8"), flags=re.S)
     return {(name, kind): bytes.fromhex(text) for name, kind, text in blocks}
 
@@ -282,14 +284,14 @@ def test_tracker_encoder_refuses_samples_too_far_apart_or_unnamed():
     assert got.tracker == "l_foot"
 
 
-# --- the test vectors of docs/protocol.md --------------------------------------------------------
+# --- the test vectors of firmware_bridge/wire/protocol.md --------------------------------------------------------
 
 @pytest.mark.parametrize("name", EXAMPLES)
 def test_doc_test_vector_is_what_the_encoder_writes(name):
     vectors = doc_vectors()
     wire = EXAMPLES[name]()
-    assert vectors[(name, "wire")] == wire, f"docs/protocol.md {name} wire bytes differ: {wire.hex(' ')}"
-    assert vectors[(name, "body")] == cobs_decode(wire[:-1]), f"docs/protocol.md {name} body bytes differ"
+    assert vectors[(name, "wire")] == wire, f"firmware_bridge/wire/protocol.md {name} wire bytes differ: {wire.hex(' ')}"
+    assert vectors[(name, "body")] == cobs_decode(wire[:-1]), f"firmware_bridge/wire/protocol.md {name} body bytes differ"
 
 
 @pytest.mark.parametrize("name", EXAMPLES)

@@ -1,5 +1,5 @@
-"""docs/protocol.md is enough to build a decoder: a POSE_FRAME reader written from the document alone
-(struct and binascii only, nothing from firmware_bridge.protocol) decodes what the real encoder sends."""
+"""firmware_bridge/wire/protocol.md is enough to build a decoder: a POSE_FRAME reader written from the document alone
+(struct and binascii only, nothing from firmware_bridge.wire) decodes what the real encoder sends."""
 import binascii
 import math
 import struct
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 
-# --- an independent POSE_FRAME decoder, written from docs/protocol.md ----------------------------
+# --- an independent POSE_FRAME decoder, written from firmware_bridge/wire/protocol.md ----------------------------
 
 def doc_cobs_decode(encoded):
     """Section 1.1. None if the COBS is invalid."""
@@ -71,7 +71,7 @@ def doc_read_pose_stream(stream):
 def pose_stream(count, seed=0):
     """(PoseFrames, the bytes the board would send for them) with some line noise between frames."""
     from edge.skeleton import NUM_JOINTS
-    from firmware_bridge.protocol import PoseFrame, encode_pose_frame
+    from firmware_bridge.wire.messages import PoseFrame, encode_pose_frame
 
     rng = np.random.default_rng(seed)
     frames, stream = [], bytearray()
@@ -103,7 +103,7 @@ def test_decoder_written_from_the_doc_reads_the_encoders_pose_stream():
 
 
 def test_decoder_written_from_the_doc_agrees_with_the_reference_reader():
-    from firmware_bridge.protocol import FrameReader
+    from firmware_bridge.wire.messages import FrameReader
 
     _, stream = pose_stream(60, seed=1)
     reference = FrameReader().feed(stream)

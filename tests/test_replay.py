@@ -39,7 +39,7 @@ def test_every_frame_reaches_the_host_over_each_transport(take, transports):
     assert r["packets_corrupt"] == 0 and r["tracker_lost_events"] == 0
     assert r["mpjpe_cm"] < 8.0
     opened = " ".join(r["transports"]["opened"])
-    assert "serial://" in opened and ("i2c://" in opened) == ("i2c" in transports) and ("can://" in opened) == ("can" in transports)
+    assert "serial://" in opened and ("sim://i2c/" in opened) == ("i2c" in transports) and ("can://" in opened) == ("can" in transports)
 
 
 @pytest.mark.parametrize("profile", sorted(FAULTS))
@@ -161,7 +161,7 @@ def test_a_tracker_down_while_the_service_starts_is_ridden_through_and_reported(
     session.i2c_quat[:200] = np.nan                 # the puck NACKs for the first 2 s
     result = replay(session, "realtime", samples=8, lookahead=LOOKAHEAD, seconds=3.0)
     assert result["errors"] == [] and result["poses_decoded"] > 50
-    assert any(url.startswith("i2c://") for url in result["devices_down_at_start"])
+    assert any(url.startswith("sim://i2c/") for url in result["devices_down_at_start"])
     assert result["reopens"] >= 1
 
 

@@ -21,7 +21,7 @@ from PIL import Image  # noqa: E402
 
 from edge.cli import main as edge_main  # noqa: E402
 from edge.skeleton import JOINT, PELVIS_HEIGHT, REST  # noqa: E402
-from firmware_bridge import protocol  # noqa: E402
+from firmware_bridge.wire import messages  # noqa: E402
 from firmware_bridge.listen import Listener  # noqa: E402
 from tests.conftest import ROOT, SAMPLE  # noqa: E402
 from viz import canvas  # noqa: E402
@@ -240,7 +240,7 @@ def test_board_runtime_never_imports_plotting():
 
 
 def test_live_view_draws_the_forward_kinematics_of_a_pose_frame():
-    rest = protocol.PoseFrame(t=0.0, root_pos=np.array([0.3, PELVIS_HEIGHT, -1.0]),
+    rest = messages.PoseFrame(t=0.0, root_pos=np.array([0.3, PELVIS_HEIGHT, -1.0]),
                               rotations=np.tile([1.0, 0, 0, 0], (21, 1)), contacts=np.array([1.0, 0.0]))
     p = pose_positions(rest)
     assert np.allclose(p, REST + rest.root_pos)
@@ -255,9 +255,9 @@ def test_listen_plot_without_a_display_says_so_and_keeps_the_status_line(monkeyp
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
     read_end, write_end = os.pipe()
-    frame = protocol.PoseFrame(t=0.0, root_pos=np.zeros(3), rotations=np.tile([1.0, 0, 0, 0], (21, 1)))
+    frame = messages.PoseFrame(t=0.0, root_pos=np.zeros(3), rotations=np.tile([1.0, 0, 0, 0], (21, 1)))
     for seq in range(3):
-        os.write(write_end, protocol.encode_pose_frame(frame, seq))
+        os.write(write_end, messages.encode_pose_frame(frame, seq))
     try:
         assert live_plot(Listener(fd=read_end), seconds=0.2) == 0
     finally:

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import serial
 
-from firmware_bridge.protocol import (
+from firmware_bridge.wire.messages import (
     FrameReader, encode_headset_pose, encode_tracker_samples,
 )
 from firmware_bridge.samples import HeadsetSample, TrackerSample

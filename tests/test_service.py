@@ -10,7 +10,7 @@ from edge.cli import main as edge_main
 from edge.skeleton import NUM_JOINTS
 from edge.takes import from_sample
 from firmware_bridge import config as config_mod
-from firmware_bridge import protocol
+from firmware_bridge.wire import messages
 from firmware_bridge.listen import Listener
 from firmware_bridge.samples import HeadsetSample, TrackerSample
 from firmware_bridge.service import Service
@@ -32,8 +32,8 @@ def feed(take, headset_fd, hub_fd, stop, hz=60.0):
         now = time.monotonic()
         hs = HeadsetSample(now + 100.0, sig.head_pos[i], sig.head_rot[i], sig.hand_pos[i], sig.hand_rot[i])
         ts = TrackerSample("waist", now - 50.0, sig.waist_rot[i], sig.waist_acc[i])
-        os.write(headset_fd, protocol.encode_headset_pose(hs, k & 0xFFFF))
-        os.write(hub_fd, protocol.encode_tracker_samples([ts], k & 0xFFFF))
+        os.write(headset_fd, messages.encode_headset_pose(hs, k & 0xFFFF))
+        os.write(hub_fd, messages.encode_tracker_samples([ts], k & 0xFFFF))
         k += 1
         time.sleep(max(0.0, t0 + k / hz - time.monotonic()))
 

@@ -1,4 +1,4 @@
-"""slimevr:// on real UDP sockets on loopback: emulated SlimeVR trackers (firmware_bridge.slimevr_wire's
+"""slimevr:// on real UDP sockets on loopback: emulated SlimeVR trackers (firmware_bridge.wire.slimevr's
 TrackerEncoder, built as the firmware builds its packets) do the handshake and stream; the board's
 source answers as the SlimeVR server does and yields the configured sensors as TrackerSamples."""
 import socket
@@ -9,7 +9,7 @@ import pytest
 
 from edge import quat
 from firmware_bridge import config as config_mod
-from firmware_bridge import slimevr_wire as w
+from firmware_bridge.wire import slimevr as w
 from firmware_bridge.transports import open_source
 from firmware_bridge.transports.base import TransportError
 from firmware_bridge.transports.slimevr import AXES_OFFSET

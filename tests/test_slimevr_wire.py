@@ -1,5 +1,5 @@
-"""The SlimeVR tracker protocol (firmware_bridge.slimevr_wire) against byte-for-byte vectors built as
-the firmware builds them (docs/slimevr.md), and fuzzed: no datagram may do anything but parse or
+"""The SlimeVR tracker protocol (firmware_bridge.wire.slimevr) against byte-for-byte vectors built as
+the firmware builds them (firmware_bridge/wire/slimevr.md), and fuzzed: no datagram may do anything but parse or
 raise WireError."""
 import struct
 
@@ -8,7 +8,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from firmware_bridge import slimevr_wire as w
+from firmware_bridge.wire import slimevr as w
 
 MAC = "02:ed:9e:00:00:01"
 # A tracker's discovery handshake, field by field as connection.cpp sendTrackerDiscovery writes it:

@@ -38,8 +38,8 @@ from typing import NamedTuple
 
 import numpy as np
 
-from firmware_bridge import bno055
-from firmware_bridge.bno055 import Mode, Reg
+from firmware_bridge.transports import bno055
+from firmware_bridge.transports.bno055 import Mode, Reg
 
 FUSION_RATE_HZ = 100.0             # fusion output data rate in the fusion modes (section 3.3)
 PAGE_SIZE = 0x80

@@ -30,10 +30,10 @@ from edge.inference import DEFAULT_PRECISION
 from edge.skeleton import fk
 from firmware_bridge import config as config_mod
 from firmware_bridge.listen import Listener
-from firmware_bridge.service import Service, open_configured
+from firmware_bridge.service import Service
+from firmware_bridge.sim import scheme
 from firmware_bridge.sim.bno055_fake import FakeBNO055
 from firmware_bridge.sim.session import FAULTS, CAN_NODES, HUB_IDS, Session, fault_profile, placement, synthesize
-from firmware_bridge.transports import open_source
 
 
 class SimClock:
@@ -135,7 +135,7 @@ class SlimeVRDevice:
     does. unplug(seconds) makes it go silent and then restart (a new handshake)."""
 
     def __init__(self, mac, log, server, clock):
-        from firmware_bridge.slimevr_wire import TrackerEncoder
+        from firmware_bridge.wire.slimevr import TrackerEncoder
         self.mac, self.log, self.server, self.clock = mac, log, server, clock
         self.enc = TrackerEncoder(mac)
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -145,7 +145,7 @@ class SlimeVRDevice:
         self.handshakes = 0
 
     def emit_until(self, t):
-        from firmware_bridge.slimevr_wire import HANDSHAKE_REPLY
+        from firmware_bridge.wire.slimevr import HANDSHAKE_REPLY
         while True:                                 # what the board sent
             try:
                 data = self.sock.recv(2048)
@@ -187,7 +187,7 @@ class SlimeVRDevice:
 def flood(address, pps, done, seed=7):
     """A hostile device on the network: `pps` datagrams a second of random bytes, truncated and
     bit-flipped SlimeVR packets, at the board's SlimeVR port, until `done` (loopback only)."""
-    from firmware_bridge.slimevr_wire import TrackerEncoder
+    from firmware_bridge.wire.slimevr import TrackerEncoder
     rng = np.random.default_rng(seed)
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     real = TrackerEncoder("02:00:00:00:00:99").rotation(0, np.array([1.0, 0, 0, 0]))
@@ -287,19 +287,22 @@ def score(inbox, metrics, ticks_by_us, replug):
             replug[1] = f.t
 
 
-def board_config(session, devices, can_channel, samples, lookahead, bvh, adaptive=False, precision=DEFAULT_PRECISION):
+def board_config(session, devices, can_channel, samples, lookahead, bvh, adaptive=False, precision=DEFAULT_PRECISION,
+                 bench="replay"):
+    """The board's config for a session: real ptys and CAN, and sim:// sources on the bench devices
+    `{bench}-waist` (the BNO055 fake) and `{bench}-slimevr`."""
     place = session.meta.get("placement") or placement(session.transports)
     pairs = lambda ids, names: ",".join(f"{k}:{v}" for k, v in ids.items() if v in names)
     trackers = []
     if "hub" in devices and place["hub"]:
         trackers.append({"url": f"serial://{devices['hub'].path}?role=hub&trackers={pairs(HUB_IDS, place['hub'])}"})
     if place["i2c"]:
-        trackers.append({"url": "i2c://1/0x28?tracker=waist&rate=100"})
+        trackers.append({"url": f"sim://i2c/{bench}-waist?tracker=waist&rate=100"})
     if place["can"]:
         trackers.append({"url": f"can://virtual/{can_channel}?nodes={pairs(CAN_NODES, place['can'])}"})
     if place.get("slimevr"):
         macs = session.meta.get("slimevr_trackers", {})
-        trackers.append({"url": "slimevr://127.0.0.1:0?trackers=" + ",".join(f"{m}/0:{n}" for m, n in macs.items())})
+        trackers.append({"url": f"sim://slimevr/{bench}-slimevr?trackers=" + ",".join(f"{m}/0:{n}" for m, n in macs.items())})
     return config_mod.from_dict({
         "headset": {"url": f"serial://{devices['headset'].path}?role=headset"},
         "trackers": trackers,
@@ -324,34 +327,33 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
     can_channel = f"edgepose-{os.getpid()}-{id(session)}"
     can_dev = CanDevice(session, can_channel, clock) if "can" in session.transports and len(session.can_t) else None
     chip = bno055_for(session, clock, faults) if len(session.i2c_t) else None
-    opened, errors = [], []
+    errors, slimevr_devices, flooding = [], [], []
 
-    slimevr_devices, flooding = [], []
+    def slimevr_opened(source):
+        """The simulated trackers talk to the port the board's SlimeVR source got."""
+        slimevr_devices[:] = [SlimeVRDevice(mac, log, source.address, clock) for mac, log in session.slimevr.items()]
+        if faults.get("slimevr_flood_pps"):        # a process of its own: the board's, not the flood's, GIL
+            import multiprocessing as mp
+            ctx = mp.get_context("fork")
+            flooding.append(ctx.Event())
+            ctx.Process(target=flood, args=(source.address, faults["slimevr_flood_pps"], flooding[0]),
+                        daemon=True).start()
 
-    def opener(url):
-        opened.append(url)
-        if url.startswith("i2c://"):
-            return open_source(url, bus=chip, clock=clock, sleep=clock.sleep)
-        source = open_source(url, clock=clock) if url.startswith("slimevr://") else open_configured(url)
-        if url.startswith("slimevr://"):         # the simulated trackers talk to the port it got
-            slimevr_devices[:] = [SlimeVRDevice(mac, log, source.address, clock) for mac, log in session.slimevr.items()]
-            if faults.get("slimevr_flood_pps"):        # a process of its own: the board's, not the flood's, GIL
-                import multiprocessing as mp
-                ctx = mp.get_context("fork")
-                flooding.append(ctx.Event())
-                ctx.Process(target=flood, args=(source.address, faults["slimevr_flood_pps"], flooding[0]),
-                            daemon=True).start()
-        return source
-
+    bench = f"replay{os.getpid()}-{id(session)}"
+    scheme.BENCH[f"{bench}-waist"] = scheme.BenchDevice(chip, clock, clock.sleep)
+    scheme.BENCH[f"{bench}-slimevr"] = scheme.BenchDevice(None, clock, clock.sleep, slimevr_opened)
     try:
-        cfg = board_config(session, devices, can_channel, samples, lookahead, bvh, adaptive, precision)
+        cfg = board_config(session, devices, can_channel, samples, lookahead, bvh, adaptive, precision, bench)
         if models:
             cfg.models = models
-        service = Service(cfg, clock=clock, status=status, opener=opener)
+        service = Service(cfg, clock=clock, status=status)
     except BaseException:
         for dev in list(devices.values()) + ([can_dev] if can_dev else []):
             dev.close()
+        for key in (f"{bench}-waist", f"{bench}-slimevr"):
+            scheme.BENCH.pop(key, None)
         raise
+    opened = [link.url for link in service.links]
     ear = Listener(fd=devices["headset"].master, record=pose_log)
     hz, duration = cfg.hz, session.duration if seconds is None else min(seconds, session.duration)
     ticks = int(duration * hz)
@@ -446,6 +448,8 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
             can_dev.close()
         for dev in list(devices.values()) + slimevr_devices:
             dev.close()
+        for key in (f"{bench}-waist", f"{bench}-slimevr"):
+            scheme.BENCH.pop(key, None)
         try:
             os.rmdir(folder)
         except OSError:

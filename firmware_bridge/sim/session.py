@@ -18,9 +18,9 @@ from edge import quat
 from edge.imus import IMU_LOCATIONS, ImuNoise
 from edge.signals import DeviceNoise, Signals
 from edge.takes import Take
-from firmware_bridge import protocol
+from firmware_bridge.wire import messages
 from firmware_bridge.samples import HeadsetSample, TrackerSample
-from firmware_bridge.transports.can_bus import encode_node_frames
+from firmware_bridge.wire.can_frames import encode_node_frames
 
 # Who sits where: the waist puck on I2C, the feet on CAN, every other extra IMU (edge.imus) on the
 # serial hub. With fewer transports the waist moves to the hub, then to CAN node 3, and the extra IMUs
@@ -288,7 +288,7 @@ def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, see
         f = min(int(t * fps), frames60 - 1)
         hp, hr, cp, cr, _, _ = signal_at(sig, fps, t)
         valid = np.array([not hands_gone[0][f], not hands_gone[1][f]])
-        data = protocol.encode_headset_pose(HeadsetSample(device_time("headset", t), hp, hr, cp, cr, valid), k & 0xFFFF)
+        data = messages.encode_headset_pose(HeadsetSample(device_time("headset", t), hp, hr, cp, cr, valid), k & 0xFFFF)
         if rng.random() >= loss:
             headset.add(t, flip_bits(data, ber, rng))
 
@@ -300,7 +300,7 @@ def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, see
             samples = [TrackerSample(n, device_time("hub", t), imu_at(take, n, t, imus)) for n in place["hub"]
                        if has(n) and not dropped[n][f]]
             if samples and rng.random() >= loss:
-                hub.add(t, flip_bits(protocol.encode_tracker_samples(samples, k & 0xFFFF, HUB_IDS), ber, rng))
+                hub.add(t, flip_bits(messages.encode_tracker_samples(samples, k & 0xFFFF, HUB_IDS), ber, rng))
 
     can_t, can_id, can_data = [], [], []
     if place["can"]:
@@ -318,7 +318,7 @@ def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, see
                     can_data.append(np.frombuffer(flip_bits(bytes(m.data), ber, rng), np.uint8))
 
     slimevr = {}
-    from firmware_bridge.slimevr_wire import TrackerEncoder
+    from firmware_bridge.wire.slimevr import TrackerEncoder
     from firmware_bridge.transports.slimevr import AXES_OFFSET
     to_wire = quat.inv(AXES_OFFSET)            # the board turns Z-up to Y-up; the tracker sends Z-up
     for name in place["slimevr"]:

@@ -10,7 +10,7 @@ fusion rate (100 by default).
 
 The BNO055 has no timestamp: a sample's `t` and `received` are the host's time.monotonic() right
 after the quaternion is read. `status` packs CALIB_STAT, SYS_STATUS and SYS_ERR
-(`firmware_bridge.bno055.unpack_status` splits it); the quaternion and linear acceleration are in the
+(`firmware_bridge.transports.bno055.unpack_status` splits it); the quaternion and linear acceleration are in the
 chip's own frames, which the calibration stage maps onto the body.
 
 Opening checks the chip ID, switches CONFIG -> NDOF with the datasheet settle times and tries the
@@ -29,7 +29,7 @@ import time
 
 import numpy as np
 
-from firmware_bridge.bno055 import (ADDRESSES, BNO055, BOOT_WAIT_S, SYS_STATUS_FUSION_RUNNING,
+from firmware_bridge.transports.bno055 import (ADDRESSES, BNO055, BOOT_WAIT_S, SYS_STATUS_FUSION_RUNNING,
                                     is_plausible_quaternion, pack_status)
 from firmware_bridge.samples import TrackerSample
 from firmware_bridge.transports.base import Source, TransportError
@@ -43,18 +43,30 @@ MAX_BACKOFF_S = 1.0
 SET_UP_ATTEMPTS = 3
 
 
+def tracker_names(parsed):
+    return [parsed[3].get("tracker", DEFAULT_TRACKER)]
+
+
 def open(url, parsed, bus=None, *, clock=time.monotonic, sleep=time.sleep, **source_options):
     """Open the BNO055 the URL names. `bus`: an SMBus-like object to use instead of /dev/i2c-BUS
-    (tests pass a FakeBNO055); `clock`/`sleep` are injectable for tests; `source_options` go to
-    BNO055Source (reinit_after, first_backoff, max_backoff)."""
-    _, netloc, path, query = parsed
+    (tests pass a FakeBNO055; the simulator's sim:// scheme does the same); `clock`/`sleep` are
+    injectable; `source_options` go to BNO055Source (reinit_after, first_backoff, max_backoff)."""
+    _, netloc, path, _ = parsed
     bus_number = parse_bus_number(netloc, url)
-    address = parse_address(path, url)
-    tracker = query.get("tracker", DEFAULT_TRACKER)
-    rate = parse_rate(query.get("rate"), url)
+    parse_address(path, url)
     owns_bus = bus is None
     if owns_bus:
         bus = open_smbus(bus_number)
+    return open_on_bus(url, parsed, bus, owns_bus, clock=clock, sleep=sleep, **source_options)
+
+
+def open_on_bus(url, parsed, bus, owns_bus=False, *, clock=time.monotonic, sleep=time.sleep, **source_options):
+    """The BNO055Source for the chip the URL's address and query name, on an open SMBus-like `bus`."""
+    _, netloc, path, query = parsed
+    bus_number = netloc or "?"
+    address = parse_address(path, url)
+    tracker = query.get("tracker", DEFAULT_TRACKER)
+    rate = parse_rate(query.get("rate"), url)
     chip = BNO055(bus, address, clock=clock, sleep=sleep)
     try:
         set_up(chip, sleep)
@@ -163,7 +175,7 @@ class BNO055Source(Source):
     def __init__(self, chip, tracker=DEFAULT_TRACKER, rate=DEFAULT_RATE_HZ, *, url="", clock=time.monotonic,
                  sleep=time.sleep, reinit_after=REINIT_AFTER_FAILURES, first_backoff=FIRST_BACKOFF_S,
                  max_backoff=MAX_BACKOFF_S, on_close=None):
-        super().__init__()
+        super().__init__(clock)
         self.stats["reinits"] = 0
         self.last_error = None
         self.url = url
@@ -180,19 +192,21 @@ class BNO055Source(Source):
         self._failures_in_a_row = 0
         self._chip_needs_setup = False
 
-    def recv(self, timeout=None):
-        """The next sample, or None if none could be read within `timeout` seconds (None: wait)."""
-        deadline = None if timeout is None else self._clock() + timeout
-        while True:
-            if deadline is not None and self._next_poll > deadline:
-                self._sleep_until(deadline)
-                return None
-            self._sleep_until(self._next_poll)
-            sample = self._poll()
-            if sample is not None:
-                return sample
+    def _recv_internal(self, timeout):
+        """Wait for the next poll time (or to the end of `timeout` if it is later), then poll once."""
+        if timeout is not None and self._next_poll > self._clock() + timeout:
+            self._sleep_until(self._clock() + timeout)
+            return None
+        self._sleep_until(self._next_poll)
+        return self._poll()
 
-    def close(self):
+    @property
+    def state(self):
+        if self._closed:
+            return "closed"
+        return "error" if self._failures_in_a_row else "active"
+
+    def _close_internal(self):
         if self._on_close is not None:
             self._on_close()
             self._on_close = None

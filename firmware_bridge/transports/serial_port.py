@@ -1,8 +1,10 @@
-"""The `serial` transport: a tracker hub or the headset on a UART, framed by firmware_bridge.protocol.
+"""The `serial` scheme: a tracker hub or the headset on a UART (the messages: firmware_bridge.wire.messages).
 
-    serial:///dev/ttyUSB0?baud=921600&role=hub      TRACKER_SAMPLES only
+    serial:///dev/ttyUSB0?baud=921600&role=hub&trackers=0:waist,1:l_shin   TRACKER_SAMPLES only
     serial:///dev/ttyAMA0?role=headset              HEADSET_POSE only; send_pose() answers on the same link
     serial:///dev/ttyUSB0                           both (default), 460800 baud
+
+`trackers` maps the hub's wire ids to tracker names (without it, id 0 is the waist).
 
 Reads whatever bytes have arrived and feeds them to a FrameReader (one read per chunk, not one per
 byte: pyserial's inter_byte_timeout does nothing on Linux, the COBS delimiter does the framing).
@@ -12,8 +14,9 @@ import time
 
 import serial
 
-from firmware_bridge.protocol import HEADSET_POSE, TRACKER_SAMPLES, FrameReader, encode_pose_frame
-from firmware_bridge.transports.base import Source, TransportError
+from firmware_bridge.transports.base import Source, TransportError, id_names
+from firmware_bridge.wire.messages import (DEFAULT_TRACKER_NAMES, HEADSET_POSE, TRACKER_SAMPLES, FrameReader,
+                                           encode_pose_frame)
 
 DEFAULT_BAUD = 460800
 ROLES = {
@@ -26,8 +29,21 @@ ROLES = {
 WRITE_TIMEOUT = 0.05
 
 
-def open(url, parsed, **kw):
-    """Source for 'serial://PORT?baud=B&role=hub|headset|both'; kw go to SerialSource (tracker_names)."""
+def parse_tracker_names(query):
+    """?trackers=0:waist,1:l_shin -> {0: 'waist', 1: 'l_shin'}; None without it (the default map)."""
+    if "trackers" not in query:
+        return None
+    return id_names(query["trackers"], range(256), "trackers=0:waist,1:l_foot")
+
+
+def tracker_names(parsed):
+    names = parse_tracker_names(parsed[3])
+    return list((DEFAULT_TRACKER_NAMES if names is None else names).values())
+
+
+def open(url, parsed, tracker_names=None):
+    """Source for 'serial://PORT?baud=B&role=hub|headset|both&trackers=ID:NAME,...'; `tracker_names`
+    (a map) overrides the URL's."""
     _, netloc, path, query = parsed
     port = netloc + path                 # '/dev/ttyUSB0' from serial:///dev/ttyUSB0, 'COM3' from serial://COM3
     if not port:
@@ -38,7 +54,8 @@ def open(url, parsed, **kw):
     role = query.get("role", "both")
     if role not in ROLES:
         raise TransportError(f"{url!r}: role must be one of {', '.join(ROLES)}, not {role!r}")
-    return SerialSource(port, int(baud), role, url=url, **kw)
+    names = parse_tracker_names(query) if tracker_names is None else tracker_names
+    return SerialSource(port, int(baud), role, tracker_names=names, url=url)
 
 
 class SerialSource(Source):
@@ -61,15 +78,10 @@ class SerialSource(Source):
                 f"plugged in, the path is right, you may use it (the 'dialout' group) and no other "
                 f"program has it open.") from error
 
-    def recv(self, timeout=None):
-        """The next TrackerSample or HeadsetSample, or None after `timeout` seconds (None: wait)."""
-        deadline = None if timeout is None else time.monotonic() + max(timeout, 0.0)
-        while not self._ready:
-            wait = None if deadline is None else max(deadline - time.monotonic(), 0.0)
-            self._read_available(wait)
-            if not self._ready and wait == 0.0:
-                return None
-        return self._ready.popleft()
+    def _recv_internal(self, timeout):
+        if not self._ready:
+            self._read_available(timeout)
+        return self._ready.popleft() if self._ready else None
 
     def _read_available(self, wait):
         """Read what has arrived, waiting up to `wait` seconds for the first byte."""
@@ -110,5 +122,5 @@ class SerialSource(Source):
         self._pose_seq = (self._pose_seq + 1) & 0xFFFF
         return self.send(data)
 
-    def close(self):
+    def _close_internal(self):
         self.port.close()

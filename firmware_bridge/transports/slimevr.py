@@ -1,5 +1,5 @@
 """slimevr://HOST:PORT?trackers=MAC/SENSOR:NAME,...[&accept=any]: the board answers SlimeVR trackers as
-the SlimeVR server does, so their firmware and settings stay as they are (docs/slimevr.md).
+the SlimeVR server does, so their firmware and settings stay as they are (firmware_bridge/wire/slimevr.md).
 
     slimevr://0.0.0.0:6969?trackers=02:ed:9e:00:00:01/0:l_shin,02:ed:9e:00:00:01/1:r_shin
 
@@ -14,7 +14,7 @@ the SlimeVR server does, so their firmware and settings stay as they are (docs/s
   calibration then handles mounting like any IMU's. Without a timestamp on the wire, the time the
   kernel received the datagram is the sample's time. Unconfigured trackers are answered (accept=any) or ignored, and
   listed in `trackers()` either way; they never feed the model.
-Every datagram is untrusted: what does not parse is counted and dropped (firmware_bridge.slimevr_wire).
+Every datagram is untrusted: what does not parse is counted and dropped (firmware_bridge.wire.slimevr).
 """
 import math
 import select
@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from edge import quat
-from firmware_bridge import slimevr_wire as wire
+from firmware_bridge.wire import slimevr as wire
 from firmware_bridge.samples import TrackerSample
 from firmware_bridge.transports.base import Source, TransportError
 
@@ -75,9 +75,19 @@ def parse_tracker_map(text):
     return out
 
 
+DATAGRAMS_PER_CALL = 1024     # one recv reads what is queued, but a flood cannot hold it
+
+
+def tracker_names(parsed):
+    try:
+        return list(parse_tracker_map(parsed[3].get("trackers", "")).values())
+    except ValueError as e:
+        raise TransportError(f"trackers=: {e}") from None
+
+
 class SlimeVRSource(Source):
     def __init__(self, host, port, mapping, accept_any=False, clock=time.monotonic):
-        super().__init__()
+        super().__init__(clock)
         self.stats.update({"unknown": 0, "dropped_old": 0, "handshakes": 0, "ignored": 0})
         self.mapping, self.accept_any, self.clock = mapping, accept_any, clock
         self.known_macs = {mac for mac, _ in mapping}
@@ -101,32 +111,24 @@ class SlimeVRSource(Source):
         self.pending = deque()
         self._last_heartbeat = 0.0
 
-    def recv(self, timeout=None):
-        """The next TrackerSample from a configured tracker, or None after `timeout` seconds."""
-        deadline = None if timeout is None else self.clock() + timeout
-        while True:
+    def _recv_internal(self, timeout):
+        """Heartbeats when due; then the next sample, reading the datagrams waiting (up to `timeout`
+        for the first, and never longer than a heartbeat period)."""
+        self._keep_up()
+        if not self.pending:
+            self._read_ready(HEARTBEAT_S if timeout is None else min(timeout, HEARTBEAT_S))
             self._keep_up()
-            if self.pending:
-                return self.pending.popleft()
-            left = None if deadline is None else deadline - self.clock()
-            if left is not None and left <= 0:
-                if not self._read_ready(0):
-                    return None
-                continue
-            self._read_ready(min(left, HEARTBEAT_S) if left is not None else HEARTBEAT_S)
+        return self.pending.popleft() if self.pending else None
 
     def _read_ready(self, wait):
-        """Read every datagram waiting (waiting up to `wait` s for the first); True if any came."""
+        """Read the datagrams waiting (waiting up to `wait` s for the first, at most DATAGRAMS_PER_CALL)."""
         ready, _, _ = select.select([self.sock], [], [], max(wait, 0.0))
-        got = False
-        while ready:
+        for _ in range(DATAGRAMS_PER_CALL if ready else 0):
             try:
                 data, anc, _, addr = self.sock.recvmsg(2048, 64)
             except BlockingIOError:
                 break
-            got = True
             self._handle(data, addr, self._arrival(anc))
-        return got
 
     def _arrival(self, anc):
         """When the datagram arrived, on our clock: now minus its age by the kernel's stamp."""
@@ -215,7 +217,7 @@ class SlimeVRSource(Source):
                       "in_use": mac in self.known_macs, "age_s": round(now - t.last_seen, 2)}
                 for mac, t in self.by_mac.items()}
 
-    def close(self):
+    def _close_internal(self):
         self.sock.close()
 
 

@@ -1,47 +1,28 @@
-"""The binary wire protocol of the board's serial links (docs/protocol.md is the specification).
-
-Three links carry the same framing:
+"""The messages of the board's serial links, and the stream reader (docs beside: protocol.md).
 
     tracker hub -> board    TRACKER_SAMPLES   IMU readings (one or more trackers per frame)
     headset     -> board    HEADSET_POSE      head and controller 6-DoF poses
     board       -> headset  POSE_FRAME        the full-body pose the board computed
 
-A frame on the wire is COBS(body + crc16(body)) followed by one 0x00 byte, where body is a
-little-endian header (version u8, type u8, seq u16, t_us u32) and the message's payload.
+Each payload is one packed little-endian numpy record (read them beside the byte tables in
+protocol.md), framed by framing.py; quaternions are Q14 (q14.py).
 
 Reading a stream:  reader = FrameReader(); for message in reader.feed(chunk): ...
 Writing a frame:   port.write(encode_pose_frame(frame, seq))
 """
-import binascii
-import struct
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from edge.skeleton import NUM_JOINTS
 from firmware_bridge.samples import HeadsetSample, TrackerSample
+from firmware_bridge.wire import q14
+from firmware_bridge.wire.framing import (DELIMITER, HEADSET_POSE, MAX_ENCODED_FRAME, MESSAGE_TYPES, POSE_FRAME,
+                                          TRACKER_SAMPLES, ProtocolError, TimestampUnwrapper, decode_frame,
+                                          encode_frame, seconds_to_us, sequence_gap)
 
-VERSION = 1
-
-# Message types.
-TRACKER_SAMPLES = 0x01
-HEADSET_POSE = 0x02
-POSE_FRAME = 0x03
-MESSAGE_TYPES = {TRACKER_SAMPLES: "TRACKER_SAMPLES", HEADSET_POSE: "HEADSET_POSE", POSE_FRAME: "POSE_FRAME"}
-
-HEADER = struct.Struct("<BBHI")          # version, type, seq, t_us
-CRC = struct.Struct("<H")
-DELIMITER = b"\x00"
-# Longest COBS-encoded frame a reader buffers (delimiter not counted). The largest legal frame, 32
-# tracker samples, is 590 bytes; anything longer is noise or a lost delimiter.
-MAX_ENCODED_FRAME = 1024
-
-Q14 = 16384                              # quaternion components are int16 / 16384
-# A decoded quaternion whose norm is further than this from 1 is not a rotation: the frame is corrupt.
-QUAT_NORM_TOLERANCE = 0.05
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
-
-INT16_MAX = 32767
+INT16_MAX = q14.INT16_MAX
 NO_ACCEL = -32768                        # all three accel axes at this value: the tracker sent none
 MAX_TRACKER_SAMPLES = 32
 MAX_SAMPLE_AGE_US = 65535
@@ -51,14 +32,9 @@ SSI_IN_TRANSITION = 0x01                 # output is blending from one latent sa
 SSI_SWITCHED = 0x02                      # a new sample was selected this frame
 SSI_OUTLIER = 0x04                       # the current sample's cost was an outlier this frame
 
-# Tracker ids on the wire -> TrackerSample.tracker. Id 0 is the waist puck, the one tracker the model
-# uses today; a deployment passes its own map (the same one at both ends) for the others.
+# Tracker ids on the wire -> TrackerSample.tracker. Id 0 is the waist puck; a deployment passes its
+# own map (the same one at both ends) for the others.
 DEFAULT_TRACKER_NAMES = {0: "waist"}
-
-
-class ProtocolError(ValueError):
-    """A frame that cannot be decoded: bad COBS, bad CRC, bad length, unknown type or version, bad value."""
-
 
 # ---------------------------------------------------------------------------------------------
 # Payload layouts, one numpy record per message (packed, little-endian). They read like the byte
@@ -109,113 +85,17 @@ class PoseFrame:
 
 
 # ---------------------------------------------------------------------------------------------
-# COBS (consistent overhead byte stuffing): removes every 0x00 from a frame so 0x00 can end it.
-
-
-def cobs_encode(data):
-    """Bytes without any 0x00. Each zero-free run becomes (len + 1, run); runs longer than 254
-    bytes are cut into 254-byte blocks with code 0xFF, which carry no implied zero after them."""
-    out = bytearray()
-    for run in bytes(data).split(b"\x00"):
-        while len(run) >= 254:
-            out.append(0xFF)
-            out += run[:254]
-            run = run[254:]
-        out.append(len(run) + 1)
-        out += run
-    return bytes(out)
-
-
-def cobs_decode(encoded):
-    """Inverse of cobs_encode; raises ProtocolError on input no encoder could have produced."""
-    out = bytearray()
-    i = 0
-    while i < len(encoded):
-        code = encoded[i]
-        end = i + code
-        if code == 0:
-            raise ProtocolError("COBS: zero byte inside a frame")
-        if end > len(encoded):
-            raise ProtocolError("COBS: block runs past the end of the frame")
-        block = encoded[i + 1:end]
-        if 0 in block:
-            raise ProtocolError("COBS: zero byte inside a frame")
-        out += block
-        i = end
-        if code < 0xFF and i < len(encoded):
-            out.append(0)
-    return bytes(out)
-
-
-# ---------------------------------------------------------------------------------------------
-# Framing.
-
-
-def crc16(data):
-    """CRC-16/CCITT-FALSE: poly 0x1021, init 0xFFFF, no reflection, no final xor."""
-    return binascii.crc_hqx(data, 0xFFFF)
-
-
-@dataclass
-class Frame:
-    """A frame whose COBS and CRC checked out; the payload is not decoded yet."""
-    msg_type: int
-    seq: int
-    t_us: int
-    payload: bytes
-
-
-def encode_frame(msg_type, seq, t_us, payload):
-    """The bytes to write on the wire, delimiter included. seq and t_us wrap (u16, u32)."""
-    body = HEADER.pack(VERSION, msg_type, seq & 0xFFFF, t_us & 0xFFFFFFFF) + bytes(payload)
-    return cobs_encode(body + CRC.pack(crc16(body))) + DELIMITER
-
-
-def decode_frame(encoded):
-    """One frame as read off the wire, without its delimiter -> Frame. Raises ProtocolError."""
-    if len(encoded) > MAX_ENCODED_FRAME:
-        raise ProtocolError(f"frame of {len(encoded)} bytes is longer than {MAX_ENCODED_FRAME}")
-    data = cobs_decode(encoded)
-    if len(data) < HEADER.size + CRC.size:
-        raise ProtocolError(f"frame of {len(data)} bytes is shorter than header + CRC")
-    body, (crc,) = data[:-CRC.size], CRC.unpack(data[-CRC.size:])
-    if crc16(body) != crc:
-        raise ProtocolError("CRC mismatch")
-    version, msg_type, seq, t_us = HEADER.unpack_from(body)
-    if version != VERSION:
-        raise ProtocolError(f"protocol version {version}, expected {VERSION}")
-    if msg_type not in MESSAGE_TYPES:
-        raise ProtocolError(f"unknown message type 0x{msg_type:02x}")
-    return Frame(msg_type, seq, t_us, body[HEADER.size:])
-
-
-def seconds_to_us(t):
-    """Seconds -> the u32 microsecond timestamp of a header (wraps every 2**32 us, ~71.6 min)."""
-    return round(t * 1e6) & 0xFFFFFFFF
-
-
-# ---------------------------------------------------------------------------------------------
-# Fixed-point helpers.
-
-
-def quat_to_q14(q):
-    """Quaternions [..., 4] (w, x, y, z) -> int16 Q14, normalised first. Raises ValueError on NaN or zero."""
-    q = np.asarray(q, dtype=np.float64)
-    norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    if not np.all(np.isfinite(q)) or np.any(norm < 1e-6):
-        raise ValueError("cannot encode a quaternion that is NaN, infinite or zero")
-    return np.clip(np.round(q / norm * Q14), -INT16_MAX, INT16_MAX).astype("<i2")
+# Value checks.
 
 
 def quat_from_q14(raw):
     """int16 Q14 [..., 4] -> unit quaternions. Raises ProtocolError when a norm is far from 1
     (not a rotation); normalises the rest, which removes the rounding of Q14."""
-    q = np.asarray(raw, dtype=np.float64) / Q14
-    norm = np.linalg.norm(q, axis=-1, keepdims=True)
-    off = np.abs(norm - 1.0)
-    if np.any(off > QUAT_NORM_TOLERANCE):
-        raise ProtocolError(f"quaternion norm {float(norm.flat[np.argmax(off)]):.3f} is not 1")
-    return q / norm
+    q = q14.from_q14(raw)
+    off = q14.norm_error(q)
+    if np.any(off > q14.NORM_TOLERANCE):
+        raise ProtocolError(f"quaternion norm {float(np.linalg.norm(q.reshape(-1, 4)[np.argmax(off)])):.3f} is not 1")
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
 def finite_float32(values, what):
@@ -280,7 +160,7 @@ def encode_tracker_samples(samples, seq, tracker_names=None):
         record["id"] = tracker_id(sample.tracker, tracker_names)
         record["status"] = check_range(sample.status, "status")
         record["age_us"] = check_range(frame_us - t_us, "sample age (us)", MAX_SAMPLE_AGE_US)
-        record["quat_q14"] = quat_to_q14(sample.quat)
+        record["quat_q14"] = q14.to_q14(sample.quat)
         record["accel_cm_s2"] = accel_to_wire(sample.accel)
     payload = bytes([len(samples)]) + records.tobytes()
     return encode_frame(TRACKER_SAMPLES, seq, frame_us, payload)
@@ -332,13 +212,13 @@ def encode_headset_pose(sample, seq):
     the identity rotation (its pose has no meaning)."""
     record = np.zeros((), HEADSET_RECORD)
     record["head_pos_m"] = finite_float32(sample.head_pos, "head position")
-    record["head_quat_q14"] = quat_to_q14(sample.head_rot)
+    record["head_quat_q14"] = q14.to_q14(sample.head_rot)
     for hand in range(2):
         controller = record["controllers"][hand]
         valid = bool(sample.hand_valid[hand])
         controller["valid"] = int(valid)
         controller["pos_m"] = finite_float32(sample.hand_pos[hand], "controller position") if valid else 0.0
-        controller["quat_q14"] = quat_to_q14(sample.hand_rot[hand] if valid else IDENTITY)
+        controller["quat_q14"] = q14.to_q14(sample.hand_rot[hand] if valid else IDENTITY)
     return encode_frame(HEADSET_POSE, seq, seconds_to_us(sample.t), record.tobytes())
 
 
@@ -375,7 +255,7 @@ def encode_pose_frame(frame, seq):
         raise ValueError("cannot encode a pose frame with a NaN or infinite root or contact")
     record = np.zeros((), POSE_RECORD)
     record["root_pos_mm"] = np.clip(np.round(root * 1000.0), -INT16_MAX, INT16_MAX)
-    record["rotations_q14"] = quat_to_q14(rotations)
+    record["rotations_q14"] = q14.to_q14(rotations)
     record["contacts_u8"] = np.round(np.clip(contacts, 0.0, 1.0) * 255.0)
     record["num_samples"] = check_range(frame.num_samples, "num_samples")
     record["ssi_flags"] = check_range(frame.ssi_flags, "ssi_flags")
@@ -397,7 +277,7 @@ def decode_pose_frame(payload, t=0.0):
 
 
 # ---------------------------------------------------------------------------------------------
-# Whole messages, clocks and the stream.
+# Whole messages and the stream.
 
 
 def decode_messages(frame, t=None, tracker_names=None):
@@ -409,41 +289,6 @@ def decode_messages(frame, t=None, tracker_names=None):
     if frame.msg_type == HEADSET_POSE:
         return [decode_headset_pose(frame.payload, t)]
     return [decode_pose_frame(frame.payload, t)]
-
-
-class TimestampUnwrapper:
-    """u32 microsecond timestamps -> seconds that never decrease.
-
-    Forward steps of less than 2**31 us (~35.8 min) are taken as time passing, across the u32 wrap.
-    Anything else is the device clock going backwards (a reboot, a glitch): it is counted in
-    `backward_jumps` and the output holds still, then follows the new clock from there.
-    """
-
-    def __init__(self):
-        self._last_raw = None
-        self._total_us = 0               # python int: never overflows
-        self.backward_jumps = 0
-        self.jumped = False              # did the last unwrap see the clock go backwards?
-
-    def unwrap(self, t_us):
-        if self._last_raw is None:
-            self._total_us = t_us
-        else:
-            step = (t_us - self._last_raw) & 0xFFFFFFFF
-            self.jumped = step >= 1 << 31
-            if self.jumped:
-                self.backward_jumps += 1
-            else:
-                self._total_us += step
-        self._last_raw = t_us
-        return self._total_us * 1e-6
-
-
-def sequence_gap(last_seq, seq):
-    """Frames missing between two consecutive sequence numbers (u16, wrapping). A repeat, a step
-    backwards or a sender restart reads as a huge gap and counts as 0."""
-    gap = (seq - last_seq - 1) & 0xFFFF
-    return gap if gap < 0x8000 else 0
 
 
 class FrameReader:

@@ -1,4 +1,4 @@
-"""Bosch BNO055 driver over an SMBus-like object.
+"""Bosch BNO055 driver over an SMBus-like object: the device the `i2c` transport reaches.
 
 The BNO055 runs its own sensor fusion and keeps the result in registers; the board only has to put
 the chip in NDOF mode and read those registers. `bus` is anything with smbus2.SMBus's methods
@@ -19,6 +19,7 @@ from typing import NamedTuple
 import numpy as np
 
 from firmware_bridge.transports.base import TransportError
+from firmware_bridge.wire import q14
 
 # I2C addresses (Table 4-7): COM3 low -> 0x28 (most breakout boards), COM3 high -> 0x29.
 ADDRESSES = (0x28, 0x29)
@@ -99,7 +100,7 @@ ACCEL_LSB_PER_MS2 = 100
 STANDARD_GRAVITY = 9.80665         # for the mg unit: 1 mg = 1 LSB
 
 # A fused quaternion is unit length to within Q14 rounding; a read far from it is a damaged transfer.
-QUAT_NORM_TOLERANCE = 0.02
+QUAT_NORM_TOLERANCE = q14.NORM_TOLERANCE
 
 
 class CalibrationLevels(NamedTuple):
@@ -124,14 +125,13 @@ class Reading:
 # ---- pure conversions -------------------------------------------------------------------------
 
 def decode_quaternion(block):
-    """8 register bytes (W, X, Y, Z int16 LE) -> [4] float quaternion."""
-    return np.frombuffer(bytes(block), dtype="<i2").astype(np.float64) / QUAT_LSB
+    """8 register bytes (W, X, Y, Z int16 LE, Q14) -> [4] float quaternion as read."""
+    return q14.from_bytes(block)
 
 
 def encode_quaternion(quat):
-    """[4] quaternion -> 8 register bytes (what the chip would hold)."""
-    counts = np.clip(np.round(np.asarray(quat, np.float64) * QUAT_LSB), -32768, 32767)
-    return counts.astype("<i2").tobytes()
+    """[4] quaternion -> 8 register bytes (what the chip would hold: its fused output is unit)."""
+    return q14.to_bytes(quat)
 
 
 def decode_acceleration(block, accel_in_mg=False):
@@ -174,8 +174,7 @@ def switch_time(new_mode):
 
 def is_plausible_quaternion(quat, tolerance=QUAT_NORM_TOLERANCE):
     """True for a fused output: finite and unit length within `tolerance`. All zeros means no fusion output."""
-    norm = float(np.linalg.norm(quat))
-    return np.isfinite(norm) and abs(norm - 1.0) <= tolerance
+    return bool(q14.is_unit(quat, tolerance))
 
 
 def unit_sel_for_metres_per_second_squared(unit_sel):

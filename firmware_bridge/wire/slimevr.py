@@ -1,7 +1,7 @@
 """The SlimeVR tracker protocol on the wire (UDP, port 6969): parse what trackers send, build what the
 server answers. Every field is validated; a packet that does not parse raises WireError.
 
-Followed from the sources (docs/slimevr.md has the byte tables and test vectors):
+Followed from the sources (firmware_bridge/wire/slimevr.md has the byte tables and test vectors):
 - firmware SlimeVR/SlimeVR-Tracker-ESP `src/network/connection.cpp` and `packets.h`;
 - server SlimeVR/SlimeVR-Server `server/core/.../tracking/trackers/udp/UDPProtocolParser.kt`,
   `UDPPacket.kt` and `UDPDevice.kt`.
