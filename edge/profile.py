@@ -210,9 +210,9 @@ class Encoder:
     def __init__(self, samples):
         import numpy as np
         from edge import quat
-        from firmware_bridge import protocol
-        self.protocol, self.quat = protocol, quat
-        self.frame = protocol.PoseFrame(0.0, np.zeros(3), np.tile([1.0, 0, 0, 0], (21, 1)), np.zeros(2),
+        from firmware_bridge.wire import messages
+        self.messages, self.quat = messages, quat
+        self.frame = messages.PoseFrame(0.0, np.zeros(3), np.tile([1.0, 0, 0, 0], (21, 1)), np.zeros(2),
                                         num_samples=samples)
         self.seq = 0
 
@@ -220,9 +220,9 @@ class Encoder:
         p = self.frame
         p.t, p.root_pos, p.contacts = t, pose.positions[0], pose.contacts
         p.rotations = self.quat.from_matrix(pose.rotations)
-        p.ssi_flags = self.protocol.SSI_IN_TRANSITION if pose.transition else 0
+        p.ssi_flags = self.messages.SSI_IN_TRANSITION if pose.transition else 0
         self.seq = (self.seq + 1) & 0xFFFF
-        return self.protocol.encode_pose_frame(p, self.seq)
+        return self.messages.encode_pose_frame(p, self.seq)
 
 
 class Hog:
@@ -488,7 +488,7 @@ def worker(cfg):
 STAGE_METHODS = {
     "sync": "in the paced loop, wall time: FrameSynchronizer.add_headset/add_tracker + frame(t)",
     "pipeline_step": "in the paced loop, wall time: Pipeline.step as a whole",
-    "output_encoding": "in the paced loop, wall time: quat.from_matrix + protocol.encode_pose_frame",
+    "output_encoding": "in the paced loop, wall time: quat.from_matrix + messages.encode_pose_frame",
     "features": "micro-timed after the run, thread CPU time: edge.features.body_points + features "
                 "(Pipeline._frame_inputs_native with the compiled core)",
     "decoder": "micro-timed, thread CPU time: pipe.decoder.step() (N+1 rows, IOBinding)",
