@@ -41,7 +41,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from edge.inference import Decoder, open_models
 from edge.pipeline import Pipeline
-from edge.takes import from_sample
+from edgetools.takes import from_sample
 from edge.timing import time_calls
 
 SAMPLE = Path(__file__).resolve().parent.parent / "samples" / "cmu_09_12_walk.npz"
@@ -180,7 +180,7 @@ def compare(a, frames, ns):
 def trackers(a, frames, ns):
     """The frame with all seven extra IMUs against the frame with none, interleaved (same model)."""
     from edge.imus import IMU_LOCATIONS, ImuNoise, mask
-    from edge.signals import wear
+    from edgetools.synth import wear
     take = from_sample(SAMPLE)
     worn = wear(take.signals, mask(IMU_LOCATIONS), take.fps, np.random.default_rng(0), ImuNoise())
     worn_frames = [worn.slice(t, t + 1) for t in range(take.frames)]

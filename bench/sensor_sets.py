@@ -15,7 +15,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from edge.eval import evaluate
+from edgetools.eval import evaluate
 from edge.imus import parse_set
 from edge.inference import DEFAULT_PRECISION
 

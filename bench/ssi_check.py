@@ -16,9 +16,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from edge.eval import evaluate
+from edgetools.eval import evaluate
 from edge.inference import DEFAULT_PRECISION
-from edge.study import run_study
+from edgetools.study import run_study
 
 
 def _eval(job):

@@ -17,7 +17,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from edge.eval import evaluate
+from edgetools.eval import evaluate
 from edge.modelfiles import DEFAULT_DIR
 
 

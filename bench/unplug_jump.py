@@ -17,11 +17,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from edge.eval import run_take
+from edgetools.eval import run_take
 from edge.imus import IMU_INDEX, ImuNoise, mask, parse_set
 from edge.pipeline import Pipeline
-from edge.signals import wear
-from edge.takes import find_clips, load_take
+from edgetools.synth import wear
+from edgetools.takes import find_clips, load_take
 
 SAMPLE = Path(__file__).resolve().parent.parent / "samples" / "cmu_09_12_walk.npz"
 

@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 
 from edge import imus, quat
-from edge.bvh import BvhError
+from edgetools.bvh import BvhError
 from edge.contacts import contact_labels
 from edge.features import sequence_features
 from edge.progress import Progress
-from edge.retarget import load_motion
-from edge.signals import DeviceNoise, synthesize_from_pose, wear, world_pose
+from edgetools.retarget import load_motion
+from edgetools.synth import DeviceNoise, synthesize_from_pose, wear, world_pose
 from edge.skeleton import FEET, HEAD, PREDICTED
 
 # --sources groups -> folders of ../shared/mocap. CMU terms: cmu, daz; CC BY-NC 4.0: bandai; CC BY-SA 3.0: hdm05.

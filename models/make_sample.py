@@ -5,7 +5,7 @@
 import argparse
 from pathlib import Path
 
-from edge.takes import from_bvh, save_sample
+from edgetools.takes import from_bvh, save_sample
 
 CMU_CREDIT = ("The data used in this project was obtained from mocap.cs.cmu.edu. "
               "The database was created with funding from NSF EIA-0196217.")
@@ -24,7 +24,7 @@ def main():
     save_sample(a.out, take, CMU_CREDIT)
     print(f"wrote {a.out}: {take.frames} frames, {Path(a.out).stat().st_size / 1024:.0f} KiB")
     if a.session:
-        from firmware_bridge.sim.session import synthesize
+        from edgetools.sim.session import synthesize
         session = synthesize(take, ("serial", "i2c", "can"), seed=0)
         session.meta["credit"] = CMU_CREDIT
         session.save(a.session)

@@ -7,9 +7,9 @@ from collections import defaultdict
 
 import numpy as np
 
-from edge import bvh
+from edgetools import bvh
 from edge.progress import Progress
-from edge.retarget import LIMB_BONES, detect_source, direction_errors_deg, retarget
+from edgetools.retarget import LIMB_BONES, detect_source, direction_errors_deg, retarget
 from edge.skeleton import JOINT_NAMES
 from models.dataset import clip_paths
 

@@ -28,7 +28,7 @@ import torch
 from edge.progress import Progress
 from edge.imus import ImuNoise
 from edge.physics import INTERSECT_M, LEG_SEGMENTS
-from edge.signals import DeviceNoise
+from edgetools.synth import DeviceNoise
 from edge.skeleton import ANKLES, HEAD, LOWER_BODY, NUM_PREDICTED, TOES
 from models import dataset as ds
 from models.nets import CVAE, LATENT, PoseAE, fk_positions, matrix_from_6d

@@ -99,7 +99,7 @@ def mocap_windows(data, split, windows, window, seed, noise=True, n_features=Non
     with random extra IMUs as training has them, unless n_features is 24, a model without IMU inputs),
     the head-anchored ground truth [W,B,J,3], the puck rotation in the character frame [W,B,3,3] and the
     ground-truth local poses for the autoencoder. Uses models.dataset (cached in .cache/)."""
-    from edge.signals import DeviceNoise
+    from edgetools.synth import DeviceNoise
     from models.dataset import build, make_batch, pose_batch, window_starts
     cs = build(data, split)
     rng = np.random.default_rng(seed)

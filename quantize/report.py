@@ -3,8 +3,8 @@
     python -m quantize.report --data ../shared/mocap --json out/quant_report.json [--samples 32]
                               [--drift-frames 3000] [--timing-frames 600] [--max-clips K]
 
-- accuracy on the `val` split through the real pipeline (edge.eval.evaluate, N=32): mpjpe, implausible rate;
-- selection agreement: per val take, edge.eval.run_take with both precisions; how often SSI shows the same sample;
+- accuracy on the `val` split through the real pipeline (edgetools.eval.evaluate, N=32): mpjpe, implausible rate;
+- selection agreement: per val take, edgetools.eval.run_take with both precisions; how often SSI shows the same sample;
 - closed-loop drift: both decoders on the same feature stream (the bundled sample's, looped to 3,000
   frames), each fed its own GRU state; rot6d and FK joint-position differences at frames 100/1000/3000;
 - model file sizes;
@@ -23,13 +23,13 @@ from pathlib import Path
 import numpy as np
 
 from edge import quat
-from edge.eval import evaluate, run_take
+from edgetools.eval import evaluate, run_take
 from edge.features import sequence_features
 from edge.inference import make_session
 from edge.modelfiles import DEFAULT_DIR, ModelError, load_manifest
 from edge.pipeline import Pipeline
 from edge.progress import Progress
-from edge.takes import find_clips, from_sample, load_take
+from edgetools.takes import find_clips, from_sample, load_take
 from edge.timing import time_calls
 from quantize.common import MODELS, fp32_name, head_anchored_positions, int8_name, latents_for, pin_one_core, rollout
 

@@ -1,3 +1,4 @@
+"""Shared fixtures: the repository paths, the mocap folder (../shared/mocap or $EDGEPOSE_MOCAP; tests that need it skip without it) and sample takes."""
 import os
 from pathlib import Path
 
@@ -32,7 +33,7 @@ def worn_signals(take, names=None, seed=0, drops=True):
     their flags fade out and back in (edge.imus), so tests cross every IMU path."""
     import numpy as np
     from edge.imus import IMU_LOCATIONS, ImuNoise, dragposer_drops, mask
-    from edge.signals import wear
+    from edgetools.synth import wear
     rng = np.random.default_rng(seed)
     worn = mask(IMU_LOCATIONS if names is None else names)
     alive = dragposer_drops(rng, take.frames, worn, p=0.02, frames=50) if drops else None

@@ -12,7 +12,7 @@ import pytest
 from firmware_bridge.transports import bno055
 from firmware_bridge.transports.bno055 import Mode, Reg
 from firmware_bridge.samples import TrackerSample
-from firmware_bridge.sim.bno055_fake import FakeBNO055, ManualClock, motion_from_arrays
+from edgetools.sim.bno055_fake import FakeBNO055, ManualClock, motion_from_arrays
 from firmware_bridge.transports import TransportError, open_source
 from firmware_bridge.transports.i2c import backoff_delay, next_poll_time
 

@@ -1,3 +1,4 @@
+"""Foot-contact labels from motion (edge.contacts): a planted foot is in contact, a swinging or raised one is not."""
 import numpy as np
 
 from edge.contacts import contact_labels, savgol

@@ -4,9 +4,9 @@ import json
 import numpy as np
 import pytest
 
-from edge.cli import main
+from edgetools.cli import main
 from edge.pipeline import Pipeline
-from edge.takes import from_sample
+from edgetools.takes import from_sample
 from tests.conftest import SAMPLE
 
 REQUIRED = ("clips", "frames", "samples", "precision", "mpjpe_cm", "mpjve_cm_s", "mpjae_cm_s2", "jitter_m_s3",
@@ -65,7 +65,7 @@ def test_bad_sample_count_is_refused():
 def test_eval_runs_the_extra_imus_it_is_told_and_says_which(tmp_path):
     """--trackers synthesises those IMUs from the clip (with IMU noise); the JSON names them, and the
     physical and diversity metrics are there, on the prediction and on the ground truth."""
-    from edge.eval import evaluate
+    from edgetools.eval import evaluate
     from edge.imus import parse_set
     from edge.pipeline import Pipeline
     if not Pipeline(samples=1).imus:

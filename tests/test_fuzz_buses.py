@@ -8,7 +8,7 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from firmware_bridge.sim.bno055_fake import FakeBNO055, ManualClock
+from edgetools.sim.bno055_fake import FakeBNO055, ManualClock
 from firmware_bridge.transports import open_source
 from firmware_bridge.wire.can_frames import TrackerFrameDecoder, encode_node_frames
 

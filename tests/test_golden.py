@@ -32,8 +32,8 @@ def sha256(path):
 
 def pose_stream(samples):
     """The bytes the host reads from the board's headset link over the golden session."""
-    from firmware_bridge.sim.replay import replay
-    from firmware_bridge.sim.session import Session
+    from edgetools.sim.replay import replay
+    from edgetools.sim.session import Session
     log = io.BytesIO()
     result = replay(Session.load(str(SESSION)), "max", samples=samples, lookahead=10, seconds=SECONDS,
                     precision="fp32", pose_log=log)

@@ -7,7 +7,7 @@ import pytest
 from edge.features import sequence_features
 from edge.inference import Decoder, load_models
 from edge.modelfiles import DEFAULT_DIR, ModelError, load_manifest
-from edge.takes import from_sample
+from edgetools.takes import from_sample
 from tests.conftest import SAMPLE
 
 
@@ -58,7 +58,7 @@ def _sample_features(T=300):
     """The bundled walk's decoder input, as wide as the shipped decoder reads it; with the extra IMUs
     (when it reads them) worn on both legs and dropping out (edge.imus), so those inputs are exercised."""
     from edge.imus import IMU_LOCATIONS, ImuNoise, dragposer_drops, mask
-    from edge.signals import wear
+    from edgetools.synth import wear
     take = from_sample(SAMPLE)
     rng = np.random.default_rng(0)
     worn = mask(IMU_LOCATIONS[1:5])

@@ -11,7 +11,7 @@ from edge.inference import Autoencoder, open_models
 from edge.pipeline import LIMB_CHAINS, Pipeline
 from edge.plausibility import PlausibilityScorer
 from edge.skeleton import ANKLES, HEAD, JOINT, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, fk
-from edge.takes import from_sample
+from edgetools.takes import from_sample
 from tests.conftest import SAMPLE, worn_signals
 
 lib = native.load()

@@ -1,12 +1,12 @@
 """Pose outputs: OSC wire format, VMC and VRChat over real UDP on 127.0.0.1, BVH recordings that
-an independent reader (the `bvh` package on PyPI) and edge.bvh both load back."""
+an independent reader (the `bvh` package on PyPI) and edgetools.bvh both load back."""
 import socket
 import struct
 
 import numpy as np
 import pytest
 
-from edge import bvh as edge_bvh
+from edgetools import bvh as edge_bvh
 from edge import quat
 from edge.pipeline import Pose
 from edge.signals import EYE_OFFSET

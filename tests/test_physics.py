@@ -1,14 +1,14 @@
-"""Physical plausibility: the geometry and metrics (edge.physics, edge.metrics), the floor clamp in the
+"""Physical plausibility: the geometry and metrics (edge.physics, edgetools.metrics), the floor clamp in the
 foot IK, and the selection criterion (numpy and compiled core alike)."""
 import numpy as np
 import pytest
 
-from edge import metrics
+from edgetools import metrics
 from edge.criteria import FrameContext, PhysicalPlausibility
 from edge.physics import FLOOR_ANKLE, FLOOR_TOE, foot_height, leg_gap, segment_distance
 from edge.pipeline import Pipeline, supported_contacts
 from edge.skeleton import ANKLES, JOINT, REST, TOES, PELVIS_HEIGHT
-from edge.takes import from_sample
+from edgetools.takes import from_sample
 from conftest import SAMPLE
 
 STANDING = REST + [0.0, PELVIS_HEIGHT, 0.0]          # the rest pose on the floor

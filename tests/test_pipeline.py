@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from edge.pipeline import Pipeline
-from edge.takes import from_sample
+from edgetools.takes import from_sample
 from tests.conftest import SAMPLE
 
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from edge import profile
+from edgetools import profile
 
 KEYS = ("stages", "frame_ms", "deadline_misses", "rss_mb", "cpu_quota", "quota_enforced", "chosen_samples",
         "stage_methods", "budget")

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from edge import quat
-from edge.eval import evaluate
+from edgetools.eval import evaluate
 from edge.features import sequence_features
 from edge.inference import Autoencoder, make_session, model_files
 from edge.modelfiles import DEFAULT_DIR, ModelError, load_manifest, sha256, write_manifest
 from edge.pipeline import Pipeline
 from edge.plausibility import PlausibilityScorer
-from edge.takes import from_sample
+from edgetools.takes import from_sample
 from quantize.common import head_anchored_positions, rollout
 from tests.conftest import SAMPLE
 

@@ -1,3 +1,4 @@
+"""Quaternion helpers (edge.quat) against their definitions: matrices, 6D, Euler order, slerp, between, yaw."""
 import numpy as np
 
 from edge import quat

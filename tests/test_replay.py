@@ -4,10 +4,10 @@ import time
 import numpy as np
 import pytest
 
-from edge.takes import from_sample
-from firmware_bridge.sim.record import CanTap, SerialTap
-from firmware_bridge.sim.replay import CanDevice, SerialDevice, SimClock, replay
-from firmware_bridge.sim.session import FAULTS, Session, fault_profile, synthesize
+from edgetools.takes import from_sample
+from edgetools.sim.record import CanTap, SerialTap
+from edgetools.sim.replay import CanDevice, SerialDevice, SimClock, replay
+from edgetools.sim.session import FAULTS, Session, fault_profile, synthesize
 from tests.conftest import SAMPLE
 
 SECONDS = 4.0
@@ -114,7 +114,7 @@ def test_a_realtime_replay_that_first_builds_the_compiled_core_still_tracks(tmp_
     import sys
     out = tmp_path / "r.json"
     env = {**os.environ, "EDGEPOSE_CACHE": str(tmp_path / "cache")}       # an empty cache: build on first use
-    code = ("import sys; from edge.cli import main; "
+    code = ("import sys; from edgetools.cli import main; "
             f"sys.exit(main(['replay', {str(SAMPLE).replace('.npz', '.session.npz')!r}, '--seconds', '3', "
             f"'--json', {str(out)!r}]))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180, env=env)
@@ -167,7 +167,7 @@ def test_a_tracker_down_while_the_service_starts_is_ridden_through_and_reported(
 
 def test_the_documented_disconnect_replay_runs_to_the_end_in_real_time(tmp_path):
     """README's `edge replay samples/cmu_09_12_walk.npz --faults disconnect`, as a user runs it."""
-    from edge.cli import main as edge_main
+    from edgetools.cli import main as edge_main
     out = tmp_path / "r.json"
     assert edge_main(["replay", str(SAMPLE), "--faults", "disconnect", "--json", str(out)]) == 0
     import json
@@ -200,7 +200,7 @@ def test_a_garbage_flood_at_the_slimevr_port_is_counted_and_the_board_keeps_stre
 
 
 def test_faults_a_recording_cannot_carry_name_the_profile_and_the_take_to_replay_instead(capsys):
-    from firmware_bridge.sim.replay import load_source
+    from edgetools.sim.replay import load_source
     rec = str(SAMPLE).replace(".npz", ".session.npz")
     load_source(rec, ("serial", "i2c", "can"), fault_profile("disconnect"))
     err = capsys.readouterr().err
@@ -208,7 +208,7 @@ def test_faults_a_recording_cannot_carry_name_the_profile_and_the_take_to_replay
 
 
 def test_a_replay_whose_service_raised_exits_non_zero(tmp_path, monkeypatch, capsys):
-    from edge.cli import main as edge_main
+    from edgetools.cli import main as edge_main
     from firmware_bridge.service import Service
     real, calls = Service.step, []
 
@@ -223,6 +223,6 @@ def test_a_replay_whose_service_raised_exits_non_zero(tmp_path, monkeypatch, cap
 
 
 def test_listener_raises_and_only_the_command_exits():
-    from firmware_bridge.listen import Listener
+    from edgetools.listen import Listener
     with pytest.raises(OSError, match="cannot open /dev/ttyNOPE"):
         Listener("/dev/ttyNOPE")

@@ -19,10 +19,10 @@ pytest.importorskip("matplotlib", reason="needs matplotlib for pictures: pip ins
 pytest.importorskip("PIL", reason="needs pillow for pictures: pip install -e '.[viz]'")
 from PIL import Image  # noqa: E402
 
-from edge.cli import main as edge_main  # noqa: E402
+from edgetools.cli import main as edge_main  # noqa: E402
 from edge.skeleton import JOINT, PELVIS_HEIGHT, REST  # noqa: E402
 from firmware_bridge.wire import messages  # noqa: E402
-from firmware_bridge.listen import Listener  # noqa: E402
+from edgetools.listen import Listener  # noqa: E402
 from tests.conftest import ROOT, SAMPLE  # noqa: E402
 from viz import canvas  # noqa: E402
 from viz.figures import skeleton_strip  # noqa: E402
@@ -228,7 +228,7 @@ def test_missing_plotting_library_names_the_extra(monkeypatch):
 
 
 def test_board_runtime_never_imports_plotting():
-    code = ("import sys, edge.cli, edge.eval, edge.pipeline, firmware_bridge.listen, firmware_bridge.service, "
+    code = ("import sys, edgetools.cli, edgetools.eval, edge.pipeline, edgetools.listen, firmware_bridge.service, "
             "viz, viz.report, viz.live, viz.figures\n"
             "loaded = sorted(m for m in sys.modules if m.split('.')[0] in ('matplotlib', 'PIL'))\n"
             "assert not loaded, loaded")

@@ -6,12 +6,12 @@ import time
 import numpy as np
 import pytest
 
-from edge.cli import main as edge_main
+from edgetools.cli import main as edge_main
 from edge.skeleton import NUM_JOINTS
-from edge.takes import from_sample
+from edgetools.takes import from_sample
 from firmware_bridge import config as config_mod
 from firmware_bridge.wire import messages
-from firmware_bridge.listen import Listener
+from edgetools.listen import Listener
 from firmware_bridge.samples import HeadsetSample, TrackerSample
 from firmware_bridge.service import Service
 from tests.conftest import SAMPLE

@@ -1,6 +1,6 @@
 """`edge listen PORT --plot`: a live 3D stick figure of the board's pose stream in a desktop window.
 
-    from firmware_bridge.listen import Listener
+    from edgetools.listen import Listener
     from viz.live import live_plot
     with Listener("/dev/ttyUSB0") as ear:
         live_plot(ear, seconds=30)
@@ -36,7 +36,7 @@ def pose_positions(frame):
 
 
 def live_plot(listener, seconds=None):
-    """Draw the stream `listener` (a firmware_bridge.listen.Listener) receives until the window is
+    """Draw the stream `listener` (a edgetools.listen.Listener) receives until the window is
     closed, Ctrl-C, or `seconds` pass. Falls back to the status line when there is no display."""
     plt = _interactive_pyplot()
     if plt is None:
@@ -121,14 +121,14 @@ class LiveView:
 
 
 def status_loop(listener, seconds=None):
-    """What `edge listen` shows without --plot (firmware_bridge.listen's own loop)."""
-    from firmware_bridge.listen import status_loop as listen_loop
+    """What `edge listen` shows without --plot (edgetools.listen's own loop)."""
+    from edgetools.listen import status_loop as listen_loop
     return listen_loop(listener, seconds, every=1.0 / STATUS_HZ)
 
 
 def main(args):
     """`edge listen PORT --plot [--baud B] [--seconds S]`."""
-    from firmware_bridge.listen import Listener
+    from edgetools.listen import Listener
 
     with Listener(args.port, args.baud) as ear:
         return live_plot(ear, args.seconds)

@@ -3,7 +3,7 @@
 The BNO055 runs its own sensor fusion and keeps the result in registers; the board only has to put
 the chip in NDOF mode and read those registers. `bus` is anything with smbus2.SMBus's methods
 (`read_byte_data`, `write_byte_data`, `read_i2c_block_data`): a real `smbus2.SMBus(1)` on the board,
-`firmware_bridge.sim.bno055_fake.FakeBNO055` in tests and the simulator.
+`edgetools.sim.bno055_fake.FakeBNO055` in tests and the simulator.
 
 Datasheet references are to BST-BNO055-DS000-14, revision 1.4 (June 2016). Only register page 0 is used.
 

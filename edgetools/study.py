@@ -12,14 +12,14 @@ from pathlib import Path
 
 import numpy as np
 
-from edge.bvh import BvhError
+from edgetools.bvh import BvhError
 from edge.criteria import CollisionAvoid, TargetHit
-from edge.eval import run_take
+from edgetools.eval import run_take
 from edge.inference import DEFAULT_PRECISION
 from edge.pipeline import Pipeline
 from edge.progress import Progress
 from edge.skeleton import JOINT
-from edge.takes import find_clips, load_take
+from edgetools.takes import find_clips, load_take
 
 KICK_HEIGHTS = {"high-kick": (0.9, 3.0), "low-kick": (0.35, 0.9)}   # toe height at the apex, metres
 LEAD_FRAMES = 20

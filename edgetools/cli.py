@@ -97,13 +97,13 @@ def main(argv=None):
     rec.add_argument("--out", required=True)
 
     pf = sub.add_parser("profile", help="how many SSI samples fit a CPU budget (real pipeline, real time, cgroup quota)")
-    from edge import profile as profile_mod      # light import: no numpy or onnxruntime at module level
+    from edgetools import profile as profile_mod      # light import: no numpy or onnxruntime at module level
     profile_mod.add_arguments(pf)
 
     args = ap.parse_args(argv)
     try:
         if args.cmd == "eval":
-            from edge import eval as ev_mod
+            from edgetools import eval as ev_mod
             if args.report:
                 from viz.canvas import require_plotting
                 require_plotting()                   # say what to install before evaluating, not after
@@ -120,13 +120,13 @@ def main(argv=None):
             from firmware_bridge import commands
             return commands.run(args) if args.cmd == "run" else commands.calibrate(args)
         if args.cmd == "profile":
-            from edge import profile
+            from edgetools import profile
             return profile.main(args)
         if args.cmd == "record":
-            from firmware_bridge.sim import record
+            from edgetools.sim import record
             return record.main(args)
         if args.cmd == "replay":
-            from firmware_bridge.sim import replay
+            from edgetools.sim import replay
             if args.report:
                 from viz.canvas import require_plotting
                 require_plotting()                   # say what to install before replaying, not after
@@ -139,10 +139,10 @@ def main(argv=None):
             if args.plot:
                 from viz import live
                 return live.main(args)
-            from firmware_bridge import listen
+            from edgetools import listen
             return listen.main(args)
         if args.cmd == "ssi-study":
-            from edge import study
+            from edgetools import study
             return study.main(args)
     except ModelError as e:
         print(f"edge: {e}", file=sys.stderr)

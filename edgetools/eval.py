@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from edge.bvh import BvhError
+from edgetools.bvh import BvhError
 from edge.contacts import contact_labels
 from edge.imus import IMU_LOCATIONS, ImuNoise, dragposer_drops, mask
 from edge.inference import DEFAULT_PRECISION
@@ -15,10 +15,10 @@ from edge.features import head_joint, wrist_joints
 from edge.pipeline import Pipeline
 from edge.plausibility import PlausibilityScorer
 from edge.progress import Progress
-from edge.signals import wear
+from edgetools.synth import wear
 from edge.skeleton import FEET, JOINT_NAMES, PARENTS
-from edge.takes import find_clips, load_take
-from edge import metrics
+from edgetools.takes import find_clips, load_take
+from edgetools import metrics
 
 WARMUP_S = 1.0
 

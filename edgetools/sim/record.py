@@ -10,7 +10,7 @@ import time
 import numpy as np
 
 from edge.progress import Progress
-from firmware_bridge.sim.session import Session, SerialLog
+from edgetools.sim.session import Session, SerialLog
 from firmware_bridge.transports import parse_url
 
 

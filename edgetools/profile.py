@@ -175,7 +175,7 @@ class Feeder:
 
     def __init__(self, hz):
         import numpy as np
-        from edge.takes import from_sample
+        from edgetools.takes import from_sample
         from firmware_bridge.samples import HeadsetSample, TrackerSample
         from firmware_bridge.sync import FrameSynchronizer
         take = from_sample(SAMPLE)
@@ -560,7 +560,7 @@ def main(args):
             cfg_path, out_path = Path(tmp) / "cfg.json", Path(tmp) / "out.json"
             cfg_path.write_text(json.dumps(cfg))
             before = limit.stats()
-            proc = subprocess.run([sys.executable, "-m", "edge.profile", "--worker", str(cfg_path), str(out_path)],
+            proc = subprocess.run([sys.executable, "-m", "edgetools.profile", "--worker", str(cfg_path), str(out_path)],
                                   env=env, preexec_fn=limit.join if limit.enforced else None)
             after = limit.stats()
             if proc.returncode != 0 or not out_path.exists():
@@ -604,7 +604,7 @@ if __name__ == "__main__":
     if len(sys.argv) == 4 and sys.argv[1] == "--worker":
         sys.exit(_worker_main(sys.argv[2], sys.argv[3]))
     import argparse
-    _ap = argparse.ArgumentParser(prog="python -m edge.profile", description=__doc__,
+    _ap = argparse.ArgumentParser(prog="python -m edgetools.profile", description=__doc__,
                                   formatter_class=argparse.RawDescriptionHelpFormatter)
     add_arguments(_ap)
     sys.exit(main(_ap.parse_args()))

@@ -29,11 +29,11 @@ from edge import native, quat
 from edge.inference import DEFAULT_PRECISION
 from edge.skeleton import fk
 from firmware_bridge import config as config_mod
-from firmware_bridge.listen import Listener
+from edgetools.listen import Listener
 from firmware_bridge.service import Service
-from firmware_bridge.sim import scheme
-from firmware_bridge.sim.bno055_fake import FakeBNO055
-from firmware_bridge.sim.session import FAULTS, CAN_NODES, HUB_IDS, Session, fault_profile, placement, synthesize
+from edgetools.sim import scheme
+from edgetools.sim.bno055_fake import FakeBNO055
+from edgetools.sim.session import FAULTS, CAN_NODES, HUB_IDS, Session, fault_profile, placement, synthesize
 
 
 class SimClock:
@@ -566,7 +566,7 @@ def load_source(source, transports, faults, seed=0, seconds=None, trackers=None)
                       f"{','.join(session.meta.get('trackers', ['waist']))}; --trackers applies to a take or BVH clip "
                       f"(e.g. samples/cmu_09_12_walk.npz)", file=sys.stderr)
             return session
-    from edge.takes import load_take
+    from edgetools.takes import load_take
     take = load_take(path)
     if seconds:
         take = tile_take(take, seconds)

@@ -1,6 +1,6 @@
 """`edge listen`: the host-side reader of the board's pose stream, as a command and as a library.
 
-    from firmware_bridge.listen import Listener
+    from edgetools.listen import Listener
     with Listener("/dev/ttyUSB0") as ear:            # or Listener(fd=...) on an open descriptor
         for frame in ear.poll(timeout=0.1):          # messages.PoseFrame objects
             ...

@@ -16,8 +16,9 @@ import numpy as np
 
 from edge import quat
 from edge.imus import IMU_LOCATIONS, ImuNoise
-from edge.signals import DeviceNoise, Signals
-from edge.takes import Take
+from edge.signals import Signals
+from edgetools.synth import DeviceNoise
+from edgetools.takes import Take
 from firmware_bridge.wire import messages
 from firmware_bridge.samples import HeadsetSample, TrackerSample
 from firmware_bridge.wire.can_frames import encode_node_frames
