@@ -12,17 +12,17 @@ With the compiled core that is five C calls around the two ONNX Runtime calls (e
 ep_frame_poses, ep_leg_error after the autoencoder, ep_switch_to, ep_emit); the numpy stages in this
 file are the reference they are tested against and the fallback without a compiler.
 
-SSI (section 3.2): every sample keeps its latent for the whole run; when the current sample's cost
-is an outlier at the look-ahead frame, the best other sample is chosen and the output moves to it
-over T frames by interpolating both the latent and the decoder's GRU state (3.2.3), starting at the
-oldest frame not yet output (3.2.4).
+Two ways through a frame, chosen once: CompiledFrame, the fused C calls the board runs, and
+NumpyFrame, the numpy reference they are tested against (and the fallback without a compiler).
+SSI's decisions (the outlier test, the best other sample, the move's schedule, the look-ahead ring)
+are edge.ssi; this file does the decoding and posing they ask for.
 
 Adaptive N: buffers are sized for `max_samples` once; `set_samples(n)` runs the first n of them
 from then on (edge.governor decides n from the frame times). Dropping the shown sample reuses the
 SSI transition; a revived sample starts from the shown sample's GRU state, so nothing pops.
 """
 import ctypes
-from collections import deque
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -31,11 +31,12 @@ from edge import native, quat
 from edge.criteria import Composite, FrameContext, PhysicalPlausibility, Plausibility
 from edge.features import NUM_POINT_FEATURES, body_points, features, heading, imu_features
 from edge.imus import IMU_JOINTS, NUM_IMUS
-from edge.ik import FootLock, apply_limb_ik, smoothstep
+from edge.ik import FootLock, apply_limb_ik
 from edge.inference import DEFAULT_PRECISION, Autoencoder, Decoder, open_models
 from edge.physics import floor_lift, lowest_point, support
 from edge.plausibility import PlausibilityScorer
 from edge.signals import EYE_OFFSET, GRIP_OFFSET, Signals
+from edge.ssi import LookaheadBuffer, Switcher, switch_to, transition_weight
 from edge.skeleton import (ANKLES, HEAD, JOINT, LEVELS, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, PELVIS_TO_HEAD,
                            TOES, fk)
 
@@ -46,7 +47,9 @@ LIMB_POLES = np.array([[0.0, 0.0, 1.0]] * 2 + [[0.0, 0.0, -1.0]] * 2)   # knees 
 NECK, SPINE, CHEST = JOINT["neck"], JOINT["spine"], JOINT["chest"]
 _FRAME_INPUTS = ("waist_m", "anchor", "wrists", "hand_m", "head_m", "seg_m", "seg_flag")  # a frame's inputs to FK and IK, in ep_row_pose's order
 POSITION_LIMIT_M = 50.0     # a tracked position farther from the origin is not a room-scale one (step refuses it)
-SWITCH_HISTORY = 10_000     # switches kept in Pipeline.switches (hours of a take; edge eval reads them per take)
+# The parts of a live frame, in order; with `timing` on, step() stamps the thread CPU clock after each
+# (Pipeline.stage_ns[k + 1] - stage_ns[k] is stage k's time; `edge profile` reads them).
+STAGES = ("features", "decoder", "poses", "criteria", "selection", "emit")
 
 
 @dataclass
@@ -101,83 +104,6 @@ def torso_segments(seg_m, seg_flag, waist_m, head_m):
         seg_m[NECK] = midway_rotation(seg_m[CHEST], head_m)
 
 
-def transition_weight(k, T):
-    """Blend weight of step k (0-based) of a T-frame transition: SSI 3.2.3 interpolates linearly in
-    latent and GRU state; we ease the schedule in and out (smoothstep) so the motion has no velocity
-    step at either end, which is what a jerk metric sees."""
-    return smoothstep((np.asarray(k) + 1.0) / T)
-
-
-def is_outlier(cost, c, margin=0.0):
-    """SSI eq. 2: r = median - min over all samples. We test the current sample's excess over the best,
-    cost[c] - min > 2r; the literal cost[c] > 2r compares an absolute error with a spread and fires on
-    nearly every frame. The excess must also exceed `margin` (the manifest's `switch_margin`): where
-    most samples cost nothing (the physical criterion), r is 0 and any blemish would switch."""
-    lo = cost.min()
-    return bool(cost[c] - lo > max(2.0 * (_median(cost) - lo), margin))
-
-
-def _median(x):
-    """np.median of a 1-D array: the same value, without its general-purpose overhead (~9 us per frame)."""
-    k = len(x) // 2
-    if len(x) % 2:
-        return np.partition(x, k)[k]
-    part = np.partition(x, (k - 1, k))
-    return (part[k - 1] + part[k]) / 2.0
-
-
-def best_other(cost, c):
-    """SSI 3.2.2: the sample with the smallest cost among the others."""
-    keep = cost[c]
-    cost[c] = np.inf
-    n = int(np.argmin(cost))
-    cost[c] = keep
-    return n
-
-
-class LookaheadBuffer:
-    """Fixed-memory ring buffer of the tau+1 most recent frames for all N samples, allocated once.
-
-    It keeps what each row's pose is made from, not the pose: the decoder's 6D output, the leg IK's
-    goals and weights, and the frame's tracker inputs. The pose of the one row a frame shows is made
-    again when the frame is sent (Pipeline.pose_from_buffer, bit for bit the live one): 6D is a sixth
-    of a pose's bytes, and a frame at N=100 then writes 60 KB here instead of 360 KB.
-
-    Rows are the N samples and one spare (row N) that a transition's output uses: a frame whose
-    override is set shows row trans_row[slot] (the live N when it was written)."""
-
-    def __init__(self, slots, samples, hidden, n_features, rot_dim):
-        S, N = slots, samples
-        self.slots = S
-        self.frame = np.full(S, -1, np.int64)
-        self.features = np.zeros((S, n_features), np.float32)
-        self.hidden_in = np.zeros((S, N, hidden), np.float32)
-        self.rot6d = np.zeros((S, N + 1, rot_dim), np.float32)
-        self.contacts = np.zeros((S, N + 1, 2), np.float32)
-        self.leg_goal = np.zeros((S, N + 1, 2, 3))      # where the leg IK draws each row's ankles
-        self.leg_weight = np.zeros((S, N + 1, 2))       # at what weight (samples: 1, their lock's pull is in the goal)
-        self.lock_weight = np.zeros((S, N, 2))          # the samples' lock weights (0 free .. 1 locked)
-        self.cost = np.zeros((S, N))
-        # The frame's tracker inputs to the post-processing.
-        self.anchor = np.zeros((S, 3))
-        self.waist_m = np.zeros((S, 3, 3))
-        self.wrists = np.zeros((S, 2, 3))
-        self.hand_m = np.zeros((S, 2, 3, 3))
-        self.head_m = np.zeros((S, 3, 3))
-        # The worn IMUs' measured segment rotations and flags, per joint (flag 0: no IMU there).
-        self.seg_m = np.zeros((S, NUM_JOINTS, 3, 3))
-        self.seg_flag = np.zeros((S, NUM_JOINTS))
-        # Transition output that overrides a sample's own pose for a frame: row trans_row[s].
-        self.override = np.zeros(S, bool)
-        self.trans_row = np.zeros(S, np.int64)
-
-    def slot(self, frame):
-        return frame % self.slots
-
-    def nbytes(self):
-        return sum(v.nbytes for v in vars(self).values() if isinstance(v, np.ndarray))
-
-
 class Pipeline:
     def __init__(self, models=None, samples=1, seed=0, fps=60.0, body_scale=1.0, precision=DEFAULT_PRECISION, threads=1,
                  lookahead=None, transition=10, ssi=True, criteria=None, foot_ik=True, arm_ik=True,
@@ -216,7 +142,9 @@ class Pipeline:
         if N > 1:
             self.latents[1:] = np.random.default_rng(seed).standard_normal((N - 1, m["latent"]))
         self.decoder.latent[:N] = self.latents
-        self.buffer = LookaheadBuffer(lookahead + 1, N, m["hidden"], m["features"], self.decoder.rot6d.shape[1])
+        self.buffer = LookaheadBuffer(lookahead + 1, N, m["hidden"], m["features"], self.decoder.rot6d.shape[1],
+                                      NUM_JOINTS)
+        self.switcher = Switcher(lookahead, transition)
         self.feet = FootLock(N)
         R = max(self.rows, lookahead + 1)
         self._local = np.zeros((R, NUM_JOINTS, 3, 3))
@@ -244,13 +172,15 @@ class Pipeline:
             ("head_pos", 0, 3, (3,)), ("head_rot", 3, 7, (4,)), ("hand_pos", 7, 13, (2, 3)),
             ("hand_rot", 13, 21, (2, 4)), ("waist_rot", 21, 25, (4,)),
             ("imu_rot", 25, 25 + 4 * NUM_IMUS, (NUM_IMUS, 4)), ("imu_flag", 25 + 4 * NUM_IMUS, 25 + 5 * NUM_IMUS, (NUM_IMUS,)))}
-        self._ae_ready = None       # the scorer whose input the compiled core prepares (see _setup_native)
+        self._ae_ready = None       # the scorer whose input the compiled core prepares (CompiledFrame)
         # The compiled core (edge/native) runs the whole frame around the two ONNX calls when a C
-        # compiler is there; the numpy stages below are the reference and the fallback.
+        # compiler is there; NumpyFrame is the reference and the fallback.
         self.native = native.load() if use_native else None
-        if self.native:
-            self._setup_native(fps, body_scale, foot_ik, arm_ik)
+        self.reference = NumpyFrame(self)
+        self.path = CompiledFrame(self, self.native) if self.native else self.reference
+        self.timing, self.stage_ns = False, np.zeros(len(STAGES) + 1, np.int64)
         self.reset()
+
 
     def default_criteria(self, manifest, use_native=True, selection=None):
         """SSI's default selection cost: the autoencoder's plausibility score, plus the physical one
@@ -264,52 +194,6 @@ class Pipeline:
                                             p.get("support", 1.0), use_native))
         return out
 
-    def _setup_native(self, fps, body_scale, foot_ik, arm_ik):
-        """Addresses the C calls use every frame, found once: the skeleton, the scratch rows, FootLock's
-        state, the ring buffer and the output pose (native.CoreContext), and the decoder's buffers."""
-        N, b = self.max_samples, self.buffer
-        # Arrays the C calls read by address; held here so they live as long as the pipeline.
-        self._c = {"parents": np.ascontiguousarray(PARENTS, np.int64), "offsets": OFFSETS,
-                   "chains": np.ascontiguousarray(LIMB_CHAINS, np.int64), "poles": LIMB_POLES,
-                   "ankles": np.ascontiguousarray(ANKLES, np.int64), "imu_joints": np.ascontiguousarray(IMU_JOINTS, np.int64)}
-        self._addr = {k: native.addr(v) for k, v in self._c.items()}
-        for k in ("_local", "_world", "_pos", "_targets", "_weights", "_floor_lift"):
-            self._addr[k] = native.addr(getattr(self, k))
-        for k in ("lock_pos", "locked", "raw", "since_release", "weight"):     # FootLock's state
-            self._addr[k] = native.addr(getattr(self.feet, k))
-        self._frame_offsets = np.concatenate([EYE_OFFSET[None], GRIP_OFFSET, (PELVIS_TO_HEAD * body_scale)[None]])
-        self._points, self._prev = np.zeros((4, 3)), np.zeros((4, 3))
-        self._feat32, self._mats = np.zeros(self.n_features, np.float32), np.zeros((4, 3, 3))
-        for k in ("_frame_in", "_frame_offsets", "_points", "_prev", "_feat32", "_mats"):
-            self._addr[k] = native.addr(getattr(self, k))
-        # The SSI decision reads ring-buffer slot s's costs: (base address, bytes per slot).
-        self._cost_addr = (native.addr(b.cost), b.cost.strides[0])
-        self._emit_world = np.zeros((NUM_JOINTS, 3, 3))
-        # The same call fills the plausibility scorer's autoencoder input when the default criterion is there.
-        ae = self.scorer.buffers() if any(isinstance(c, Plausibility) and c.scorer is self.scorer
-                                          for c in self.criteria.criteria) else None
-        self._ae_ready = self.scorer if ae else None
-        a, f, out = self._addr, self.feet, self.out
-        ring = {f"ring_{k}": native.addr(getattr(b, v)) for k, v in (
-            ("waist", "waist_m"), ("anchor", "anchor"), ("wrists", "wrists"), ("hand", "hand_m"), ("head", "head_m"),
-            ("rot6d", "rot6d"), ("contacts", "contacts"), ("goal", "leg_goal"), ("weight", "leg_weight"),
-            ("lock_weight", "lock_weight"), ("features", "features"), ("hidden", "hidden_in"))}
-        ctx = native.CoreContext(
-            J=NUM_JOINTS, head=HEAD, neck=NECK, foot_ik=int(foot_ik), arm_ik=int(arm_ik),
-            parents=a["parents"], chains=a["chains"], ankles=a["ankles"], offsets=a["offsets"], poles=a["poles"],
-            release_frames=f.release_frames, max_slip=f.max_slip, lock_pos=a["lock_pos"], since=a["since_release"],
-            lock_weight=a["weight"], locked=a["locked"], raw=a["raw"], goals=a["_targets"], weights=a["_weights"],
-            ring_rows=N + 1, hidden=b.hidden_in.shape[2], **ring,
-            out_local=native.addr(out.rotations), out_world=native.addr(self._emit_world),
-            out_pos=native.addr(out.positions), out_contacts=native.addr(out.contacts),
-            frame_in=a["_frame_in"], frame_offsets=a["_frame_offsets"], prev=a["_prev"], fps=fps,
-            n_features=self.n_features, imus=self.imus, floor_lift=a["_floor_lift"],
-            ring_seg_m=native.addr(b.seg_m), ring_seg_flag=native.addr(b.seg_flag), imu_joints=a["imu_joints"],
-            segments=int(self.segments),
-            **(dict(zip(("ae_in", "ae_local", "ae_root_local"), ae)) if ae else {}))
-        self._core = ctypes.pointer(ctx)
-        self._bind_decoder()
-
     @property
     def decoder(self):
         return self._decoder
@@ -319,40 +203,37 @@ class Pipeline:
         """A decoder may be swapped in after construction (bench/reference.py runs a PyTorch one): the
         compiled core then reads and writes the new one's buffers."""
         self._decoder = dec
-        if getattr(self, "_core", None) is not None:
-            self._bind_decoder()
+        if getattr(self, "path", None) is not None:
+            self.path.bind_decoder(dec)
 
-    def _bind_decoder(self):
-        dec, ctx = self._decoder, self._core.contents
-        self._addr["rot6d"], self._addr["contacts"] = native.addr(dec.rot6d), native.addr(dec.contacts)
-        ctx.rot6d, ctx.contacts, ctx.rot6d_stride = self._addr["rot6d"], self._addr["contacts"], dec.rot6d.shape[1]
-        ctx.dec_features, ctx.dec_rows = native.addr(dec.features), dec.capacity
-        self._hidden_addr = [native.addr(h) for h in dec.hidden]
+    # SSI's state, as edge.ssi.Switcher keeps it.
+    current = property(lambda self: self.switcher.current)
+    trans = property(lambda self: self.switcher.trans)
+    trans_end = property(lambda self: self.switcher.trans_end)
+    switches = property(lambda self: self.switcher.switches)
+    switch_count = property(lambda self: self.switcher.switch_count)
 
     # ------------------------------------------------------------------ state
     def reset(self):
         self.decoder.reset()
         self.feet.reset()
+        self.path.reset()
         self._pending = None        # a change of N waiting for a transition to be sent
         self.buffer.frame[:] = -1
         self.buffer.override[:] = False
         self.t = -1
-        self.current = 0
-        self.trans = None           # (from, to, first frame, length) of the running transition
-        self.trans_end = -1
-        # (detected at frame, first transition frame, from, to), the most recent SWITCH_HISTORY of them:
-        # a service runs for days and switches about once a second. switch_count counts them all.
-        self.switches = deque(maxlen=SWITCH_HISTORY)
-        self.switch_count = 0
-        self._prev_points = None
+        self.switcher.reset()
         self.state_resets = 0       # decoder rows whose GRU state or output went non-finite (see _heal)
         self.inputs_held = 0        # frames whose signals were non-finite or out of range (see _sane_frame)
 
     # ------------------------------------------------------------------ per frame
     def step(self, sig):
         """Feed one frame of Signals (T=1). Returns the Pose for frame t - tau, or None while the buffer fills."""
+        timing, mark = self.timing, self.stage_ns
+        if timing:
+            mark[0] = time.thread_time_ns()
         self.t += 1
-        t, b, N = self.t, self.buffer, self.samples
+        t, b, N, sw = self.t, self.buffer, self.samples, self.switcher
         s = b.slot(t)
         b.frame[s] = t
         b.override[s] = False
@@ -360,67 +241,34 @@ class Pipeline:
         self._load_frame_in(sig)
         if not self._sane_frame():  # a frame no range check upstream caught: the last good one again
             sig = self._held_frame()
-        if self.native:             # features and tracker matrices, into slot s and the decoder, in one call
-            self.native.ep_frame_inputs(self._core, s, self._prev_points is None)
-            self._prev_points = self._prev
-        else:
-            points, waist_rot = body_points(sig, self.body_scale)
-            points, waist_rot = points[0], waist_rot[0]
-            prev = points if self._prev_points is None else self._prev_points
-            self._prev_points = points
-            yaw_q = heading(waist_rot)
-            feat = features(points, prev, yaw_q, self.fps)
-            if self.imus:
-                feat = np.concatenate([feat, imu_features(sig.imu_rot[0], sig.imu_flag[0], yaw_q)])
-            q = self._quats                      # waist, hands, head: one to_matrix call
-            q[0], q[1:3], q[3] = waist_rot, sig.hand_rot[0], sig.head_rot[0]
-            m = quat.to_matrix(q)
-            b.features[s] = feat
-            b.anchor[s] = points[0]
-            b.wrists[s] = points[1:3]
-            b.waist_m[s], b.hand_m[s], b.head_m[s] = m[0], m[1:3], m[3]
-            if self.segments:
-                b.seg_m[s, IMU_JOINTS] = quat.to_matrix(sig.imu_rot[0])
-                b.seg_flag[s, IMU_JOINTS] = sig.imu_flag[0]
-                torso_segments(b.seg_m[s], b.seg_flag[s], m[0], m[3])
-            dec.features[:] = feat
-            b.hidden_in[s, :N] = dec.state[:N]      # (the compiled core copies it after the step)
-        live = self.trans is not None and t <= self.trans_end
-        if live:
-            c, n, s0, T = self.trans
-            a = transition_weight(t - s0, T)
+        self.path.inputs(sig, s)    # features and tracker matrices, into slot s and the decoder
+        if timing:
+            mark[1] = time.thread_time_ns()
+        live = sw.live(t)
+        blend = None
+        if live:                    # the spare row carries the move: both latents and GRU states eased
+            c, n = sw.trans[:2]
+            a = sw.weight(t)
             dec.latent[N] = (1 - a) * self.latents[c] + a * self.latents[n]
             dec.state[N] = (1 - a) * dec.state[c] + a * dec.state[n]
+            blend = (c, n, float(a))
         dec.step()
-        if not self._decoder_finite(dec):
+        if not self.path.finite(dec):
             self._heal(dec, s)
+        if timing:
+            mark[2] = time.thread_time_ns()
 
         # Post-processing for every row at once; the transition row (row N) blends the two samples' foot
         # goals (not lock positions, which are stale for a foot that is free) and, like the samples, runs
         # the leg IK at weight 1: the goals already carry each lock's pull, so the row's first and last
         # frames are the two samples' own poses.
-        rows = N + 1 if live else N
         keep_world = self.criteria.needs_world_rot      # every joint's world rotation, only for a criterion that asks
-        if self.native:             # _forward, _foot_goals, the blend, _post and the ring copies below in one call
-            self.native.ep_frame_poses(self._core, s, rows, N, *((c, n, float(a)) if live else (0, 0, 0.0)),
-                                       self._addr["_world"] if keep_world else None, self._addr["_pos"],
-                                       self._hidden_addr[dec.last_read])
-        else:
-            self._forward(dec.rot6d[:rows], b.waist_m[s], b.anchor[s], b.seg_m[s], b.seg_flag[s])
-            if self.foot_ik:
-                goal, w = self._foot_goals(N)
-                if live:
-                    self._targets[N] = (1 - a) * goal[c] + a * goal[n]
-                    self._weights[N] = 1.0      # like the samples' own: their goals carry the locks' pull
-            self._post(rows, b.wrists[s], b.hand_m[s], b.head_m[s])
-            b.rot6d[s, :rows] = dec.rot6d[:rows]
-            b.contacts[s, :rows] = dec.contacts[:rows]
-            b.leg_goal[s, :rows] = self._targets[:rows]
-            b.leg_weight[s, :rows] = self._weights[:rows]
-            b.lock_weight[s, :N] = self.feet.weight[:N]
+        self.path.poses(s, N + 1 if live else N, N, blend, keep_world)
         if live:
             b.override[s] = True
             b.trans_row[s] = N
+        if timing:
+            mark[3] = time.thread_time_ns()
 
         # Judge frame t, the newest, and decide (3.2.4: detection at t + tau relative to the output).
         if N > 1:
@@ -432,25 +280,28 @@ class Pipeline:
                 ctx.imu = {int(IMU_JOINTS[k]): m[i] for i, k in enumerate(worn)}
                 ctx.imu_weight = {int(IMU_JOINTS[k]): float(sig.imu_flag[0, k]) for k in worn}
             b.cost[s, :N] = self.criteria.cost(ctx)
+        if timing:
+            mark[4] = time.thread_time_ns()
         if self._pending is not None:
             self._apply_samples(t, s)
         # A new switch waits until the last transition has been sent, so transitions never overlap.
-        elif self.ssi and N > 1 and t - self.lookahead > self.trans_end:
-            self._maybe_switch(t, s)
-        return self._emit(t - self.lookahead)
+        elif self.ssi and N > 1 and sw.free(t):
+            n = self.path.switch_to(s, sw.current, self.switch_margin)
+            if n >= 0:
+                self._start_transition(n, t)
+        if timing:
+            mark[5] = time.thread_time_ns()
+        pose = self._emit(t - self.lookahead)
+        if timing:
+            mark[6] = time.thread_time_ns()
+        return pose
 
     def _sane_frame(self):
         """Whether this frame's signals are finite and inside POSITION_LIMIT_M of the origin (no play
         space is larger); the last one that was is kept to stand in for one that is not."""
-        v, head, hands = self._frame_in, self._in["head_pos"], self._in["hand_pos"]
-        if self.native:
-            ok = bool(self.native.ep_frame_sane(self._addr["_frame_in"], len(v), POSITION_LIMIT_M))
-        else:
-            total = float(v.sum())
-            ok = (total - total == 0.0 and -POSITION_LIMIT_M < head.min() and head.max() < POSITION_LIMIT_M
-                  and -POSITION_LIMIT_M < hands.min() and hands.max() < POSITION_LIMIT_M)
+        ok = self.path.sane()
         if ok:
-            np.copyto(self._good_in, v)
+            np.copyto(self._good_in, self._frame_in)
         return ok
 
     def _held_frame(self):
@@ -466,14 +317,6 @@ class Pipeline:
         return Signals(v["head_pos"][None].copy(), v["head_rot"][None].copy(), v["hand_pos"][None].copy(),
                        v["hand_rot"][None].copy(), v["waist_rot"][None].copy(), np.zeros((1, 3)),
                        v["imu_rot"][None].copy(), v["imu_flag"][None].copy())
-
-    def _decoder_finite(self, dec):
-        """Whether the step's GRU state and 6D output are all finite (one C call each on the compiled path)."""
-        if self.native:
-            lib, R = self.native, dec.rows
-            return bool(lib.ep_all_finite_f32(self._hidden_addr[dec._cur], R * dec.state.shape[1])
-                        and lib.ep_all_finite_f32(self._addr["rot6d"], R * dec.rot6d.shape[1]))
-        return bool(np.isfinite(dec.state[:dec.rows]).all() and np.isfinite(dec.rot6d[:dec.rows]).all())
 
     def _heal(self, dec, s):
         """Rows whose GRU state or output went non-finite (an input no range check caught, or a state
@@ -491,23 +334,6 @@ class Pipeline:
         if not np.isfinite(dec.features).all():     # the ring must not keep what a recompute would re-run
             self.buffer.features[s] = self.buffer.features[prev] if held else 0.0
         self.state_resets += int(bad.sum())
-
-    def _frame_inputs_native(self, sig):
-        """body_points, heading, features and the tracker matrices of one frame in C calls
-        (bit-identical to the numpy path; tests/test_native.py). Returns (points [4,3], features
-        [n_features] float32, matrices [4,3,3]: waist, hands, head)."""
-        a = self._addr
-        self._load_frame_in(sig)
-        first = self._prev_points is None       # the first frame's velocity is zero: prev = points
-        self.native.ep_frame_features(a["_frame_in"], a["_frame_offsets"], a["_points" if first else "_prev"],
-                                      self.fps, a["_points"], a["_feat32"], a["_mats"])
-        if self.imus:
-            f = self._feat32
-            self.native.ep_imu_features(self.imus, native.addr(self._in["imu_rot"]), native.addr(self._in["imu_flag"]),
-                                        native.addr(self._in["waist_rot"]), f.ctypes.data + 4 * NUM_POINT_FEATURES)
-        np.copyto(self._prev, self._points)
-        self._prev_points = self._prev
-        return self._points, self._feat32, self._mats
 
     def _load_frame_in(self, sig):
         """One frame of Signals into _frame_in, the C calls' input layout."""
@@ -537,115 +363,15 @@ class Pipeline:
                 out.append(Pose(p.frame, p.positions.copy(), p.rotations.copy(), p.contacts.copy(), p.sample, p.transition))
         return out
 
-    # ------------------------------------------------------------------ stages
-    def _forward(self, rot6d, waist_m, anchor, seg_m=None, seg_flag=None):
-        """6D -> local rotations, FK with the waist IMU as root, body hung from the tracked head; the
-        segments of worn IMUs take their measured rotations (fk_with_segments; seg_m [J,3,3], seg_flag [J]).
-
-        waist_m [3,3] or per row [R,3,3]; anchor (the tracked head joint) [3] or [R,3]. Writes the
-        scratch rows _local, _world, _pos. (The live frame runs this, _foot_goals and _post as one C
-        call, ep_frame_poses; these stages serve the numpy path, pose_from_buffer and the stage timings.)
-        """
-        R = len(rot6d)
-        if self.native:
-            a = self._addr
-            r6, r6_stride = native.rows(rot6d, 1, np.float32)
-            root, root_stride = native.rows(waist_m, 2)
-            head, head_stride = native.rows(anchor, 1)
-            seg = seg_flag is not None and seg_flag.any()
-            self.native.ep_forward(R, NUM_JOINTS, a["parents"], a["offsets"], HEAD, r6, r6_stride, root, root_stride,
-                                   head, head_stride, native.addr(seg_m) if seg else None,
-                                   native.addr(seg_flag) if seg else None, a["_local"], a["_world"], a["_pos"])
-            return
-        loc, W, P = self._local[:R], self._world[:R], self._pos[:R]
-        loc[:, 0] = waist_m
-        quat.matrix_from_6d(rot6d.reshape(R, NUM_PREDICTED, 6), out=loc[:, 1:])
-        if seg_flag is not None and seg_flag.any():
-            fk_with_segments(loc, W, P, seg_m, seg_flag)
-        else:
-            fk(loc, self._zero3, out=(W, P))
-        P += anchor[..., None, :] - P[:, HEAD:HEAD + 1]
-
-    def _foot_goals(self, N):
-        """Update the N samples' foot-contact locks from the decoder's contacts and the FK ankles; each
-        sample's foot goal (in _targets) is where its lock draws the ankle, so the leg IK runs at weight 1.
-        Returns (goals [N,2,3], lock weights [N,2])."""
-        goal, pos = self._targets[:N], self._pos
-        toe_drop = (self._world[:N, ANKLES] @ self._toe_offsets)[..., 1, 0]   # for the locks' floor snap
-        if self.native:
-            a, f = self._addr, self.feet
-            toe_drop = np.ascontiguousarray(toe_drop)
-            self.native.ep_foot_locks(N, 2, a["contacts"], a["_pos"], NUM_JOINTS, a["ankles"], native.addr(toe_drop),
-                                      f.release_frames, f.max_slip, a["lock_pos"], a["locked"], a["raw"],
-                                      a["since_release"], a["weight"], a["_targets"])
-            w = f.weight[:N]
-        else:
-            lock, w = self.feet.update(self.decoder.contacts[:N], pos[:N, ANKLES], toe_drop)
-            ankle = pos[:N, ANKLES]
-            np.subtract(lock, ankle, out=goal)
-            goal *= w[..., None]
-            goal += ankle
-        self._weights[:N] = 1.0
-        return goal, w
-
-    def _post(self, rows, wrists, hand_m, head_m):
-        """Leg IK to the foot locks and arm IK to the controllers in one batched call, head to the headset.
-
-        The legs' goals are lifted where an ankle or a toe would be under the floor (edge.physics;
-        how far goes to _floor_lift), so foot IK never puts a foot into the floor, and a lock holds
-        the foot on it, not under it. wrists [2,3], hand_m [2,3,3], head_m [3,3], or the same per row.
-        Updates rotations and positions in place (the IK moves knees, ankles, toes, elbows and wrists).
-        """
-        if not (self.foot_ik or self.arm_ik):
-            return
-        if self.native:
-            a = self._addr
-            wr, wr_stride = native.rows(wrists, 2)
-            hm, hm_stride = native.rows(hand_m, 3)
-            hd, hd_stride = native.rows(head_m, 2)
-            self.native.ep_post(rows, NUM_JOINTS, a["parents"], a["offsets"], a["chains"], a["poles"], a["_targets"],
-                                a["_weights"], int(self.foot_ik), int(self.arm_ik), wr, wr_stride, hm, hm_stride,
-                                hd, hd_stride, NECK, HEAD, a["_local"], a["_world"], a["_pos"], a["_floor_lift"])
-            return
-        loc, W, P = self._local[:rows], self._world[:rows], self._pos[:rows]
-        tgt, wts, ends = self._limb_targets[:rows], self._limb_weights[:rows], self._limb_ends[:rows]
-        tgt[:, :2] = self._targets[:rows]
-        tgt[:, 2:] = wrists
-        wts[:, :2] = self._weights[:rows] if self.foot_ik else 0.0
-        if self.foot_ik:            # the effective leg goals, lifted clear of the floor, at weight 1
-            ankle = P[:, ANKLES]
-            tgt[:, :2] = ankle + wts[:, :2, None] * (tgt[:, :2] - ankle)
-            lift = floor_lift(tgt[:, :2, 1], (W[:, ANKLES] @ self._toe_offsets)[..., 1, 0])
-            tgt[:, :2, 1] += lift
-            wts[:, :2] = 1.0
-            self._floor_lift[:rows] = lift
-        ends[:, :2] = W[:, ANKLES]
-        ends[:, 2:] = hand_m if self.arm_ik else W[:, LIMB_CHAINS[2:, 2]]
-        apply_limb_ik(loc, W, P, PARENTS, LIMB_CHAINS, tgt, wts, LIMB_POLES, ends, OFFSETS)
-        P[:, TOES] = P[:, ANKLES] + (W[:, ANKLES] @ self._toe_offsets)[..., 0]
-        if self.arm_ik:
-            W[:, HEAD] = head_m
-            loc[:, HEAD] = np.swapaxes(W[:, NECK], -1, -2) @ head_m
-
-    def _maybe_switch(self, t, s):
-        c = self.current
-        if self.native:             # is_outlier and best_other in one call
-            c0, cs = self._cost_addr
-            n = self.native.ep_switch_to(self.samples, c0 + s * cs, c, self.switch_margin)
-            if n >= 0:
-                self._start_transition(c, n, t)
-            return
-        cost = self.buffer.cost[s, :self.samples]
-        if is_outlier(cost, c, self.switch_margin):
-            self._start_transition(c, best_other(cost, c), t)
-
+    # ------------------------------------------------------------------ SSI moves and N
     def _apply_samples(self, t, s):
-        n, N, c = self._pending, self.samples, self.current
+        n, N, sw = self._pending, self.samples, self.switcher
+        c = sw.current
         if n < N and c >= n:        # the shown sample would go: move to the best kept one first
-            if t - self.lookahead > self.trans_end:
-                self._start_transition(c, int(np.argmin(self.buffer.cost[s, :n])), t)
+            if sw.free(t):
+                self._start_transition(int(np.argmin(self.buffer.cost[s, :n])), t)
             return
-        if n < N and self.trans is not None and t < self.trans_end and self.trans[0] >= n:
+        if n < N and sw.trans is not None and t < sw.trans_end and sw.trans[0] >= n:
             return                  # the live transition row still interpolates from that sample
         if n > N:
             self._revive(N, n)
@@ -657,21 +383,17 @@ class Pipeline:
         """Samples lo..hi-1 come back with their own latents, from the shown sample's GRU state and
         foot locks (their old state is stale); their buffered frames copy the shown sample's, so a
         transition to one of them can be recomputed over the look-ahead like any other."""
-        c, b, dec = self.current, self.buffer, self.decoder
+        c, b, dec = self.switcher.current, self.buffer, self.decoder
         dec.latent[lo:hi] = self.latents[lo:hi]
         dec.state[lo:hi] = dec.state[c]
         self.feet.copy_rows(c, slice(lo, hi))
         for a in (b.hidden_in, b.rot6d, b.contacts, b.leg_goal, b.leg_weight, b.lock_weight):
             a[:, lo:hi] = a[:, c:c + 1]
 
-    def _start_transition(self, c, n, t):
-        s0 = max(t - self.lookahead, 0)
-        T = self.transition
-        self.trans, self.trans_end = (c, n, s0, T), s0 + T - 1
-        self.switches.append((t, s0, c, n))
-        self.switch_count += 1
-        self.current = n
-        self._recompute_transition(c, n, s0, T, t)
+    def _start_transition(self, n, t):
+        c = self.switcher.current
+        s0 = self.switcher.start(n, t)
+        self._recompute_transition(c, n, s0, self.transition, t)
 
     def _recompute_transition(self, c, n, s0, T, t):
         """Re-run the buffered frames s0..t along the transition (one batched decoder call); their
@@ -694,6 +416,7 @@ class Pipeline:
         b.leg_goal[sl, N] = (1 - a3) * b.leg_goal[sl, c] + a3 * b.leg_goal[sl, n]
         b.leg_weight[sl, N] = 1.0
 
+    # ------------------------------------------------------------------ output
     def _emit(self, o):
         if o < 0:
             return None
@@ -703,40 +426,255 @@ class Pipeline:
         p.transition = bool(b.override[s])
         if p.transition:
             row = int(b.trans_row[s])
-            p.sample = self.trans[1] if self.trans else self.current
+            p.sample = self.switcher.shown_during_move()
         else:
-            row = p.sample = self._sample_at(o)
-        if self.native:
-            self.native.ep_emit(self._core, s, row)
-        else:
-            self.pose_from_buffer(o, row, p.positions, p.rotations)
-            p.contacts[:] = supported_contacts(b.contacts[s, row], p.positions)
+            row = p.sample = self.switcher.sample_at(o)
+        self.path.emit(s, row, p)
         return p
 
     def pose_from_buffer(self, frame, row, positions=None, rotations=None):
         """The pose of pose row `row` (a sample, or N for a transition) of a buffered frame, made again
-        from what the buffer keeps: world positions [J,3] and local rotations [J,3,3], into the given
-        arrays or new ones."""
-        b = self.buffer
-        s = b.slot(frame)
-        if b.frame[s] != frame:
+        from what the buffer keeps (by the numpy reference): world positions [J,3] and local rotations
+        [J,3,3], into the given arrays or new ones."""
+        s = self.buffer.slot(frame)
+        if self.buffer.frame[s] != frame:
             raise ValueError(f"frame {frame} is not in the look-ahead buffer")
         positions = np.zeros((NUM_JOINTS, 3)) if positions is None else positions
         rotations = np.zeros((NUM_JOINTS, 3, 3)) if rotations is None else rotations
-        if self.native:
-            a = native.addr
-            rows = (a(getattr(b, k)[s, row]) for k in ("rot6d", "leg_goal", "leg_weight"))
-            self.native.ep_row_pose(self._core, *rows, *(a(getattr(b, k)[s]) for k in _FRAME_INPUTS),
-                                    a(rotations), a(self._emit_world), a(positions))
-            return positions, rotations
-        self._forward(b.rot6d[s, row][None], b.waist_m[s], b.anchor[s], b.seg_m[s], b.seg_flag[s])
-        self._targets[0], self._weights[0] = b.leg_goal[s, row], b.leg_weight[s, row]
-        self._post(1, b.wrists[s], b.hand_m[s], b.head_m[s])
-        positions[:], rotations[:] = self._pos[0], self._local[0]
+        return self.reference.row_pose(s, row, positions, rotations)
+
+
+class NumpyFrame:
+    """The numpy reference of a frame's stages: what the compiled core is tested against, and what
+    runs without a C compiler. It works in the pipeline's scratch rows and ring buffer."""
+
+    def __init__(self, pipe):
+        self.p = pipe
+
+    def reset(self):
+        self.prev_points = None     # the previous frame's body points (velocity features)
+
+    def bind_decoder(self, dec):
+        pass
+
+    def sane(self):
+        p = self.p
+        v, head, hands = p._frame_in, p._in["head_pos"], p._in["hand_pos"]
+        total = float(v.sum())
+        return (total - total == 0.0 and -POSITION_LIMIT_M < head.min() and head.max() < POSITION_LIMIT_M
+                and -POSITION_LIMIT_M < hands.min() and hands.max() < POSITION_LIMIT_M)
+
+    def inputs(self, sig, s):
+        """Body points, features and tracker matrices of one frame into ring slot s and the decoder."""
+        p, b, dec = self.p, self.p.buffer, self.p.decoder
+        points, waist_rot = body_points(sig, p.body_scale)
+        points, waist_rot = points[0], waist_rot[0]
+        prev = points if self.prev_points is None else self.prev_points
+        self.prev_points = points
+        yaw_q = heading(waist_rot)
+        feat = features(points, prev, yaw_q, p.fps)
+        if p.imus:
+            feat = np.concatenate([feat, imu_features(sig.imu_rot[0], sig.imu_flag[0], yaw_q)])
+        q = p._quats                         # waist, hands, head: one to_matrix call
+        q[0], q[1:3], q[3] = waist_rot, sig.hand_rot[0], sig.head_rot[0]
+        m = quat.to_matrix(q)
+        b.features[s] = feat
+        b.anchor[s] = points[0]
+        b.wrists[s] = points[1:3]
+        b.waist_m[s], b.hand_m[s], b.head_m[s] = m[0], m[1:3], m[3]
+        if p.segments:
+            b.seg_m[s, IMU_JOINTS] = quat.to_matrix(sig.imu_rot[0])
+            b.seg_flag[s, IMU_JOINTS] = sig.imu_flag[0]
+            torso_segments(b.seg_m[s], b.seg_flag[s], m[0], m[3])
+        dec.features[:] = feat
+        b.hidden_in[s, :p.samples] = dec.state[:p.samples]
+
+    def finite(self, dec):
+        return bool(np.isfinite(dec.state[:dec.rows]).all() and np.isfinite(dec.rot6d[:dec.rows]).all())
+
+    def poses(self, s, rows, N, blend, keep_world):
+        """Every row's pose of frame s: FK, foot locks, the transition row's blended goals, IK; and
+        what the ring keeps of them."""
+        p, b, dec = self.p, self.p.buffer, self.p.decoder
+        self.forward(dec.rot6d[:rows], b.waist_m[s], b.anchor[s], b.seg_m[s], b.seg_flag[s])
+        if p.foot_ik:
+            goal, w = self.foot_goals(N)
+            if blend is not None:
+                c, n, a = blend
+                p._targets[N] = (1 - a) * goal[c] + a * goal[n]
+                p._weights[N] = 1.0      # like the samples' own: their goals carry the locks' pull
+        self.post(rows, b.wrists[s], b.hand_m[s], b.head_m[s])
+        b.rot6d[s, :rows] = dec.rot6d[:rows]
+        b.contacts[s, :rows] = dec.contacts[:rows]
+        b.leg_goal[s, :rows] = p._targets[:rows]
+        b.leg_weight[s, :rows] = p._weights[:rows]
+        b.lock_weight[s, :N] = p.feet.weight[:N]
+
+    def switch_to(self, s, c, margin):
+        return switch_to(self.p.buffer.cost[s, :self.p.samples], c, margin)
+
+    def emit(self, s, row, out):
+        self.row_pose(s, row, out.positions, out.rotations)
+        out.contacts[:] = supported_contacts(self.p.buffer.contacts[s, row], out.positions)
+
+    def row_pose(self, s, row, positions, rotations):
+        """The pose of one row of ring slot s, made again from what the ring keeps."""
+        p, b = self.p, self.p.buffer
+        self.forward(b.rot6d[s, row][None], b.waist_m[s], b.anchor[s], b.seg_m[s], b.seg_flag[s])
+        p._targets[0], p._weights[0] = b.leg_goal[s, row], b.leg_weight[s, row]
+        self.post(1, b.wrists[s], b.hand_m[s], b.head_m[s])
+        positions[:], rotations[:] = p._pos[0], p._local[0]
         return positions, rotations
 
-    def _sample_at(self, o):
-        """The sample that owns output frame o: before a running transition's first frame, its source."""
-        if self.trans is not None and o < self.trans[2]:
-            return self.trans[0]
-        return self.current
+    # ---- the stages
+    def forward(self, rot6d, waist_m, anchor, seg_m=None, seg_flag=None):
+        """6D -> local rotations, FK with the waist IMU as root, body hung from the tracked head; the
+        segments of worn IMUs take their measured rotations (fk_with_segments; seg_m [J,3,3], seg_flag [J]).
+        waist_m [3,3] or per row [R,3,3]; anchor (the tracked head joint) [3] or [R,3]. Writes the
+        scratch rows _local, _world, _pos."""
+        p = self.p
+        R = len(rot6d)
+        loc, W, P = p._local[:R], p._world[:R], p._pos[:R]
+        loc[:, 0] = waist_m
+        quat.matrix_from_6d(rot6d.reshape(R, NUM_PREDICTED, 6), out=loc[:, 1:])
+        if seg_flag is not None and seg_flag.any():
+            fk_with_segments(loc, W, P, seg_m, seg_flag)
+        else:
+            fk(loc, p._zero3, out=(W, P))
+        P += anchor[..., None, :] - P[:, HEAD:HEAD + 1]
+
+    def foot_goals(self, N):
+        """Update the N samples' foot-contact locks from the decoder's contacts and the FK ankles; each
+        sample's foot goal (in _targets) is where its lock draws the ankle, so the leg IK runs at weight 1.
+        Returns (goals [N,2,3], lock weights [N,2])."""
+        p = self.p
+        goal, pos = p._targets[:N], p._pos
+        toe_drop = (p._world[:N, ANKLES] @ p._toe_offsets)[..., 1, 0]   # for the locks' floor snap
+        lock, w = p.feet.update(p.decoder.contacts[:N], pos[:N, ANKLES], toe_drop)
+        ankle = pos[:N, ANKLES]
+        np.subtract(lock, ankle, out=goal)
+        goal *= w[..., None]
+        goal += ankle
+        p._weights[:N] = 1.0
+        return goal, w
+
+    def post(self, rows, wrists, hand_m, head_m):
+        """Leg IK to the foot locks and arm IK to the controllers in one batched call, head to the headset.
+
+        The legs' goals are lifted where an ankle or a toe would be under the floor (edge.physics;
+        how far goes to _floor_lift), so foot IK never puts a foot into the floor, and a lock holds
+        the foot on it, not under it. wrists [2,3], hand_m [2,3,3], head_m [3,3], or the same per row.
+        Updates rotations and positions in place (the IK moves knees, ankles, toes, elbows and wrists).
+        """
+        p = self.p
+        if not (p.foot_ik or p.arm_ik):
+            return
+        loc, W, P = p._local[:rows], p._world[:rows], p._pos[:rows]
+        tgt, wts, ends = p._limb_targets[:rows], p._limb_weights[:rows], p._limb_ends[:rows]
+        tgt[:, :2] = p._targets[:rows]
+        tgt[:, 2:] = wrists
+        wts[:, :2] = p._weights[:rows] if p.foot_ik else 0.0
+        if p.foot_ik:               # the effective leg goals, lifted clear of the floor, at weight 1
+            ankle = P[:, ANKLES]
+            tgt[:, :2] = ankle + wts[:, :2, None] * (tgt[:, :2] - ankle)
+            lift = floor_lift(tgt[:, :2, 1], (W[:, ANKLES] @ p._toe_offsets)[..., 1, 0])
+            tgt[:, :2, 1] += lift
+            wts[:, :2] = 1.0
+            p._floor_lift[:rows] = lift
+        ends[:, :2] = W[:, ANKLES]
+        ends[:, 2:] = hand_m if p.arm_ik else W[:, LIMB_CHAINS[2:, 2]]
+        apply_limb_ik(loc, W, P, PARENTS, LIMB_CHAINS, tgt, wts, LIMB_POLES, ends, OFFSETS)
+        P[:, TOES] = P[:, ANKLES] + (W[:, ANKLES] @ p._toe_offsets)[..., 0]
+        if p.arm_ik:
+            W[:, HEAD] = head_m
+            loc[:, HEAD] = np.swapaxes(W[:, NECK], -1, -2) @ head_m
+
+
+class CompiledFrame:
+    """The frame the board runs: five C calls (edge/native/postproc.c) around the two ONNX Runtime
+    calls, each bit-identical to NumpyFrame's stages up to float rounding (tests/test_native.py).
+    The addresses they use are found once here: the skeleton, the scratch rows, FootLock's state,
+    the ring buffer, the output pose and the decoder's buffers (native.CoreContext)."""
+
+    def __init__(self, pipe, lib):
+        self.p, self.lib = pipe, lib
+        p, N, b = pipe, pipe.max_samples, pipe.buffer
+        # Arrays the C calls read by address; held here so they live as long as the pipeline.
+        self._c = {"parents": np.ascontiguousarray(PARENTS, np.int64), "offsets": OFFSETS,
+                   "chains": np.ascontiguousarray(LIMB_CHAINS, np.int64), "poles": LIMB_POLES,
+                   "ankles": np.ascontiguousarray(ANKLES, np.int64), "imu_joints": np.ascontiguousarray(IMU_JOINTS, np.int64)}
+        a = self.addr = {k: native.addr(v) for k, v in self._c.items()}
+        for k in ("_local", "_world", "_pos", "_targets", "_weights", "_floor_lift"):
+            a[k] = native.addr(getattr(p, k))
+        for k in ("lock_pos", "locked", "raw", "since_release", "weight"):     # FootLock's state
+            a[k] = native.addr(getattr(p.feet, k))
+        self._frame_offsets = np.concatenate([EYE_OFFSET[None], GRIP_OFFSET, (PELVIS_TO_HEAD * p.body_scale)[None]])
+        self._prev = np.zeros((4, 3))
+        a["_frame_in"], a["_frame_offsets"], a["_prev"] = (native.addr(x) for x in (p._frame_in, self._frame_offsets,
+                                                                                     self._prev))
+        # The SSI decision reads ring-buffer slot s's costs: (base address, bytes per slot).
+        self._cost_addr = (native.addr(b.cost), b.cost.strides[0])
+        self._emit_world = np.zeros((NUM_JOINTS, 3, 3))
+        # The same call fills the plausibility scorer's autoencoder input when the default criterion is there.
+        ae = p.scorer.buffers() if any(isinstance(c, Plausibility) and c.scorer is p.scorer
+                                       for c in p.criteria.criteria) else None
+        p._ae_ready = p.scorer if ae else None
+        f, out = p.feet, p.out
+        ring = {f"ring_{k}": native.addr(getattr(b, v)) for k, v in (
+            ("waist", "waist_m"), ("anchor", "anchor"), ("wrists", "wrists"), ("hand", "hand_m"), ("head", "head_m"),
+            ("rot6d", "rot6d"), ("contacts", "contacts"), ("goal", "leg_goal"), ("weight", "leg_weight"),
+            ("lock_weight", "lock_weight"), ("features", "features"), ("hidden", "hidden_in"))}
+        ctx = native.CoreContext(
+            J=NUM_JOINTS, head=HEAD, neck=NECK, foot_ik=int(p.foot_ik), arm_ik=int(p.arm_ik),
+            parents=a["parents"], chains=a["chains"], ankles=a["ankles"], offsets=a["offsets"], poles=a["poles"],
+            release_frames=f.release_frames, max_slip=f.max_slip, lock_pos=a["lock_pos"], since=a["since_release"],
+            lock_weight=a["weight"], locked=a["locked"], raw=a["raw"], goals=a["_targets"], weights=a["_weights"],
+            ring_rows=N + 1, hidden=b.hidden_in.shape[2], **ring,
+            out_local=native.addr(out.rotations), out_world=native.addr(self._emit_world),
+            out_pos=native.addr(out.positions), out_contacts=native.addr(out.contacts),
+            frame_in=a["_frame_in"], frame_offsets=a["_frame_offsets"], prev=a["_prev"], fps=p.fps,
+            n_features=p.n_features, imus=p.imus, floor_lift=a["_floor_lift"],
+            ring_seg_m=native.addr(b.seg_m), ring_seg_flag=native.addr(b.seg_flag), imu_joints=a["imu_joints"],
+            segments=int(p.segments),
+            **(dict(zip(("ae_in", "ae_local", "ae_root_local"), ae)) if ae else {}))
+        self.core = ctypes.pointer(ctx)
+        self.bind_decoder(p.decoder)
+
+    def reset(self):
+        self.first = True           # the first frame's velocity is zero: prev = points
+
+    def bind_decoder(self, dec):
+        ctx = self.core.contents
+        self.addr["rot6d"], self.addr["contacts"] = native.addr(dec.rot6d), native.addr(dec.contacts)
+        ctx.rot6d, ctx.contacts, ctx.rot6d_stride = self.addr["rot6d"], self.addr["contacts"], dec.rot6d.shape[1]
+        ctx.dec_features, ctx.dec_rows = native.addr(dec.features), dec.capacity
+        self._hidden_addr = [native.addr(h) for h in dec.hidden]
+
+    def sane(self):
+        return bool(self.lib.ep_frame_sane(self.addr["_frame_in"], len(self.p._frame_in), POSITION_LIMIT_M))
+
+    def inputs(self, sig, s):
+        """ep_frame_inputs: features and tracker matrices into ring slot s and the decoder (the frame's
+        signals are already in the pipeline's _frame_in)."""
+        self.lib.ep_frame_inputs(self.core, s, self.first)
+        self.first = False
+
+    def finite(self, dec):
+        lib, R = self.lib, dec.rows
+        return bool(lib.ep_all_finite_f32(self._hidden_addr[dec._cur], R * dec.state.shape[1])
+                    and lib.ep_all_finite_f32(self.addr["rot6d"], R * dec.rot6d.shape[1]))
+
+    def poses(self, s, rows, N, blend, keep_world):
+        """ep_frame_poses: FK, foot locks, the blend, IK and the ring copies of NumpyFrame.poses in one call."""
+        self.lib.ep_frame_poses(self.core, s, rows, N, *(blend if blend is not None else (0, 0, 0.0)),
+                                self.addr["_world"] if keep_world else None, self.addr["_pos"],
+                                self._hidden_addr[self.p.decoder.last_read])
+
+    def switch_to(self, s, c, margin):
+        """ep_switch_to: edge.ssi.switch_to on ring slot s's costs."""
+        c0, cs = self._cost_addr
+        return self.lib.ep_switch_to(self.p.samples, c0 + s * cs, c, margin)
+
+    def emit(self, s, row, out):
+        """ep_emit: the row's pose made again into the output Pose (the core knows its arrays)."""
+        self.lib.ep_emit(self.core, s, row)

@@ -36,13 +36,11 @@ misses and N before, during and after the hog, every change of N and each frame'
 A frame whose deadline passed before it could start is skipped and counted as a miss, as `edge run`
 does (it resynchronises instead of bursting).
 
-Stage timings: `sync`, `pipeline_step` and `output_encoding` are measured in the paced loop (wall time,
-every frame). The stages inside Pipeline.step (features, decoder, FK, IK, autoencoder, selection,
-transition recompute) are micro-timed after the run on the pipeline's own objects and methods, in
-thread CPU time (so a throttled period does not count), with the same N: features via
-edge.features, `pipe.decoder.step()`, `pipe._forward`, the foot locks plus `pipe._post`,
-`pipe.scorer.lower_body_error` on the N samples, the SSI outlier test / best-other choice plus
-`pipe._emit`, and `pipe._recompute_transition` (the occasional batched re-run when SSI switches).
+Stage timings, every measured frame, from the live code itself: `sync`, `pipeline_step` and
+`output_encoding` are the board service's own tick (Service.tick_marks, wall time), fed through
+sim:// sources by its own links; the stages inside Pipeline.step (features, decoder, poses,
+criteria, selection, emit) are the live step's own stamps (Pipeline.timing, thread CPU time, so a
+throttled period does not count). The loop is paced by the service's Pacer.
 """
 import json
 import os
@@ -170,30 +168,44 @@ class CpuLimit:
 # ---------------------------------------------------------------------------------------------- worker
 
 class Feeder:
-    """The bundled sample's tracker signals, looped, as the sources would deliver them, through the
-    board's FrameSynchronizer (one headset report and one waist IMU sample per frame)."""
+    """The bundled sample's tracker signals, looped, queued on the simulator's bench as the board's
+    sources would deliver them (sim://feed): one headset report and one waist IMU sample per frame.
+    The service reads them through its own links, synchroniser and calibration."""
 
-    def __init__(self, hz):
+    def __init__(self, hz, bench):
         import numpy as np
+        from edgetools.sim import scheme
         from edgetools.takes import from_sample
         from firmware_bridge.samples import HeadsetSample, TrackerSample
-        from firmware_bridge.sync import FrameSynchronizer
         take = from_sample(SAMPLE)
         s = take.signals
-        self.T, self.hz = take.frames, hz
+        self.T, self.hz, self.now = take.frames, hz, 0.0
         self.headset = [HeadsetSample(0.0, s.head_pos[i], s.head_rot[i], s.hand_pos[i], s.hand_rot[i],
                                       np.ones(2, bool)) for i in range(self.T)]
         self.waist = [TrackerSample("waist", 0.0, s.waist_rot[i]) for i in range(self.T)]
-        self.sync = FrameSynchronizer(trackers=("waist",))
+        self.queues = {}
+        for name in ("headset", "waist"):
+            device = scheme.BenchDevice(clock=lambda: self.now)
+            scheme.BENCH[f"{bench}-{name}"] = device
+            self.queues[name] = device.queue
+        self.bench = bench
+
+    def urls(self):
+        return f"sim://feed/{self.bench}-headset", f"sim://feed/{self.bench}-waist?tracker=waist"
 
     def frame(self, k):
-        t = k / self.hz
+        """Queue frame k's samples; returns its time on the service's clock (k / hz)."""
+        t = self.now = k / self.hz
         h, w = self.headset[k % self.T], self.waist[k % self.T]
         h.t = w.t = t
-        self.sync.add_headset(h, received=t)
-        self.sync.add_tracker(w, received=t)
-        sig, _ = self.sync.frame(t)
-        return sig
+        self.queues["headset"].append(h)
+        self.queues["waist"].append(w)
+        return t
+
+    def close(self):
+        from edgetools.sim import scheme
+        for name in ("headset", "waist"):
+            scheme.BENCH.pop(f"{self.bench}-{name}", None)
 
 
 def _pct(a):
@@ -204,25 +216,6 @@ def _pct(a):
         return {"p50": None, "p99": None, "max": None}
     return {"p50": round(float(np.median(a)), 4), "p99": round(float(np.percentile(a, 99)), 4),
             "max": round(float(a.max()), 4)}
-
-
-class Encoder:
-    def __init__(self, samples):
-        import numpy as np
-        from edge import quat
-        from firmware_bridge.wire import messages
-        self.messages, self.quat = messages, quat
-        self.frame = messages.PoseFrame(0.0, np.zeros(3), np.tile([1.0, 0, 0, 0], (21, 1)), np.zeros(2),
-                                        num_samples=samples)
-        self.seq = 0
-
-    def __call__(self, pose, t):
-        p = self.frame
-        p.t, p.root_pos, p.contacts = t, pose.positions[0], pose.contacts
-        p.rotations = self.quat.from_matrix(pose.rotations)
-        p.ssi_flags = self.messages.SSI_IN_TRANSITION if pose.transition else 0
-        self.seq = (self.seq + 1) & 0xFFFF
-        return self.messages.encode_pose_frame(p, self.seq)
 
 
 class Hog:
@@ -257,89 +250,108 @@ class Hog:
             p.wait()
 
 
-def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None):
-    """Real-time frames at cfg['hz'] through sync -> Pipeline.step -> encoding. Returns (stats, pipeline, feeder).
+def board_service(cfg, samples, feeder):
+    """The board's Service on the feeder's sim:// sources, as `edge run` builds it (no adaptive N:
+    the profiler steers N itself from the release-to-done times)."""
+    from firmware_bridge import config as config_mod
+    from firmware_bridge.service import Service
+    headset, waist = feeder.urls()
+    runtime = {"samples": samples, "adaptive": False, "precision": cfg["precision"], "hz": cfg["hz"]}
+    if cfg.get("models"):
+        runtime["models"] = cfg["models"]
+    board = config_mod.from_dict({"headset": {"url": headset}, "trackers": [{"url": waist}],
+                                  "output": {"pose_stream": "headset"}, "runtime": runtime}, "edge profile")
+    return Service(board, clock=lambda: feeder.now, status=None)
+
+
+def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None):  # noqa: C901
+    """Real-time frames at cfg['hz'] through the board service's tick (sources -> sync -> calibration ->
+    Pipeline.step -> POSE_FRAME), paced by the service's Pacer. Returns (stats, pipeline).
 
     adaptive: edge.governor picks N after every frame (samples is the largest). hog: (first frame,
     frames, processes) of a CPU hog during the measured frames."""
     import numpy as np
     from edge.governor import SampleGovernor
-    from edge.pipeline import Pipeline
+    from edge.pipeline import STAGES
     from edge.progress import Progress
+    from firmware_bridge.service import Pacer
     hz = cfg["hz"]
     period = 1.0 / hz
-    feeder = Feeder(hz)
-    pipe = Pipeline(cfg["models"], samples=samples, fps=hz, precision=cfg["precision"])
-    enc = Encoder(samples)
+    feeder = Feeder(hz, f"profile{os.getpid()}-{samples}-{frames}")
+    service = board_service(cfg, samples, feeder)
+    pipe = service.pipeline
     hog_proc = Hog(hog[2], cfg.get("cgroup_root")) if hog else None
+    clock, cpu_clock = time.perf_counter, time.thread_time
+    pacer = Pacer(hz, clock)
+
+    def tick(k):
+        service.step(feeder.frame(k))        # poll the sources, then tick
+
     try:
-        clock, cpu_clock = time.perf_counter, time.thread_time
         warm = 60                                             # one second, paced like the run, not counted
-        t0 = clock() + 0.01
+        pacer.start()
         for k in range(warm):
-            now = clock()
-            if now < t0 + k * period:
-                time.sleep(t0 + k * period - now)
-            pose = pipe.step(feeder.frame(k))
-            if pose is not None:
-                enc(pose, k / hz)
-        resp, comp, cpu = np.empty(frames), np.empty(frames), np.empty(frames)
-        st = {"sync": np.empty(frames), "pipeline_step": np.empty(frames), "output_encoding": np.zeros(frames)}
+            pacer.wait()
+            tick(k)
+        resp, comp, cpu = (np.full(frames, np.nan) for _ in range(3))
+        st = {k: np.full(frames, np.nan) for k in ("sync", "pipeline_step", "output_encoding")}
+        stage_cpu = np.full((frames, len(STAGES)), np.nan)
         live_n = np.empty(frames, np.int32)
         governor = SampleGovernor(1000.0 * period, samples) if adaptive else None
         misses = late_starts = skipped = 0
-        t0 += warm * period
+        pipe.timing = True
+        marks, stage_ns = service.tick_marks, pipe.stage_ns
         with Progress(frames, bar_desc) as bar:
-            for i in range(frames):
+            i = 0
+            while i < frames:
                 if hog_proc and i == hog[0]:
                     hog_proc.start()
                 elif hog_proc and i == hog[0] + hog[1]:
                     hog_proc.stop()
-                k = warm + i
-                release = t0 + i * period
-                now = clock()
-                skip = now >= release + period
-                if now < release:
-                    time.sleep(release - now)
-                elif not skip:
-                    late_starts += 1 if now > release + 0.001 else 0
-                live_n[i] = pipe.samples
-                if skip:
-                    # Its deadline passed before it could start: skipped and missed, as `edge run` does
-                    # (a late service resynchronises to the next tick instead of bursting).
+                release, late = pacer.wait()
+                for j in range(i, min(i + late, frames)):
+                    # Their deadline passed before they could start: skipped and missed, as `edge run`
+                    # does (a late service resynchronises to the next tick instead of bursting).
+                    live_n[j] = pipe.samples
+                    resp[j] = clock() - (release - (i + late - j) * period)
                     skipped += 1
-                    resp[i], comp[i], cpu[i] = now - release, np.nan, np.nan
-                    for v in st.values():
-                        v[i] = np.nan
-                else:
-                    a, ca = clock(), cpu_clock()
-                    sig = feeder.frame(k)
-                    b = clock()
-                    pose = pipe.step(sig)
-                    c = clock()
-                    if pose is not None:
-                        enc(pose, k / hz)
-                    d, cd = clock(), cpu_clock()
-                    st["sync"][i], st["pipeline_step"][i], st["output_encoding"][i] = b - a, c - b, d - c
-                    resp[i], comp[i], cpu[i] = d - release, d - a, cd - ca
-                misses += 1 if skip or resp[i] > period else 0
+                    misses += 1
+                i += late
+                if i >= frames:
+                    break
+                now = clock()
+                late_starts += 1 if now > release + 0.001 else 0
+                live_n[i] = pipe.samples
+                ca = cpu_clock()
+                tick(warm + i)
+                d, cd = clock(), cpu_clock()
+                st["sync"][i], st["pipeline_step"][i], st["output_encoding"][i] = np.diff(marks)
+                stage_cpu[i] = np.diff(stage_ns) / 1e6
+                resp[i], comp[i], cpu[i] = d - release, d - now, cd - ca
+                misses += 1 if resp[i] > period else 0
                 if governor is not None:
                     governor.steer(pipe, resp[i] * 1e3)
                 if i % 30 == 29 or i == frames - 1:
                     # cheap on purpose: this runs inside the measured process between frames
                     bar.update(30 if i % 30 == 29 else (i % 30) + 1,
                                postfix=f"N={pipe.samples} last {resp[i] * 1e3:.2f} ms misses {misses}")
+                i += 1
+        pipe.timing = False
     finally:                 # never leave busy processes behind, whatever happened
         if hog_proc:
             hog_proc.reap()
+        service.close()
+        feeder.close()
     ms = lambda x: x * 1e3  # noqa: E731
     stats = {"samples": samples, "frames": frames, "deadline_misses": misses, "late_starts": late_starts,
              "skipped_frames": skipped,
              "frame_ms": _pct(ms(resp)), "compute_ms": _pct(ms(comp)), "cpu_ms": _pct(ms(cpu)),
-             "stages_in_loop_ms": {k: _pct(ms(v)) for k, v in st.items()}, "ssi_switches": pipe.switch_count}
+             "stages_in_loop_ms": {k: _pct(ms(v)) for k, v in st.items()},
+             "stages_cpu_ms": {name: _pct(stage_cpu[:, k]) for k, name in enumerate(STAGES)},
+             "ssi_switches": pipe.switch_count}
     if adaptive or hog:
         stats["contention"] = contention_report(resp, live_n, period, hog, governor)
-    return stats, pipe, feeder
+    return stats, pipe
 
 
 def contention_report(resp, live_n, period, hog, governor):
@@ -370,59 +382,6 @@ def contention_report(resp, live_n, period, hog, governor):
     return out
 
 
-def micro_stages(pipe, feeder, reps=300):
-    """CPU time (ms) of the stages inside Pipeline.step, on the pipeline's own objects after a run."""
-    import numpy as np
-    from edge.features import body_points, features, heading
-    from edge.pipeline import best_other, is_outlier
-    N, b, dec = pipe.samples, pipe.buffer, pipe.decoder
-    sig = feeder.frame(10**6)
-    s = b.slot(pipe.t)
-
-    def timed(fn):
-        out = np.empty(reps)
-        for i in range(reps):
-            c0 = time.thread_time_ns()
-            fn()
-            out[i] = time.thread_time_ns() - c0
-        return _pct(out / 1e6)
-
-    def feat():
-        if pipe.native:
-            pipe._frame_inputs_native(sig)
-            return
-        pts, wr = body_points(sig, pipe.body_scale)
-        features(pts[0], pts[0], heading(wr[0]), pipe.fps)
-
-    def ik():
-        if pipe.foot_ik:
-            pipe._foot_goals(N)
-        pipe._post(N, b.wrists[s], b.hand_m[s], b.head_m[s])
-
-    def selection():
-        if N > 1 and pipe.native:            # the live decision: ep_switch_to on the slot's costs
-            c0, cs = pipe._cost_addr
-            pipe.native.ep_switch_to(N, c0 + s * cs, pipe.current, pipe.switch_margin)
-        elif N > 1:
-            cost = b.cost[s].copy()
-            if is_outlier(cost, pipe.current):
-                best_other(cost, pipe.current)
-        pipe._emit(max(pipe.t - pipe.lookahead, 0))
-
-    out = {"features": timed(feat), "decoder": timed(dec.step),
-           "fk": timed(lambda: pipe._forward(dec.rot6d[:N], b.waist_m[s], b.anchor[s])), "ik": timed(ik)}
-    if N > 1:
-        out["autoencoder"] = timed(lambda: pipe.scorer.lower_body_error(pipe._pos[:N], pipe._world[:N, 0]))
-    else:
-        out["autoencoder"] = None      # N = 1 judges nothing: the autoencoder does not run per frame
-    out["selection"] = timed(selection)
-    if N > 1 and pipe.lookahead > 0:
-        t = pipe.t
-        s0 = max(t - pipe.lookahead, 0)
-        out["transition_recompute"] = timed(lambda: pipe._recompute_transition(0, 1, s0, pipe.transition, t))
-    return out
-
-
 def worker(cfg):
     import numpy as np  # noqa: F401  (imported before the clock starts)
     hz = cfg["hz"]
@@ -445,7 +404,7 @@ def worker(cfg):
         best = None
         for n in [n for n in LADDER if n <= cfg["max_samples"]]:
             for attempt in range(2):          # a failed probe is repeated once: one busy second is not a verdict
-                st, _, _ = paced_run(cfg, n, cfg["probe_frames"], f"probe N={n:<3d}")
+                st, _ = paced_run(cfg, n, cfg["probe_frames"], f"probe N={n:<3d}")
                 st["fits"] = fits(st)
                 probes.append({k: st[k] for k in ("samples", "frames", "deadline_misses", "frame_ms", "cpu_ms", "fits")})
                 if st["fits"]:
@@ -462,7 +421,7 @@ def worker(cfg):
         hog = (int(round(cfg["hog_at"] * hz)), int(round(cfg["hog_seconds"] * hz)), cfg["hog_procs"])
     adaptive = bool(cfg.get("adaptive"))
     while True:
-        st, pipe, feeder = paced_run(cfg, chosen, cfg["frames"], f"run N={chosen:<3d}", adaptive, hog)
+        st, pipe = paced_run(cfg, chosen, cfg["frames"], f"run N={chosen:<3d}", adaptive, hog)
         attempts.append({k: st[k] for k in ("samples", "frames", "deadline_misses", "frame_ms", "cpu_ms")})
         # Adaptive or contended runs are reported as they went: stepping down would hide the verdict.
         if (st["deadline_misses"] == 0 or cfg["samples"] != "auto" or chosen == 1 or len(attempts) >= 3
@@ -471,7 +430,7 @@ def worker(cfg):
         chosen = max(n for n in LADDER if n < chosen)
     stages = {"sync": st["stages_in_loop_ms"]["sync"], "pipeline_step": st["stages_in_loop_ms"]["pipeline_step"],
               "output_encoding": st["stages_in_loop_ms"]["output_encoding"]}
-    stages.update(micro_stages(pipe, feeder))
+    stages.update(st["stages_cpu_ms"])
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     with open("/proc/self/statm") as f:
         rss_now = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
@@ -486,20 +445,18 @@ def worker(cfg):
 
 
 STAGE_METHODS = {
-    "sync": "in the paced loop, wall time: FrameSynchronizer.add_headset/add_tracker + frame(t)",
-    "pipeline_step": "in the paced loop, wall time: Pipeline.step as a whole",
-    "output_encoding": "in the paced loop, wall time: quat.from_matrix + messages.encode_pose_frame",
-    "features": "micro-timed after the run, thread CPU time: edge.features.body_points + features "
-                "(Pipeline._frame_inputs_native with the compiled core)",
-    "decoder": "micro-timed, thread CPU time: pipe.decoder.step() (N+1 rows, IOBinding)",
-    "fk": "micro-timed, thread CPU time: pipe._forward (6D -> matrices, FK, hang from the head); the live frame "
-          "runs FK, foot locks and IK in one call (ep_frame_poses), so fk + ik overstate it a little",
-    "ik": "micro-timed, thread CPU time: pipe._foot_goals + pipe._post (foot locks, batched leg+arm IK)",
-    "autoencoder": "micro-timed, thread CPU time: pipe.scorer.lower_body_error on pipe._pos[:N] (N>1 only; "
-                   "the live frame prepares the autoencoder's input inside ep_frame_poses)",
-    "selection": "micro-timed, thread CPU time: the SSI outlier test / best-other choice (ep_switch_to with the "
-                 "compiled core) + pipe._emit (the shown row's pose made again from the ring)",
-    "transition_recompute": "micro-timed, thread CPU time: pipe._recompute_transition (only on an SSI switch)",
+    "sync": "every frame, wall time: Service.tick's FrameSynchronizer.frame (the sources were read by Service.poll)",
+    "pipeline_step": "every frame, wall time: Service.tick's calibration + Pipeline.step as a whole",
+    "output_encoding": "every frame, wall time: Service._emit (quat.from_matrix + POSE_FRAME encoding and send)",
+    "features": "every frame, thread CPU time, inside the live Pipeline.step (pipe.timing): the frame's inputs "
+                "(ep_frame_inputs with the compiled core)",
+    "decoder": "inside the live step: the decoder's ONNX Runtime call (N+1 rows, IOBinding) and its finite check",
+    "poses": "inside the live step: FK, foot locks, IK and the ring copies of every row (ep_frame_poses)",
+    "criteria": "inside the live step: the selection cost of the N samples (autoencoder and physical plausibility; "
+                "N>1 only)",
+    "selection": "inside the live step: the SSI decision (ep_switch_to) and, on a switch, the batched "
+                 "transition recompute",
+    "emit": "inside the live step: the shown row's pose made again from the ring (ep_emit)",
 }
 
 

@@ -3,7 +3,7 @@ import numpy as np
 
 from edge import quat
 from edge.criteria import CollisionAvoid, Composite, FrameContext, SensorAgreement, TargetHit
-from edge.pipeline import best_other, is_outlier
+from edge.ssi import best_other, is_outlier
 from edge.skeleton import JOINT, NUM_JOINTS
 
 

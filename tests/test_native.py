@@ -8,7 +8,7 @@ import pytest
 
 from edge import native, quat
 from edge.inference import Autoencoder, open_models
-from edge.pipeline import LIMB_CHAINS, Pipeline
+from edge.pipeline import LIMB_CHAINS, LIMB_POLES, Pipeline
 from edge.plausibility import PlausibilityScorer
 from edge.skeleton import ANKLES, HEAD, JOINT, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, fk
 from edgetools.takes import from_sample
@@ -75,12 +75,22 @@ def test_limb_ik_matches_numpy_on_reachable_unreachable_and_straight_chains():
     weights[4:6] = 0.0
     hand_m, head_m = random_rotations((R, 2), 6), random_rotations((R,), 7)
     results = []
-    for use_native in (False, True):       # Pipeline._post: legs to foot goals, arms onto controllers, head
-        pipe = Pipeline(samples=R, use_native=use_native)
-        pipe._local[:R], pipe._world[:R], pipe._pos[:R] = loc, W, P
-        pipe._targets[:R], pipe._weights[:R] = targets[:, :2], weights
-        pipe._post(R, targets[:, 2:].copy(), hand_m, head_m)
-        results.append([x[:R].copy() for x in (pipe._local, pipe._world, pipe._pos)])
+    # NumpyFrame.post: legs to foot goals, arms onto controllers, head; and ep_post, its C form.
+    pipe = Pipeline(samples=R, use_native=False)
+    pipe._local[:R], pipe._world[:R], pipe._pos[:R] = loc, W, P
+    pipe._targets[:R], pipe._weights[:R] = targets[:, :2], weights
+    pipe.reference.post(R, targets[:, 2:].copy(), hand_m, head_m)
+    results.append([x[:R].copy() for x in (pipe._local, pipe._world, pipe._pos)])
+    cl, cw, cp = loc.copy(), W.copy(), P.copy()
+    goals, goal_w = np.ascontiguousarray(targets[:, :2]), np.ascontiguousarray(weights)
+    wrists = np.ascontiguousarray(targets[:, 2:])     # held: C reads it by address
+    wr, wr_s = native.rows(wrists, 2)
+    hm, hm_s = native.rows(hand_m, 3)
+    hd, hd_s = native.rows(head_m, 2)
+    chains, lift = np.ascontiguousarray(LIMB_CHAINS, np.int64), np.zeros((R, 2))
+    lib.ep_post(R, NUM_JOINTS, A(P64), A(OFFSETS), A(chains), A(LIMB_POLES), A(goals), A(goal_w), 1, 1,
+                wr, wr_s, hm, hm_s, hd, hd_s, JOINT["neck"], HEAD, A(cl), A(cw), A(cp), A(lift))
+    results.append([cl, cw, cp])
     # A straight chain puts acos at +-1, where 1e-16 differences in its argument become 1e-8 in angle.
     for r, g in zip(*results):
         np.testing.assert_allclose(g[8:], r[8:], rtol=0, atol=1e-10)
@@ -178,6 +188,23 @@ def test_foot_locks_match_numpy_through_contacts_releases_and_slips():
     assert ref.locked.any() and (~ref.locked).any()
 
 
+def frame_inputs(pipe, sig, first, state={}):
+    """ep_frame_features and ep_imu_features (the first half of ep_frame_inputs) on one frame ->
+    (body points [4,3], features [n_features] float32, matrices [4,3,3]: waist, hands, head)."""
+    if first:
+        state.update(points=np.zeros((4, 3)), prev=np.zeros((4, 3)), feat=np.zeros(pipe.n_features, np.float32),
+                     mats=np.zeros((4, 3, 3)))
+    pipe._load_frame_in(sig)
+    pts, prev, feat, mats = state["points"], state["prev"], state["feat"], state["mats"]
+    lib.ep_frame_features(A(pipe._frame_in), A(pipe.path._frame_offsets), A(pts if first else prev), pipe.fps,
+                          A(pts), A(feat), A(mats))
+    if pipe.imus:
+        lib.ep_imu_features(pipe.imus, A(pipe._in["imu_rot"]), A(pipe._in["imu_flag"]), A(pipe._in["waist_rot"]),
+                            feat.ctypes.data + 4 * 24)
+    np.copyto(prev, pts)
+    return pts, feat, mats
+
+
 def test_frame_features_are_bit_identical_to_the_numpy_features_training_used():
     from edge.features import body_points, features, heading, imu_features
     take = from_sample(SAMPLE)
@@ -194,14 +221,14 @@ def test_frame_features_are_bit_identical_to_the_numpy_features_training_used():
         want = want.astype(np.float32)
         prev = points
         q = np.stack([waist_rot, *sig.hand_rot[0], sig.head_rot[0]])
-        got_points, got, mats = pipe._frame_inputs_native(sig)
+        got_points, got, mats = frame_inputs(pipe, sig, first=t == 0)
         assert np.array_equal(got, want), t
         assert np.array_equal(got_points, points)
         assert np.array_equal(mats, quat.to_matrix(q))
 
 
 def test_switch_decision_matches_is_outlier_and_best_other():
-    from edge.pipeline import best_other, is_outlier
+    from edge.ssi import best_other, is_outlier
     rng = np.random.default_rng(11)
     for trial in range(3000):
         N = int(rng.integers(2, 129))

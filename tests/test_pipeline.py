@@ -188,8 +188,8 @@ def test_a_live_transition_keeps_its_source_sample_running_until_its_last_frame(
 
 
 def test_switch_history_is_bounded_for_long_runs_but_every_switch_is_counted(take, monkeypatch):
-    import edge.pipeline as pipeline_mod
-    monkeypatch.setattr(pipeline_mod, "SWITCH_HISTORY", 5)
+    import edge.ssi as ssi_mod
+    monkeypatch.setattr(ssi_mod, "SWITCH_HISTORY", 5)
 
     class CurrentIsWorst:          # makes the shown sample an outlier on every frame
         name, weight = "worst", 1.0

@@ -10,7 +10,7 @@ from edgetools import profile
 
 KEYS = ("stages", "frame_ms", "deadline_misses", "rss_mb", "cpu_quota", "quota_enforced", "chosen_samples",
         "stage_methods", "budget")
-STAGES = ("sync", "features", "decoder", "fk", "ik", "autoencoder", "selection", "output_encoding")
+STAGES = ("sync", "pipeline_step", "features", "decoder", "poses", "criteria", "selection", "emit", "output_encoding")
 
 
 def run(tmp_path, *argv):

@@ -158,7 +158,7 @@ def latency_histogram(samples_ms, path, budget_ms=FRAME_BUDGET_MS, title="Frame 
 
 
 def outlier_bound(cost):
-    """The cost above which the current sample counts as an outlier (edge.pipeline.is_outlier):
+    """The cost above which the current sample counts as an outlier (edge.ssi.is_outlier):
     min + 2 (median - min) over the samples, per frame. cost [T,N] -> [T]."""
     lo = cost.min(axis=1)
     return lo + 2.0 * (np.median(cost, axis=1) - lo)

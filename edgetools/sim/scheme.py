@@ -2,6 +2,8 @@
 
     sim://i2c/waist-puck?tracker=waist&rate=100      a BNO055Source on the bench's register-level fake
     sim://slimevr/trackers?trackers=MAC/0:l_foot      a SlimeVRSource on loopback, on the bench's clock
+    sim://feed/profile-headset                        samples the bench queues, as decoded (edge profile);
+    sim://feed/profile-waist?tracker=waist            pose frames sent to it are encoded and counted
 
 The simulator puts its devices on the bench (`BENCH[name] = BenchDevice(...)`) before the service
 starts; the path names one. The real transport code reads them (the i2c driver with its retries and
@@ -9,11 +11,13 @@ backoff, the SlimeVR server side), with the simulator's clock so `--speed max` r
 Registered with the transports when this module is imported.
 """
 import time
-from dataclasses import dataclass
+from collections import deque
+from dataclasses import dataclass, field
 from typing import Any, Callable
 
 from firmware_bridge.transports import i2c, slimevr
-from firmware_bridge.transports.base import TransportError, register_scheme
+from firmware_bridge.transports.base import Source, TransportError, register_scheme
+from firmware_bridge.wire.messages import encode_pose_frame
 
 BENCH = {}
 
@@ -26,6 +30,31 @@ class BenchDevice:
     clock: Callable = time.monotonic
     sleep: Callable = time.sleep
     on_open: Callable = None
+    queue: deque = field(default_factory=deque)      # sim://feed: the samples it will yield
+
+
+class FeedSource(Source):
+    """sim://feed: the samples the bench queued, in order, as a transport would have decoded them;
+    and the pose stream's far end (send_pose encodes each frame with the real encoder)."""
+
+    def __init__(self, url, device):
+        super().__init__(device.clock)
+        self.url, self.queue = url, device.queue
+        self.stats["sent"] = self.stats["sent_bytes"] = 0
+        self._seq = 0
+
+    def _recv_internal(self, timeout):
+        if self.queue:
+            self.stats["frames"] += 1
+            return self.queue.popleft()
+        return None
+
+    def send_pose(self, frame):
+        data = encode_pose_frame(frame, self._seq)
+        self._seq = (self._seq + 1) & 0xFFFF
+        self.stats["sent"] += 1
+        self.stats["sent_bytes"] += len(data)
+        return True
 
 
 def _device(url, path):
@@ -37,7 +66,9 @@ def _device(url, path):
 
 
 def tracker_names(parsed):
-    kind = parsed[1]
+    kind, query = parsed[1], parsed[3]
+    if kind == "feed":
+        return [query["tracker"]] if "tracker" in query else []
     return (i2c.tracker_names if kind == "i2c" else slimevr.tracker_names)(parsed)
 
 
@@ -48,8 +79,10 @@ def open(url, parsed, **_):
         source = i2c.open_on_bus(url, ("i2c", "sim", "", query), device.bus, clock=device.clock, sleep=device.sleep)
     elif kind == "slimevr":
         source = slimevr.open(url, ("slimevr", "127.0.0.1:0", "", query), clock=device.clock)
+    elif kind == "feed":
+        source = FeedSource(url, device)
     else:
-        raise TransportError(f"{url!r}: simulated devices are sim://i2c/NAME or sim://slimevr/NAME")
+        raise TransportError(f"{url!r}: simulated devices are sim://i2c/NAME, sim://slimevr/NAME or sim://feed/NAME")
     if device.on_open is not None:
         device.on_open(source)
     return source
