@@ -126,11 +126,11 @@ def main(argv=None):
             from edgetools.sim import record
             return record.main(args)
         if args.cmd == "replay":
-            from edgetools.sim import replay
+            from edgetools.sim import replay_cli
             if args.report:
                 from viz.canvas import require_plotting
                 require_plotting()                   # say what to install before replaying, not after
-            code = replay.main(args)
+            code = replay_cli.main(args)
             if code == 0 and args.report:
                 from viz.report import build_report
                 print(f"wrote {build_report(args.json, args.report)}")

@@ -6,7 +6,8 @@ import pytest
 
 from edgetools.takes import from_sample
 from edgetools.sim.record import CanTap, SerialTap
-from edgetools.sim.replay import CanDevice, SerialDevice, SimClock, replay
+from edgetools.sim.devices import CanDevice, SerialDevice, SimClock
+from edgetools.sim.replay import replay
 from edgetools.sim.session import FAULTS, Session, fault_profile, synthesize
 from tests.conftest import SAMPLE
 
@@ -200,7 +201,7 @@ def test_a_garbage_flood_at_the_slimevr_port_is_counted_and_the_board_keeps_stre
 
 
 def test_faults_a_recording_cannot_carry_name_the_profile_and_the_take_to_replay_instead(capsys):
-    from edgetools.sim.replay import load_source
+    from edgetools.sim.sources import load_source
     rec = str(SAMPLE).replace(".npz", ".session.npz")
     load_source(rec, ("serial", "i2c", "can"), fault_profile("disconnect"))
     err = capsys.readouterr().err

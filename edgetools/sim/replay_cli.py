@@ -1,0 +1,50 @@
+"""`edge replay`'s command: parse the source and the fault profile, replay, write the JSON, say the numbers."""
+import json
+import sys
+from pathlib import Path
+
+from edgetools.sim.replay import replay
+from edgetools.sim.session import fault_profile
+from edgetools.sim.sources import load_source
+
+
+def main(args):
+    try:
+        faults = fault_profile(args.faults)
+    except ValueError as e:
+        print(f"edge replay: {e}", file=sys.stderr)
+        return 2
+    transports = tuple(args.transport.split(","))
+    bad = set(transports) - {"serial", "i2c", "can", "slimevr"}
+    if bad:
+        print(f"edge replay: unknown transport {sorted(bad)[0]!r}; use serial, i2c, can, slimevr", file=sys.stderr)
+        return 2
+    try:
+        from edge.imus import parse_set
+        trackers = None if args.trackers is None else parse_set(args.trackers)
+        session = load_source(args.source, transports, faults, seconds=args.seconds, trackers=trackers)
+    except (OSError, ValueError) as e:
+        print(f"edge replay: cannot use {args.source}: {e}", file=sys.stderr)
+        return 2
+    samples = 32 if args.samples == "auto" else int(args.samples)
+    pose_log = open(args.pose_log, "wb") if getattr(args, "pose_log", None) else None
+    try:
+        result = replay(session, args.speed, samples, args.lookahead, args.seconds, faults, args.bvh, sys.stderr,
+                        args.models, adaptive=args.adaptive or args.samples == "auto", precision=args.precision,
+                        pose_log=pose_log)
+    finally:
+        if pose_log is not None:
+            pose_log.close()
+    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
+    keys = ("frames_in", "frames_out", "poses_decoded", "packets_corrupt", "packets_lost", "tracker_lost_events",
+            "deadline_misses", "ssi_switches", "mpjpe_cm", "jitter_m_s3")
+    print("\n" + "  ".join(f"{k}={result[k]:.4g}" if isinstance(result.get(k), float) else f"{k}={result.get(k)}"
+                           for k in keys), file=sys.stderr)
+    print(f"latency p50 {result['latency_ms']['p50']:.2f} ms p99 {result['latency_ms']['p99']:.2f} ms "
+          f"(+ look-ahead {result['lookahead_ms']:.0f} ms); wrote {args.json}" + (f" and {args.bvh}" if args.bvh else ""),
+          file=sys.stderr)
+    if result["errors"]:        # the run went on, but something broke: say so in the exit code
+        print(f"edge replay: {len(result['errors'])} error(s), the first: {result['errors'][0]}", file=sys.stderr)
+        return 1
+    return 0
