@@ -4,6 +4,7 @@ They compose with weights (`Composite`); the pipeline runs them on the look-ahea
 over all N samples, after IK. Criteria that need the world (targets, obstacles, extra IMUs) read it
 from the `FrameContext` the pipeline fills each frame.
 """
+import ctypes
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -54,6 +55,10 @@ class PhysicalPlausibility:
         self._segs = np.ascontiguousarray(LEG_SEGMENTS.reshape(-1), np.int64)
         self._feet = np.ascontiguousarray(np.concatenate([FEET, ANKLES]), np.int64)
         self._out = np.zeros(128)
+        self._params = None
+        if self._native:
+            self._params = native.PhysicalParams(native.addr(self._segs), native.addr(self._feet), INTERSECT_M, FLOAT_M,
+                                                 TOE_HEIGHT, ANKLE_HEIGHT, floor, legs, support)
 
     def cost(self, ctx):
         N, pos = len(ctx.positions), ctx.positions
@@ -61,10 +66,10 @@ class PhysicalPlausibility:
         contacts = np.zeros((N, 2), np.float32) if ctx.contacts is None else ctx.contacts
         if (self._native and N <= len(self._out) and pos.flags.c_contiguous and lift.flags.c_contiguous
                 and contacts.dtype == np.float32 and contacts.flags.c_contiguous and pos.shape[1] == NUM_JOINTS):
-            a = native.addr
-            self._native.ep_physical_cost(N, NUM_JOINTS, a(pos), a(contacts), a(lift), a(self._segs), a(self._feet),
-                                          INTERSECT_M, FLOAT_M, TOE_HEIGHT, ANKLE_HEIGHT, self.floor, self.legs,
-                                          self.support, a(self._out))
+            a, pp = native.addr, self._params
+            pp.w_floor, pp.w_legs, pp.w_support = self.floor, self.legs, self.support     # as they are now
+            self._native.ep_physical_cost(N, NUM_JOINTS, a(pos), a(contacts), a(lift), ctypes.byref(self._params),
+                                          a(self._out))
             return self._out[:N]
         legs = np.maximum(INTERSECT_M - leg_gap(pos), 0.0)
         support = ((contacts > 0.5) * np.maximum(foot_height(pos) - FLOAT_M, 0.0)).sum(-1)

@@ -624,11 +624,12 @@ class CompiledFrame:
             ("waist", "waist_m"), ("anchor", "anchor"), ("wrists", "wrists"), ("hand", "hand_m"), ("head", "head_m"),
             ("rot6d", "rot6d"), ("contacts", "contacts"), ("goal", "leg_goal"), ("weight", "leg_weight"),
             ("lock_weight", "lock_weight"), ("features", "features"), ("hidden", "hidden_in"))}
+        sk = native.Skeleton(J=NUM_JOINTS, head=HEAD, neck=NECK, parents=a["parents"], chains=a["chains"],
+                             ankles=a["ankles"], offsets=a["offsets"], poles=a["poles"])
+        locks = native.FootLocks(release_frames=f.release_frames, max_slip=f.max_slip, lock_pos=a["lock_pos"],
+                                 since=a["since_release"], weight=a["weight"], locked=a["locked"], raw=a["raw"])
         ctx = native.CoreContext(
-            J=NUM_JOINTS, head=HEAD, neck=NECK, foot_ik=int(p.foot_ik), arm_ik=int(p.arm_ik),
-            parents=a["parents"], chains=a["chains"], ankles=a["ankles"], offsets=a["offsets"], poles=a["poles"],
-            release_frames=f.release_frames, max_slip=f.max_slip, lock_pos=a["lock_pos"], since=a["since_release"],
-            lock_weight=a["weight"], locked=a["locked"], raw=a["raw"], goals=a["_targets"], weights=a["_weights"],
+            sk=sk, locks=locks, foot_ik=int(p.foot_ik), arm_ik=int(p.arm_ik), goals=a["_targets"], weights=a["_weights"],
             ring_rows=N + 1, hidden=b.hidden_in.shape[2], **ring,
             out_local=native.addr(out.rotations), out_world=native.addr(self._emit_world),
             out_pos=native.addr(out.positions), out_contacts=native.addr(out.contacts),

@@ -17,7 +17,11 @@ from tests.conftest import SAMPLE, worn_signals
 lib = native.load()
 pytestmark = pytest.mark.skipif(lib is None, reason=f"compiled core unavailable: {native.why_unavailable()}")
 P64 = np.ascontiguousarray(PARENTS, np.int64)
+CHAINS64 = np.ascontiguousarray(LIMB_CHAINS, np.int64)
+ANKLES64 = np.ascontiguousarray(ANKLES, np.int64)
 A = native.addr
+SKELETON = native.Skeleton(J=NUM_JOINTS, head=HEAD, neck=JOINT["neck"], parents=A(P64), chains=A(CHAINS64),
+                           ankles=A(ANKLES64), offsets=A(OFFSETS), poles=A(LIMB_POLES))
 
 
 def random_6d(R, seed):
@@ -48,7 +52,8 @@ def native_forward(r6, root_m, anchor):
     a, sa = native.rows(r6, 1, np.float32)
     b, sb = native.rows(root_m, 2)
     c, sc = native.rows(anchor, 1)
-    lib.ep_forward(R, NUM_JOINTS, A(P64), A(OFFSETS), HEAD, a, sa, b, sb, c, sc, None, None, A(loc), A(W), A(P))
+    lib.ep_forward(SKELETON, R, native.ForwardInputs(a, sa, b, sb, c, sc, None, None),
+                   native.PoseRows(A(loc), A(W), A(P)))
     return loc, W, P
 
 
@@ -87,9 +92,9 @@ def test_limb_ik_matches_numpy_on_reachable_unreachable_and_straight_chains():
     wr, wr_s = native.rows(wrists, 2)
     hm, hm_s = native.rows(hand_m, 3)
     hd, hd_s = native.rows(head_m, 2)
-    chains, lift = np.ascontiguousarray(LIMB_CHAINS, np.int64), np.zeros((R, 2))
-    lib.ep_post(R, NUM_JOINTS, A(P64), A(OFFSETS), A(chains), A(LIMB_POLES), A(goals), A(goal_w), 1, 1,
-                wr, wr_s, hm, hm_s, hd, hd_s, JOINT["neck"], HEAD, A(cl), A(cw), A(cp), A(lift))
+    lift = np.zeros((R, 2))
+    lib.ep_post(SKELETON, R, native.LimbGoals(A(goals), A(goal_w), 1, 1, wr, wr_s, hm, hm_s, hd, hd_s, A(lift)),
+                native.PoseRows(A(cl), A(cw), A(cp)))
     results.append([cl, cw, cp])
     # A straight chain puts acos at +-1, where 1e-16 differences in its argument become 1e-8 in angle.
     for r, g in zip(*results):
@@ -166,7 +171,8 @@ def test_foot_locks_match_numpy_through_contacts_releases_and_slips():
     B, T = 16, 300
     rng = np.random.default_rng(10)
     ref, nat = FootLock(B), FootLock(B)
-    ankles64 = np.ascontiguousarray(ANKLES, np.int64)
+    locks = native.FootLocks(nat.release_frames, nat.max_slip, A(nat.lock_pos), A(nat.since_release), A(nat.weight),
+                             A(nat.locked), A(nat.raw))
     pos = np.zeros((B, NUM_JOINTS, 3))
     goal = np.zeros((B, 2, 3))
     contacts = np.zeros((B, 2), np.float32)
@@ -179,9 +185,7 @@ def test_foot_locks_match_numpy_through_contacts_releases_and_slips():
         contacts[:] = (np.sin(t / 9.0 + np.arange(B)[:, None] + [0, 1.5]) + rng.normal(0, 0.3, (B, 2))) > 0
         lock, w = ref.update(contacts, pos[:, ANKLES], drop)
         want = (lock - pos[:, ANKLES]) * w[..., None] + pos[:, ANKLES]
-        lib.ep_foot_locks(B, 2, A(contacts), A(pos), NUM_JOINTS, A(ankles64), A(drop), nat.release_frames,
-                          nat.max_slip, A(nat.lock_pos), A(nat.locked), A(nat.raw), A(nat.since_release),
-                          A(nat.weight), A(goal))
+        lib.ep_foot_locks(SKELETON, B, A(contacts), A(pos), A(drop), locks, A(goal))
         assert np.array_equal(nat.locked, ref.locked) and np.array_equal(nat.raw, ref.raw)
         np.testing.assert_allclose(nat.weight, ref.weight, rtol=0, atol=1e-15)
         np.testing.assert_allclose(goal, want, rtol=0, atol=1e-12)

@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 
 SOURCE = Path(__file__).with_name("postproc.c")
+HEADERS = (Path(__file__).with_name("quat.h"),)      # what postproc.c includes: part of the cache key
 CFLAGS = ("-O3", "-shared", "-fPIC", "-ffp-contract=off", "-fno-math-errno")
 # Tried in order: the first the compiler accepts is used. Either way results are bit-identical
 # (no fused multiply-adds, no reassociation); native only makes the lanes wider.
@@ -52,7 +53,7 @@ def _cpu_tag():
 def build(force=False):
     """Compile postproc.c (if not cached) and return the library's path."""
     cc = shlex.split(os.environ.get("CC", "cc"))
-    src = SOURCE.read_bytes()
+    src = SOURCE.read_bytes() + b"".join(h.read_bytes() for h in HEADERS)
     tag = hashlib.sha1(src + repr((cc, CFLAGS, ARCH_FLAGS)).encode() + _cpu_tag().encode()).hexdigest()[:12]
     out = _cache_dir() / f"postproc-{tag}.so"
     if out.exists() and not force:
@@ -63,7 +64,8 @@ def build(force=False):
     try:
         for i, arch in enumerate(ARCH_FLAGS):
             try:
-                subprocess.run(cc + list(CFLAGS) + list(arch) + ["-o", tmp, str(SOURCE), "-lm"], check=True,
+                include = ["-I", str(HEADERS[0].parent)]
+                subprocess.run(cc + list(CFLAGS) + list(arch) + include + ["-o", tmp, str(SOURCE), "-lm"], check=True,
                                capture_output=True, text=True, timeout=120)
                 break
             except subprocess.CalledProcessError as e:
@@ -84,13 +86,37 @@ _I = ctypes.c_int
 _D = ctypes.c_double
 
 
+# Mirrors of postproc.c's structs, field for field (addresses of arrays the caller keeps alive, as ints).
+def _struct(name, doc, fields):
+    return type(name, (ctypes.Structure,), {"__doc__": doc, "_fields_": fields})
+
+
+Skeleton = _struct("Skeleton", "postproc.c's skeleton: edge.skeleton's tree, the limb chains and poles, ankles, head, neck.",
+                   [(k, _I) for k in ("J", "head", "neck")] + [(k, _P) for k in ("parents", "chains", "ankles",
+                                                                                   "offsets", "poles")])
+PoseRows = _struct("PoseRows", "postproc.c's pose_rows: local, world rotations and positions of R rows.",
+                   [(k, _P) for k in ("local", "world", "pos")])
+ForwardInputs = _struct("ForwardInputs", "postproc.c's forward_inputs (NumpyFrame.forward's arguments).",
+                        [("rot6d", _P), ("rot6d_stride", _I), ("root_m", _P), ("root_stride", _I), ("anchor", _P),
+                         ("anchor_stride", _I), ("seg_m", _P), ("seg_flag", _P)])
+LimbGoals = _struct("LimbGoals", "postproc.c's limb_goals (NumpyFrame.post's arguments).",
+                    [("foot_goals", _P), ("foot_weights", _P), ("foot_ik", _I), ("arm_ik", _I), ("wrists", _P),
+                     ("wrists_stride", _I), ("hand_m", _P), ("hand_stride", _I), ("head_m", _P), ("head_stride", _I),
+                     ("lift", _P)])
+FootLocks = _struct("FootLocks", "postproc.c's foot_locks: edge.ik.FootLock's settings and arrays.",
+                    [("release_frames", _D), ("max_slip", _D)] + [(k, _P) for k in ("lock_pos", "since", "weight",
+                                                                                       "locked", "raw")])
+PhysicalParams = _struct("PhysicalParams", "postproc.c's physical_params (edge.criteria.PhysicalPlausibility).",
+                         [("segs", _P), ("feet", _P)] + [(k, _D) for k in ("gap", "float_m", "toe_h", "ankle_h",
+                                                                           "w_floor", "w_legs", "w_support")])
+
+
 class CoreContext(ctypes.Structure):
-    """Mirror of postproc.c's core_context: what ep_frame_poses reads every frame without being told
-    (addresses of arrays the caller keeps alive, as ints)."""
-    _fields_ = ([(k, _I) for k in ("J", "head", "neck", "foot_ik", "arm_ik", "rot6d_stride")]
-                + [(k, _P) for k in ("parents", "chains", "ankles", "offsets", "poles", "rot6d", "contacts")]
-                + [("release_frames", _D), ("max_slip", _D)]
-                + [(k, _P) for k in ("lock_pos", "since", "lock_weight", "locked", "raw", "goals", "weights")]
+    """Mirror of postproc.c's core_context: what the live frame's calls read every frame without being
+    told (the skeleton, FootLock's state, the pipeline's buffers and the look-ahead ring)."""
+    _fields_ = ([("sk", Skeleton), ("locks", FootLocks)]
+                + [(k, _I) for k in ("foot_ik", "arm_ik", "rot6d_stride")]
+                + [(k, _P) for k in ("rot6d", "contacts", "goals", "weights")]
                 + [("ring_rows", _I)]
                 + [(k, _P) for k in ("ring_waist", "ring_anchor", "ring_wrists", "ring_hand", "ring_head", "ring_rot6d",
                                      "ring_contacts", "ring_goal", "ring_weight", "ring_lock_weight", "out_local",
@@ -102,21 +128,20 @@ class CoreContext(ctypes.Structure):
 
 
 _SIGNATURES = {
-    "ep_forward": [_I, _I, _P, _P, _I, _P, _I, _P, _I, _P, _I, _P, _P, _P, _P, _P],
+    "ep_forward": [ctypes.POINTER(Skeleton), _I, ctypes.POINTER(ForwardInputs), ctypes.POINTER(PoseRows)],
     "ep_local_pose": [_I, _I, _P, _P, _I, _P, _P, _P],
     "ep_leg_error": [_I, _I, _P, _I, _P, _P, _P, _P, _P, _P],
-    "ep_foot_locks": [_I, _I, _P, _P, _I, _P, _P, _D, _D, _P, _P, _P, _P, _P, _P],
+    "ep_foot_locks": [ctypes.POINTER(Skeleton), _I, _P, _P, _P, ctypes.POINTER(FootLocks), _P],
     "ep_frame_features": [_P, _P, _P, _D, _P, _P, _P],
     "ep_imu_features": [_I, _P, _P, _P, _P],
-    "ep_physical_cost": [_I, _I, _P, _P, _P, _P, _P, _D, _D, _D, _D, _D, _D, _D, _P],
-    "ep_post": [_I, _I, _P, _P, _P, _P, _P, _P, _I, _I, _P, _I, _P, _I, _P, _I, _I, _I, _P, _P, _P, _P],
+    "ep_physical_cost": [_I, _I, _P, _P, _P, ctypes.POINTER(PhysicalParams), _P],
+    "ep_post": [ctypes.POINTER(Skeleton), _I, ctypes.POINTER(LimbGoals), ctypes.POINTER(PoseRows)],
     "ep_switch_to": [_I, _P, _I, _D],
     "ep_frame_sane": [_P, _I, _D],
     "ep_all_finite_f32": [_P, _I],
     "ep_frame_poses": [ctypes.POINTER(CoreContext), _I, _I, _I, _I, _I, _D, _P, _P, _P],
     "ep_emit": [ctypes.POINTER(CoreContext), _I, _I],
     "ep_frame_inputs": [ctypes.POINTER(CoreContext), _I, _I],
-    "ep_row_pose": [ctypes.POINTER(CoreContext)] + [_P] * 13,
     "ep_max_joints": [],
 }
 _RETURNS_INT = {"ep_switch_to", "ep_max_joints", "ep_frame_sane", "ep_all_finite_f32"}

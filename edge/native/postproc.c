@@ -2,9 +2,11 @@
  * features, 6D -> rotation, FK hung from the head, foot locks, two-bone limb IK, the plausibility
  * score around the autoencoder (SSI 3.1, 3.2.1), the SSI outlier test (3.2.2) and the look-ahead ring.
  *
- * The live frame is five calls (edge.pipeline.Pipeline.step): ep_frame_inputs, ep_frame_poses,
+ * The live frame is five calls (edge.pipeline.CompiledFrame): ep_frame_inputs, ep_frame_poses,
  * ep_leg_error, ep_switch_to, ep_emit; they read the pipeline's buffers through one core_context.
- * The other functions are the same stages on arbitrary rows (a recomputed transition, the tests).
+ * ep_forward, ep_post and ep_foot_locks are the same stages on given rows (tests/test_native.py holds
+ * each to its numpy reference). Arguments come as the structs below, mirrored in edge/native/__init__.py;
+ * the rotation and matrix helpers are quat.h, named for their edge.quat functions.
  *
  * Each function is the loop form of a numpy reference in edge/ (named in its comment) and is tested
  * against it (tests/test_native.py). Python's per-call overhead, not arithmetic, is what the numpy
@@ -25,27 +27,8 @@
 #include <math.h>
 #include <stdint.h>
 
+#include "quat.h"       /* the rotation and matrix helpers, named for their edge.quat functions */
 
-static void matmul3(const double *a, const double *b, double *out) {
-    for (int i = 0; i < 3; i++)
-        for (int k = 0; k < 3; k++)
-            out[i * 3 + k] = a[i * 3 + 0] * b[0 * 3 + k] + a[i * 3 + 1] * b[1 * 3 + k] + a[i * 3 + 2] * b[2 * 3 + k];
-}
-
-static void matvec3(const double *m, const double *v, double *out) {
-    for (int i = 0; i < 3; i++)
-        out[i] = m[i * 3 + 0] * v[0] + m[i * 3 + 1] * v[1] + m[i * 3 + 2] * v[2];
-}
-
-static double dot3(const double *a, const double *b) { return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]; }
-
-static void cross3(const double *a, const double *b, double *out) {
-    out[0] = a[1] * b[2] - a[2] * b[1];
-    out[1] = a[2] * b[0] - a[0] * b[2];
-    out[2] = a[0] * b[1] - a[1] * b[0];
-}
-
-static double clamp(double x, double lo, double hi) { return x < lo ? lo : (x > hi ? hi : x); }
 
 /* ------------------------------------------------------------------ samples side by side (LANES) */
 
@@ -54,6 +37,7 @@ static double clamp(double x, double lo, double hi) { return x < lo ? lo : (x > 
 #define EACH for (int l = 0; l < LANES; l++)
 typedef double lane[LANES];             /* one value for each of LANES samples */
 
+/* The largest skeleton the lane functions take (edge.native checks edge.skeleton against it). */
 int ep_max_joints(void) { return MAX_JOINTS; }
 #define MAX_FEATURES 128
 /* edge.pipeline.FLOOR_ANKLE / FLOOR_TOE: the lowest an ankle and a toe joint may go (m above the floor) */
@@ -68,6 +52,7 @@ int ep_max_joints(void) { return MAX_JOINTS; }
 
 /* dst[k][l] = src[row_l * stride + k] for k < n: row_l is r0 + l, or the block's last real row in a
  * spare lane (nl real rows). stride 0 gives every lane the same values. */
+/* rows r0..r0+nl of an array (rows `stride` apart, 0: shared) into the lanes; a short block repeats its last row */
 static inline void gather(lane *dst, int n, const double *src, int64_t stride, int r0, int nl) {
     EACH {
         const double *s = src + (int64_t)(r0 + (l < nl ? l : nl - 1)) * stride;
@@ -75,6 +60,7 @@ static inline void gather(lane *dst, int n, const double *src, int64_t stride, i
     }
 }
 
+/* the inverse of gather, for the nl real lanes */
 static inline void scatter(lane *src, int n, double *dst, int64_t stride, int r0, int nl) {
     for (int l = 0; l < nl; l++) {
         double *d = dst + (int64_t)(r0 + l) * stride;
@@ -82,11 +68,14 @@ static inline void scatter(lane *src, int n, double *dst, int64_t stride, int r0
     }
 }
 
+/* The lane forms of quat.h's helpers: the same arithmetic for every lane. */
+/* dst = src */
 static inline void lane_copy(lane *restrict dst, lane *restrict src, int n) {
     for (int k = 0; k < n; k++) EACH dst[k][l] = src[k][l];
 }
 
 /* a b, 3x3 */
+/* mat3_mul: a @ b */
 static inline void lane_matmul3(lane *restrict a, lane *restrict b, lane *restrict out) {
     for (int i = 0; i < 3; i++)
         for (int k = 0; k < 3; k++)
@@ -95,6 +84,7 @@ static inline void lane_matmul3(lane *restrict a, lane *restrict b, lane *restri
 }
 
 /* a^T b, 3x3 */
+/* a.T @ b (np.swapaxes(a, -1, -2) @ b) */
 static inline void lane_matmul3_tn(lane *restrict a, lane *restrict b, lane *restrict out) {
     for (int i = 0; i < 3; i++)
         for (int k = 0; k < 3; k++)
@@ -103,20 +93,24 @@ static inline void lane_matmul3_tn(lane *restrict a, lane *restrict b, lane *res
 }
 
 /* m v for a vector shared by all lanes (a bone offset) */
+/* mat3_vec with one v for every lane */
 static inline void lane_matvec3_shared_v(lane *restrict m, const double *v, lane *restrict out) {
     for (int i = 0; i < 3; i++) EACH out[i][l] = m[i * 3 + 0][l] * v[0] + m[i * 3 + 1][l] * v[1] + m[i * 3 + 2][l] * v[2];
 }
 
 /* m v for a matrix shared by all lanes */
+/* mat3_vec with one m for every lane */
 static inline void lane_matvec3_shared_m(const double *m, lane *restrict v, lane *restrict out) {
     for (int i = 0; i < 3; i++) EACH out[i][l] = m[i * 3 + 0] * v[0][l] + m[i * 3 + 1] * v[1][l] + m[i * 3 + 2] * v[2][l];
 }
 
 
+/* vec3_dot */
 static inline void lane_dot3(lane *a, lane *b, lane out) {
     EACH out[l] = a[0][l] * b[0][l] + a[1][l] * b[1][l] + a[2][l] * b[2][l];
 }
 
+/* quat_cross (edge.quat.cross) */
 static inline void lane_cross3(lane *a, lane *b, lane *restrict out) {
     EACH {
         out[0][l] = a[1][l] * b[2][l] - a[2][l] * b[1][l];
@@ -125,6 +119,7 @@ static inline void lane_cross3(lane *a, lane *b, lane *restrict out) {
     }
 }
 
+/* a - b */
 static inline void lane_sub3(lane *a, lane *b, lane *restrict out) {
     for (int i = 0; i < 3; i++) EACH out[i][l] = a[i][l] - b[i][l];
 }
@@ -153,6 +148,7 @@ static inline void lane_matrix_from_6d_f32(const float *r6, int64_t stride, int 
 }
 
 /* The same in float64 (the plausibility score casts the autoencoder's output first). */
+/* quat_matrix_from_6d (edge.quat.matrix_from_6d) of the columns a, b */
 static inline void lane_matrix_from_6d_f64(lane *a, lane *b, lane *restrict m) {
     lane na, d, nb;
     lane x[3], y[3], z[3], c[3];
@@ -173,6 +169,66 @@ typedef struct {
     lane L[MAX_JOINTS][9], W[MAX_JOINTS][9], P[MAX_JOINTS][3];
 } block;
 
+/* ------------------------------------------------------------------ what the calls are given */
+/* Each struct is mirrored field for field by a ctypes Structure in edge/native/__init__.py. */
+
+/* The skeleton: edge.skeleton.PARENTS [J] and OFFSETS [J,3], the limb chains (edge.pipeline.LIMB_CHAINS
+ * [4,3]: legs, then arms) and their poles [4,3], the ankles [2], the head and neck joints. */
+typedef struct {
+    int J, head, neck;
+    const int64_t *parents, *chains, *ankles;
+    const double *offsets, *poles;
+} skeleton;
+
+/* Rows of poses [R,J,...]: local rotations [.,9], world rotations [.,9], positions [.,3]. An output
+ * that is NULL is not written. */
+typedef struct {
+    double *local, *world, *pos;
+} pose_rows;
+
+/* NumpyFrame.forward's inputs: the decoder's 6D [R, rot6d_stride] float, the root (waist) rotation
+ * [3,3], the tracked head joint's position [3] (each per row, or shared with stride 0), and the worn
+ * IMUs' measured segments seg_m [J,9] with their flags seg_flag [J] (NULL: none). */
+typedef struct {
+    const float *rot6d;
+    int rot6d_stride;
+    const double *root_m;
+    int root_stride;
+    const double *anchor;
+    int anchor_stride;
+    const double *seg_m, *seg_flag;
+} forward_inputs;
+
+/* NumpyFrame.post's goals: the legs' foot goals [R,2,3] at weights [R,2] (foot_ik), the wrists [2,3]
+ * and hand rotations [2,3,3] the arms reach for, the headset's rotation [3,3] (arm_ik; each per row or
+ * shared); `lift` [R,2] (NULL: not wanted) receives how far the floor lifted each foot. */
+typedef struct {
+    const double *foot_goals, *foot_weights;
+    int foot_ik, arm_ik;
+    const double *wrists;
+    int wrists_stride;
+    const double *hand_m;
+    int hand_stride;
+    const double *head_m;
+    int head_stride;
+    double *lift;
+} limb_goals;
+
+/* edge.ik.FootLock's state and settings (its arrays, one entry per foot of every sample). */
+typedef struct {
+    double release_frames, max_slip;
+    double *lock_pos, *since, *weight;
+    uint8_t *locked, *raw;
+} foot_locks;
+
+/* edge.criteria.PhysicalPlausibility's settings: the legs' segments [2 sides][2 segments][2 ends] and
+ * the feet [toe l, toe r, ankle l, ankle r] as joint indices; the leg gap and float heights, the toe
+ * and ankle rest heights (m); the three terms' weights. */
+typedef struct {
+    const int64_t *segs, *feet;
+    double gap, float_m, toe_h, ankle_h, w_floor, w_legs, w_support;
+} physical_params;
+
 static void block_load(block *k, int r0, int nl, int J, const double *local, const double *world, const double *pos) {
     for (int j = 0; j < J; j++) {
         gather(k->L[j], 9, local + j * 9, (int64_t)J * 9, r0, nl);
@@ -190,15 +246,18 @@ static void block_store(block *k, int r0, int nl, int J, double *local, double *
     }
 }
 
-/* Pipeline._forward on one block: 6D -> local rotations (root from root_m), FK (edge.skeleton.fk,
+/* NumpyFrame.forward on one block: 6D -> local rotations (root from root_m), FK (edge.skeleton.fk,
  * parents[j] < j) and the body translated so joint `head` sits at `anchor`. A joint j with
  * seg_flag[j] > 0 (shared by every row; NULL: none) takes the world rotation its IMU measured,
  * seg_m [J,9], blended in 6D by the flag, and its local rotation follows. */
-static void block_forward(block *k, int r0, int nl, int J, const int64_t *parents, const double *offsets, int head,
-                          const float *rot6d, int rot6d_stride, const double *root_m, int root_stride,
-                          const double *anchor, int anchor_stride, const double *seg_m, const double *seg_flag) {
+static void block_forward(block *k, int r0, int nl, const skeleton *sk, const forward_inputs *in) {
+    const int J = sk->J, head = sk->head;
+    const int64_t *parents = sk->parents;
+    const double *offsets = sk->offsets, *seg_m = in->seg_m, *seg_flag = in->seg_flag;
+    const float *rot6d = in->rot6d;
+    const int rot6d_stride = in->rot6d_stride;
     lane v[3], shift[3];
-    gather(k->L[0], 9, root_m, root_stride, r0, nl);
+    gather(k->L[0], 9, in->root_m, in->root_stride, r0, nl);
     lane_copy(k->W[0], k->L[0], 9);
     for (int i = 0; i < 3; i++) EACH k->P[0][i][l] = 0.0;
     for (int j = 1; j < J; j++) {
@@ -218,24 +277,20 @@ static void block_forward(block *k, int r0, int nl, int J, const int64_t *parent
         lane_matvec3_shared_v(k->W[p], offsets + j * 3, v);
         for (int i = 0; i < 3; i++) EACH k->P[j][i][l] = k->P[p][i][l] + v[i][l];
     }
-    gather(shift, 3, anchor, anchor_stride, r0, nl);
+    gather(shift, 3, in->anchor, in->anchor_stride, r0, nl);
     for (int i = 0; i < 3; i++) EACH shift[i][l] = shift[i][l] - k->P[head][i][l];
     for (int j = 0; j < J; j++)
         for (int i = 0; i < 3; i++) EACH k->P[j][i][l] += shift[i][l];
 }
 
-/* edge.pipeline.Pipeline._forward: decoder 6D [R, (J-1)*6] float -> local rotations, world rotations
- * and positions [R,J,...] (see block_forward). */
-void ep_forward(int R, int J, const int64_t *parents, const double *offsets, int head,
-                const float *rot6d, int rot6d_stride, const double *root_m, int root_stride,
-                const double *anchor, int anchor_stride, const double *seg_m, const double *seg_flag,
-                double *local, double *world, double *pos) {
+/* edge.pipeline.NumpyFrame.forward: decoder 6D [R, (J-1)*6] float -> local rotations, world
+ * rotations and positions of R rows (see block_forward). */
+void ep_forward(const skeleton *sk, int R, const forward_inputs *in, const pose_rows *out) {
     block k;
     for (int r0 = 0; r0 < R; r0 += LANES) {
         int nl = R - r0 < LANES ? R - r0 : LANES;
-        block_forward(&k, r0, nl, J, parents, offsets, head, rot6d, rot6d_stride, root_m, root_stride, anchor,
-                      anchor_stride, seg_m, seg_flag);
-        block_store(&k, r0, nl, J, local, world, pos);
+        block_forward(&k, r0, nl, sk, in);
+        block_store(&k, r0, nl, sk->J, out->local, out->world, out->pos);
     }
 }
 
@@ -375,45 +430,37 @@ static void block_chain(block *k, int r0, int nl, int J, const int64_t *parents,
     }
 }
 
-/* Pipeline._post on one block (see ep_post): every array is the whole batch's, read at the block's rows. */
-static void block_post(block *k, int r0, int nl, int J, const int64_t *parents, const double *offsets,
-                       const int64_t *chains, const double *poles, const double *foot_goals, const double *foot_weights,
-                       int foot_ik, int arm_ik, const double *wrists, int wrists_stride, const double *hand_m,
-                       int hand_stride, const double *head_m, int head_stride, int neck, int head, double *lift) {
+/* NumpyFrame.post on one block (see ep_post): every array is the whole batch's, read at the block's rows. */
+static void block_post(block *k, int r0, int nl, const skeleton *sk, const limb_goals *g) {
+    const int J = sk->J;
     for (int c = 0; c < 2; c++)
-        block_chain(k, r0, nl, J, parents, offsets, chains + c * 3, foot_goals + c * 3, 6, foot_ik ? foot_weights + c : 0,
-                    2, 0.0, poles + c * 3, 0, 0, foot_ik, lift ? lift + c : 0, 2);
+        block_chain(k, r0, nl, J, sk->parents, sk->offsets, sk->chains + c * 3, g->foot_goals + c * 3, 6,
+                    g->foot_ik ? g->foot_weights + c : 0, 2, 0.0, sk->poles + c * 3, 0, 0, g->foot_ik,
+                    g->lift ? g->lift + c : 0, 2);
     for (int c = 2; c < 4; c++)
-        block_chain(k, r0, nl, J, parents, offsets, chains + c * 3, wrists + (c - 2) * 3, wrists_stride, 0, 0,
-                    arm_ik ? 1.0 : 0.0, poles + c * 3, arm_ik ? hand_m + (c - 2) * 9 : 0, hand_stride, 0, 0, 0);
-    if (arm_ik) {
-        gather(k->W[head], 9, head_m, head_stride, r0, nl);
-        lane_matmul3_tn(k->W[neck], k->W[head], k->L[head]);
+        block_chain(k, r0, nl, J, sk->parents, sk->offsets, sk->chains + c * 3, g->wrists + (c - 2) * 3,
+                    g->wrists_stride, 0, 0, g->arm_ik ? 1.0 : 0.0, sk->poles + c * 3,
+                    g->arm_ik ? g->hand_m + (c - 2) * 9 : 0, g->hand_stride, 0, 0, 0);
+    if (g->arm_ik) {
+        gather(k->W[sk->head], 9, g->head_m, g->head_stride, r0, nl);
+        lane_matmul3_tn(k->W[sk->neck], k->W[sk->head], k->L[sk->head]);
     }
 }
 
-/* edge.pipeline.Pipeline._post: the legs (chains 0, 1) to their foot goals [R,2,3] at the lock
- * weights [R,2] (0 without foot IK), lifted so no ankle or toe is below the floor (how far: lift
- * [R,2], when not NULL), keeping the ankles' orientation; the arms (chains 2, 3) onto the
- * controllers (wrists [2,3], hand rotations [2,3,3] per row or shared) with the hands turned to them;
- * the head turned to the headset (head_m [3,3]). Without arm IK the arms and head are left alone. */
-void ep_post(int R, int J, const int64_t *parents, const double *offsets, const int64_t *chains,
-             const double *poles, const double *foot_goals, const double *foot_weights, int foot_ik, int arm_ik,
-             const double *wrists, int wrists_stride, const double *hand_m, int hand_stride, const double *head_m,
-             int head_stride, int neck, int head, double *local, double *world, double *pos, double *lift) {
+/* edge.pipeline.NumpyFrame.post: the legs (chains 0, 1) to their foot goals at the lock weights (0
+ * without foot IK), lifted so no ankle or toe is below the floor, keeping the ankles' orientation; the
+ * arms (chains 2, 3) onto the controllers with the hands turned to them; the head turned to the
+ * headset. Without arm IK the arms and head are left alone. Updates the R rows in place. */
+void ep_post(const skeleton *sk, int R, const limb_goals *g, const pose_rows *rows) {
     block k;
     for (int r0 = 0; r0 < R; r0 += LANES) {
         int nl = R - r0 < LANES ? R - r0 : LANES;
-        block_load(&k, r0, nl, J, local, world, pos);
-        block_post(&k, r0, nl, J, parents, offsets, chains, poles, foot_goals, foot_weights, foot_ik, arm_ik, wrists,
-                   wrists_stride, hand_m, hand_stride, head_m, head_stride, neck, head, lift);
-        block_store(&k, r0, nl, J, local, world, pos);
+        block_load(&k, r0, nl, sk->J, rows->local, rows->world, rows->pos);
+        block_post(&k, r0, nl, sk, g);
+        block_store(&k, r0, nl, sk->J, rows->local, rows->world, rows->pos);
     }
 }
 
-/* edge.plausibility.local_pose: world positions [B,J,3] and pelvis rotations (rows pelvis_stride
- * apart) -> positions in the character frame (float64 `local`, and float for the autoencoder's
- * input) and the pelvis rotation in it. */
 /* The transpose of edge.plausibility.yaw_matrix of a pelvis rotation R. */
 static void yaw_transpose(const double *R, double *yt) {
     double theta = atan2(R[2], R[8]), c = cos(theta), s = sin(theta);
@@ -423,6 +470,9 @@ static void yaw_transpose(const double *R, double *yt) {
     yt[6] = s; yt[7] = 0.0; yt[8] = c;
 }
 
+/* edge.plausibility.local_pose: world positions [B,J,3] and pelvis rotations (rows pelvis_stride
+ * apart) -> positions in the character frame (float64 `local`, and float for the autoencoder's
+ * input) and the pelvis rotation in it. */
 void ep_local_pose(int B, int J, const double *pos, const double *pelvis, int pelvis_stride, double *local,
                    float *ae_in, double *root_local) {
     for (int r = 0; r < B; r++) {
@@ -433,10 +483,10 @@ void ep_local_pose(int B, int J, const double *pos, const double *pelvis, int pe
         float *A = ae_in + (int64_t)r * J * 3;
         for (int j = 0; j < J; j++) {
             double rel[3] = {P[j * 3] - P[0] * 1.0, P[j * 3 + 1] - P[1] * 0.0, P[j * 3 + 2] - P[2] * 1.0};
-            matvec3(yt, rel, Lr + j * 3);
+            mat3_vec(yt, rel, Lr + j * 3);
             for (int i = 0; i < 3; i++) A[j * 3 + i] = (float)Lr[j * 3 + i];
         }
-        matmul3(yt, R, root_local + (int64_t)r * 9);
+        mat3_mul(yt, R, root_local + (int64_t)r * 9);
     }
 }
 
@@ -482,9 +532,6 @@ void ep_leg_error(int B, int J, const float *ae_out, int rot_dim, const int64_t 
     }
 }
 
-/* edge.ik.FootLock.update for foot i (state arrays FootLock's; locked and raw are numpy bools) at
- * this ankle position (toe_drop: its toe's height relative to it, for the floor snap; NULL: none), and the foot goal the pipeline hands the leg IK: the ankle drawn towards its
- * lock by the lock's weight (edge.pipeline.Pipeline._foot_goals). */
 /* edge.physics.support of a foot's lowest point h above the floor */
 static double support(double h) { return clamp((SUPPORT_NONE - h) / (SUPPORT_NONE - SUPPORT_FULL), 0.0, 1.0); }
 
@@ -494,10 +541,15 @@ static double lowest_point(double ankle_y, double toe_drop) {
     return t < a ? t : a;
 }
 
-static void foot_lock(int i, double p, const double *ankle, const double *toe_drop, double release_frames,
-                      double max_slip, double *lock_pos, uint8_t *locked, uint8_t *raw, double *since, double *weight,
+/* edge.ik.FootLock.update for foot i (state arrays FootLock's; locked and raw are numpy bools) at
+ * this ankle position (toe_drop: its toe's height relative to it, for the floor snap; NULL: none), and the foot goal the pipeline hands the leg IK: the ankle drawn towards its
+ * lock by the lock's weight (edge.pipeline.NumpyFrame.foot_goals). */
+static void foot_lock(int i, double p, const double *ankle, const double *toe_drop, const foot_locks *st,
                       double *goal) {
-    double *lock = lock_pos + (int64_t)i * 3;
+    const double release_frames = st->release_frames, max_slip = st->max_slip;
+    double *since = st->since, *weight = st->weight;
+    uint8_t *locked = st->locked, *raw = st->raw;
+    double *lock = st->lock_pos + (int64_t)i * 3;
     int contact = toe_drop ? p * support(lowest_point(ankle[1], *toe_drop)) > 0.5 : p > 0.5;
     double d[3] = {ankle[0] - lock[0], ankle[1] - lock[1], ankle[2] - lock[2]};
     int slipped = locked[i] && sqrt(d[0] * d[0] + d[2] * d[2]) > max_slip;
@@ -517,15 +569,15 @@ static void foot_lock(int i, double p, const double *ankle, const double *toe_dr
     for (int k = 0; k < 3; k++) goal[(int64_t)i * 3 + k] = (lock[k] - ankle[k]) * weight[i] + ankle[k];
 }
 
-/* FootLock.update for B samples and F feet from the decoder's contacts [B,F] and the FK ankles. */
-void ep_foot_locks(int B, int F, const float *contacts, const double *pos, int J, const int64_t *ankles,
-                   const double *toe_drop, double release_frames, double max_slip, double *lock_pos, uint8_t *locked,
-                   uint8_t *raw, double *since, double *weight, double *goal) {
+/* edge.ik.FootLock.update for B samples' two feet from the decoder's contacts [B,2] float and the FK
+ * positions [B,J,3] (the ankles'), with each toe's drop below its ankle [B,2] (NULL: no floor snap);
+ * the foot goals [B,2,3] as NumpyFrame.foot_goals draws them. */
+void ep_foot_locks(const skeleton *sk, int B, const float *contacts, const double *pos, const double *toe_drop,
+                   const foot_locks *st, double *goal) {
     for (int r = 0; r < B; r++)
-        for (int f = 0; f < F; f++)
-            foot_lock(r * F + f, contacts[r * F + f], pos + ((int64_t)r * J + ankles[f]) * 3,
-                      toe_drop ? toe_drop + r * F + f : 0, release_frames, max_slip, lock_pos, locked, raw, since,
-                      weight, goal);
+        for (int f = 0; f < 2; f++)
+            foot_lock(r * 2 + f, contacts[r * 2 + f], pos + ((int64_t)r * sk->J + sk->ankles[f]) * 3,
+                      toe_drop ? toe_drop + r * 2 + f : 0, st, goal);
 }
 
 /* ------------------------------------------------------------------ the live frame in one call */
@@ -534,13 +586,10 @@ void ep_foot_locks(int B, int F, const float *contacts, const double *pos, int J
  * the look-ahead ring (edge.pipeline.Pipeline builds one; field order matches its ctypes mirror,
  * native.CoreContext). */
 typedef struct {
-    int J, head, neck, foot_ik, arm_ik, rot6d_stride;
-    const int64_t *parents, *chains, *ankles;
-    const double *offsets, *poles;
+    skeleton sk;
+    foot_locks locks;                         /* the N samples' (FootLock's arrays) */
+    int foot_ik, arm_ik, rot6d_stride;
     const float *rot6d, *contacts;            /* the decoder's outputs, [rows,...] */
-    double release_frames, max_slip;
-    double *lock_pos, *since, *lock_weight;
-    uint8_t *locked, *raw;
     double *goals, *weights;                  /* leg IK goals [rows,2,3] and weights [rows,2], out */
     /* edge.pipeline.LookaheadBuffer's arrays, [slots, ...] with ring_rows pose rows (samples + 1) per
      * slot: the frame's tracker inputs, and what it keeps of each row's pose. */
@@ -579,7 +628,7 @@ typedef struct {
 static void copy_f32(float *dst, const float *src, int64_t n) { for (int64_t i = 0; i < n; i++) dst[i] = src[i]; }
 static void copy_f64(double *dst, const double *src, int64_t n) { for (int64_t i = 0; i < n; i++) dst[i] = src[i]; }
 
-/* Pipeline.step between the decoder and the criteria, for R rows: N samples and, when R = N + 1,
+/* edge.pipeline.NumpyFrame.poses (Pipeline.step between the decoder and the criteria), for R rows: N samples and, when R = N + 1,
  * the transition row from sample c to sample n at blend weight a. Per block of LANES rows, kept on
  * the stack throughout: _forward; the samples' foot locks (_foot_goals: goals drawn by the locks, IK
  * weight 1); the transition row's goals blended from c's and n's (at IK weight 1 too) (c, n < N, so their
@@ -591,27 +640,29 @@ static void copy_f64(double *dst, const double *src, int64_t n) { for (int64_t i
 void ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n, double a, double *world,
                     double *pos, const float *hidden_read) {
     block k;
-    int J = x->J, S = x->ring_rows;
+    const skeleton *sk = &x->sk;
+    int J = sk->J, S = x->ring_rows;
     const double *root_m = x->ring_waist + slot * 9, *anchor = x->ring_anchor + slot * 3;
     const double *wrists = x->ring_wrists + slot * 6, *hand_m = x->ring_hand + slot * 18, *head_m = x->ring_head + slot * 9;
     double yt[9], root_local[9];        /* every sample's pelvis is the waist's rotation: one yaw for all */
     yaw_transpose(root_m, yt);
-    matmul3(yt, root_m, root_local);
+    mat3_mul(yt, root_m, root_local);
+    const forward_inputs fin = {x->rot6d, x->rot6d_stride, root_m, 0, anchor, 0, x->ring_seg_m + (int64_t)slot * J * 9,
+                                x->ring_seg_flag + (int64_t)slot * J};
+    const limb_goals goals = {x->goals, x->weights, x->foot_ik, x->arm_ik, wrists, 0, hand_m, 0, head_m, 0, x->floor_lift};
     for (int r0 = 0; r0 < R; r0 += LANES) {
         int nl = R - r0 < LANES ? R - r0 : LANES;
-        block_forward(&k, r0, nl, J, x->parents, x->offsets, x->head, x->rot6d, x->rot6d_stride, root_m, 0, anchor, 0,
-                      x->ring_seg_m + (int64_t)slot * J * 9, x->ring_seg_flag + (int64_t)slot * J);
+        block_forward(&k, r0, nl, sk, &fin);
         if (x->foot_ik) {
             for (int l = 0; l < nl && r0 + l < N; l++)
                 for (int f = 0; f < 2; f++) {
                     int i = (r0 + l) * 2 + f;
-                    int a = (int)x->ankles[f], toe = a + 1;
-                    while (toe < J && x->parents[toe] != a) toe++;
-                    const double *o = x->offsets + toe * 3;
+                    int a = (int)sk->ankles[f], toe = a + 1;
+                    while (toe < J && sk->parents[toe] != a) toe++;
+                    const double *o = sk->offsets + toe * 3;
                     double ankle[3] = {k.P[a][0][l], k.P[a][1][l], k.P[a][2][l]};
                     double drop = k.W[a][3][l] * o[0] + k.W[a][4][l] * o[1] + k.W[a][5][l] * o[2];
-                    foot_lock(i, x->contacts[i], ankle, &drop, x->release_frames, x->max_slip, x->lock_pos,
-                              x->locked, x->raw, x->since, x->lock_weight, x->goals);
+                    foot_lock(i, x->contacts[i], ankle, &drop, &x->locks, x->goals);
                     x->weights[i] = 1.0;
                 }
             if (R > N && r0 + nl > N)
@@ -621,8 +672,7 @@ void ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n,
                     x->weights[N * 2 + f] = 1.0;   /* as the samples': their goals carry the locks' pull */
                 }
         }
-        block_post(&k, r0, nl, J, x->parents, x->offsets, x->chains, x->poles, x->goals, x->weights, x->foot_ik,
-                   x->arm_ik, wrists, 0, hand_m, 0, head_m, 0, x->neck, x->head, x->floor_lift);
+        block_post(&k, r0, nl, sk, &goals);
         block_store(&k, r0, nl, J, 0, world, pos);
         int ns = N - r0 < nl ? N - r0 : nl;     /* sample rows in this block (not the transition row) */
         if (x->ae_in && ns > 0) {                /* ep_local_pose on the block, for the plausibility score */
@@ -646,55 +696,41 @@ void ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n,
     copy_f32(x->ring_contacts + row0 * 2, x->contacts, (int64_t)R * 2);
     copy_f64(x->ring_goal + row0 * 6, x->goals, (int64_t)R * 6);
     copy_f64(x->ring_weight + row0 * 2, x->weights, (int64_t)R * 2);
-    copy_f64(x->ring_lock_weight + (int64_t)slot * (S - 1) * 2, x->lock_weight, (int64_t)N * 2);
+    copy_f64(x->ring_lock_weight + (int64_t)slot * (S - 1) * 2, x->locks.weight, (int64_t)N * 2);
     copy_f32(x->ring_hidden + (int64_t)slot * (S - 1) * x->hidden, hidden_read, (int64_t)N * x->hidden);
 }
 
-/* One row's pose again from what the look-ahead buffer keeps of it: its decoder 6D (float), its leg
- * goals [2,3] and IK weights [2], and its frame's tracker inputs; block_forward then block_post, so
- * the result is bit for bit the row's pose in ep_frame_poses. world is scratch [J,3,3]. */
-void ep_row_pose(const core_context *x, const float *rot6d, const double *goals, const double *weights,
-                 const double *root_m, const double *anchor, const double *wrists, const double *hand_m,
-                 const double *head_m, const double *seg_m, const double *seg_flag, double *local, double *world,
-                 double *pos) {
+/* One row's pose again from what the look-ahead ring keeps of it in slot `slot`: its decoder 6D
+ * (float), its leg goals [2,3] and IK weights [2], and the slot's tracker inputs; block_forward then
+ * block_post, so the result is bit for bit the row's pose in ep_frame_poses (NumpyFrame.row_pose). */
+static void row_pose(const core_context *x, int slot, int row, const pose_rows *out) {
+    const skeleton *sk = &x->sk;
+    int64_t r = (int64_t)slot * x->ring_rows + row;
+    const forward_inputs fin = {x->ring_rot6d + r * x->rot6d_stride, 0, x->ring_waist + slot * 9, 0,
+                                x->ring_anchor + slot * 3, 0, x->ring_seg_m + (int64_t)slot * sk->J * 9,
+                                x->ring_seg_flag + (int64_t)slot * sk->J};
+    const limb_goals goals = {x->ring_goal + r * 6, x->ring_weight + r * 2, x->foot_ik, x->arm_ik,
+                              x->ring_wrists + slot * 6, 0, x->ring_hand + slot * 18, 0, x->ring_head + slot * 9, 0, 0};
     block k;
-    block_forward(&k, 0, 1, x->J, x->parents, x->offsets, x->head, rot6d, 0, root_m, 0, anchor, 0, seg_m, seg_flag);
-    block_post(&k, 0, 1, x->J, x->parents, x->offsets, x->chains, x->poles, goals, weights, x->foot_ik, x->arm_ik,
-               wrists, 0, hand_m, 0, head_m, 0, x->neck, x->head, 0);
-    block_store(&k, 0, 1, x->J, local, world, pos);
+    block_forward(&k, 0, 1, sk, &fin);
+    block_post(&k, 0, 1, sk, &goals);
+    block_store(&k, 0, 1, sk->J, out->local, out->world, out->pos);
 }
 
-/* Pipeline._emit: ep_row_pose of row `row` of ring slot `slot`, into out_local and out_pos, and its
- * foot contacts, as far as each foot is on the floor to bear them, into out_contacts. */
+/* edge.pipeline.NumpyFrame.emit: row_pose of row `row` of ring slot `slot` into out_local and out_pos,
+ * and its foot contacts, as far as each foot is on the floor to bear them
+ * (edge.pipeline.supported_contacts), into out_contacts. */
 void ep_emit(const core_context *x, int slot, int row) {
+    const skeleton *sk = &x->sk;
     int64_t r = (int64_t)slot * x->ring_rows + row;
-    ep_row_pose(x, x->ring_rot6d + r * x->rot6d_stride, x->ring_goal + r * 6, x->ring_weight + r * 2,
-                x->ring_waist + slot * 9, x->ring_anchor + slot * 3, x->ring_wrists + slot * 6, x->ring_hand + slot * 18,
-                x->ring_head + slot * 9, x->ring_seg_m + (int64_t)slot * x->J * 9, x->ring_seg_flag + (int64_t)slot * x->J,
-                x->out_local, x->out_world, x->out_pos);
-    for (int f = 0; f < 2; f++) {       /* edge.pipeline.supported_contacts */
-        int a = (int)x->ankles[f], toe = a + 1;
-        while (toe < x->J && x->parents[toe] != a) toe++;
+    const pose_rows out = {x->out_local, x->out_world, x->out_pos};
+    row_pose(x, slot, row, &out);
+    for (int f = 0; f < 2; f++) {
+        int a = (int)sk->ankles[f], toe = a + 1;
+        while (toe < sk->J && sk->parents[toe] != a) toe++;
         double h = lowest_point(x->out_pos[a * 3 + 1], x->out_pos[toe * 3 + 1] - x->out_pos[a * 3 + 1]);
         x->out_contacts[f] = x->ring_contacts[r * 2 + f] * support(h);
     }
-}
-
-/* edge.quat.rotate, in its order of operations: t = 2 (u x v); v + w t + u x t. */
-static void quat_rotate(const double *q, const double *v, double *out) {
-    double c[3], t[3], c2[3];
-    cross3(q + 1, v, c);
-    for (int i = 0; i < 3; i++) t[i] = 2.0 * c[i];
-    cross3(q + 1, t, c2);
-    for (int i = 0; i < 3; i++) out[i] = v[i] + q[0] * t[i] + c2[i];
-}
-
-/* edge.quat.to_matrix */
-static void quat_to_matrix(const double *q, double *m) {
-    double w = q[0], x = q[1], y = q[2], z = q[3];
-    m[0] = 1 - 2 * (y * y + z * z); m[1] = 2 * (x * y - w * z); m[2] = 2 * (x * z + w * y);
-    m[3] = 2 * (x * y + w * z); m[4] = 1 - 2 * (x * x + z * z); m[5] = 2 * (y * z - w * x);
-    m[6] = 2 * (x * z - w * y); m[7] = 2 * (y * z + w * x); m[8] = 1 - 2 * (x * x + y * y);
 }
 
 /* The inverse of the character's heading (edge.features.heading): the yaw of the waist's forward
@@ -705,14 +741,6 @@ static void heading_inverse(const double *waist_rot, double *inv) {
     quat_rotate(waist_rot, forward, fwd);
     double half = atan2(fwd[0], fwd[2]) / 2, c = cos(half), s = sin(half);
     inv[0] = c * 1.0; inv[1] = (s * 0.0) * -1.0; inv[2] = (s * 1.0) * -1.0; inv[3] = (s * 0.0) * -1.0;
-}
-
-/* edge.quat.mul */
-static void quat_mul(const double *a, const double *b, double *out) {
-    out[0] = a[0] * b[0] - a[1] * b[1] - a[2] * b[2] - a[3] * b[3];
-    out[1] = a[0] * b[1] + a[1] * b[0] + a[2] * b[3] - a[3] * b[2];
-    out[2] = a[0] * b[2] - a[1] * b[3] + a[2] * b[0] + a[3] * b[1];
-    out[3] = a[0] * b[3] + a[1] * b[2] - a[2] * b[1] + a[3] * b[0];
 }
 
 /* One frame of tracker signals -> the decoder's 24 point features and what the pipeline keeps of the
@@ -770,7 +798,7 @@ void ep_imu_features(int K, const double *imu_rot, const double *imu_flag, const
 static double segment_distance(const double *p0, const double *p1, const double *q0, const double *q1) {
     double d1[3], d2[3], r[3];
     for (int i = 0; i < 3; i++) { d1[i] = p1[i] - p0[i]; d2[i] = q1[i] - q0[i]; r[i] = p0[i] - q0[i]; }
-    double a = dot3(d1, d1), e = dot3(d2, d2), f = dot3(d2, r), c = dot3(d1, r), b = dot3(d1, d2);
+    double a = vec3_dot(d1, d1), e = vec3_dot(d2, d2), f = vec3_dot(d2, r), c = vec3_dot(d1, r), b = vec3_dot(d1, d2);
     double denom = a * e - b * b;
     double sc = denom > 1e-12 ? clamp((b * f - c * e) / denom, 0, 1) : 0.0;
     double t = (b * sc + f) / (e > 1e-12 ? e : 1e-12);
@@ -780,7 +808,7 @@ static double segment_distance(const double *p0, const double *p1, const double 
     t = clamp(t, 0, 1);
     double dd[3];
     for (int i = 0; i < 3; i++) dd[i] = p0[i] + d1[i] * sc - (q0[i] + d2[i] * t);
-    return sqrt(dot3(dd, dd));
+    return sqrt(vec3_dot(dd, dd));
 }
 
 /* edge.criteria.PhysicalPlausibility.cost for N rows of world positions pos [N,J,3]: w_floor times how
@@ -789,9 +817,10 @@ static double segment_distance(const double *p0, const double *p1, const double 
  * far above `float_m` a foot is while the sample says it is in contact (contacts [N,2] float, > 0.5;
  * the foot's height: edge.physics.foot_height with the rest heights toe_h and ankle_h of joints feet
  * [toe l, toe r, ankle l, ankle r]). -> cost [N]. */
-void ep_physical_cost(int N, int J, const double *pos, const float *contacts, const double *lift, const int64_t *segs,
-                      const int64_t *feet, double gap, double float_m, double toe_h, double ankle_h, double w_floor,
-                      double w_legs, double w_support, double *cost) {
+void ep_physical_cost(int N, int J, const double *pos, const float *contacts, const double *lift,
+                      const physical_params *pp, double *cost) {
+    const int64_t *segs = pp->segs, *feet = pp->feet;
+    const double gap = pp->gap, float_m = pp->float_m, toe_h = pp->toe_h, ankle_h = pp->ankle_h;
     for (int r = 0; r < N; r++) {
         const double *P = pos + (int64_t)r * J * 3;
         double closest = 1e300;
@@ -807,18 +836,18 @@ void ep_physical_cost(int N, int J, const double *pos, const float *contacts, co
             double h = (toe < ankle ? toe : ankle) - float_m;
             if (contacts[r * 2 + f] > 0.5f && h > 0) support += h;
         }
-        cost[r] = w_floor * (lift[r * 2] + lift[r * 2 + 1]) + w_legs * legs + w_support * support;
+        cost[r] = pp->w_floor * (lift[r * 2] + lift[r * 2 + 1]) + pp->w_legs * legs + pp->w_support * support;
     }
 }
 
-/* 1 when the n floats are all finite (Pipeline.step's check of the decoder's state and output). */
+/* edge.pipeline.NumpyFrame.finite: 1 when the n floats are all finite (the decoder's state and output). */
 int ep_all_finite_f32(const float *x, int n) {
     for (int i = 0; i < n; i++)
         if (!(x[i] - x[i] == 0.0f)) return 0;
     return 1;
 }
 
-/* edge.pipeline.Pipeline._sane_frame: 1 when the frame's n signal values are all finite and its
+/* edge.pipeline.NumpyFrame.sane: 1 when the frame's n signal values are all finite and its
  * head and controller positions (in[0..3), in[7..13)) lie within `limit` metres of the origin. */
 int ep_frame_sane(const double *in, int n, double limit) {
     for (int i = 0; i < n; i++)
@@ -828,7 +857,7 @@ int ep_frame_sane(const double *in, int n, double limit) {
     return 1;
 }
 
-/* The k-th smallest of x[0..n) (x is reordered): Hoare's quickselect. */
+/* The k-th smallest of x[0..n) (x is reordered), np.partition(x, k)[k]: Hoare's quickselect. */
 static double kth_smallest(double *x, int n, int k) {
     int lo = 0, hi = n - 1;
     while (lo < hi) {
@@ -849,7 +878,7 @@ static double kth_smallest(double *x, int n, int k) {
     return x[k];
 }
 
-/* edge.pipeline.is_outlier and best_other in one call (SSI eq. 2, 3.2.2): the sample to switch to
+/* edge.ssi.switch_to (is_outlier and best_other) in one call (SSI eq. 2, 3.2.2): the sample to switch to
  * from c, or -1 when c's cost is not an outlier (its excess over the best must also exceed margin;
  * or a cost is NaN, where numpy's test is false too).
  * N <= 1024. */
@@ -879,28 +908,15 @@ int ep_switch_to(int N, const double *cost, int c, double margin) {
 /* edge.pipeline.midway_rotation: the rotation halfway between a and b [9] (row-major), as the mean of
  * their 6D (first two columns) Gram-Schmidt-ed back, in edge.quat.matrix_from_6d's order. */
 static void midway_rotation(const double *a, const double *b, double *out) {
-    double u[3], v[3], x[3], y[3];
+    double u[3], v[3];
     for (int i = 0; i < 3; i++) {
         u[i] = 0.5 * (a[i * 3] + b[i * 3]);
         v[i] = 0.5 * (a[i * 3 + 1] + b[i * 3 + 1]);
     }
-    double nu = sqrt(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
-    nu = nu > 1e-8 ? nu : 1e-8;
-    for (int i = 0; i < 3; i++) x[i] = u[i] / nu;
-    double d = x[0] * v[0] + x[1] * v[1] + x[2] * v[2];
-    for (int i = 0; i < 3; i++) v[i] = v[i] - d * x[i];
-    double nv = sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
-    nv = nv > 1e-8 ? nv : 1e-8;
-    for (int i = 0; i < 3; i++) y[i] = v[i] / nv;
-    double z[3] = {x[1] * y[2] - x[2] * y[1], x[2] * y[0] - x[0] * y[2], x[0] * y[1] - x[1] * y[0]};
-    for (int i = 0; i < 3; i++) {
-        out[i * 3] = x[i];
-        out[i * 3 + 1] = y[i];
-        out[i * 3 + 2] = z[i];
-    }
+    quat_matrix_from_6d(u, v, out);
 }
 
-/* Pipeline._frame_inputs_native for the live frame, straight into ring slot `slot` and the decoder's
+/* edge.pipeline.NumpyFrame.inputs for the live frame, straight into ring slot `slot` and the decoder's
  * input: ep_frame_features (first: no previous frame, velocity 0), then the points, features and
  * tracker matrices where Pipeline.step keeps them. */
 void ep_frame_inputs(const core_context *x, int slot, int first) {
@@ -911,7 +927,7 @@ void ep_frame_inputs(const core_context *x, int slot, int first) {
     if (F > 24)                 /* the extra IMUs: frame_in[25..] holds their orientations [K,4] and flags [K] */
         ep_imu_features(x->imus, x->frame_in + 25, x->frame_in + 25 + 4 * x->imus, x->frame_in + 21, feat + 24);
     if (x->segments) {
-        double *seg = x->ring_seg_m + (int64_t)slot * x->J * 9, *flag = x->ring_seg_flag + (int64_t)slot * x->J;
+        double *seg = x->ring_seg_m + (int64_t)slot * x->sk.J * 9, *flag = x->ring_seg_flag + (int64_t)slot * x->sk.J;
         for (int k = 0; k < x->imus; k++) {
             int64_t j = x->imu_joints[k];
             quat_to_matrix(x->frame_in + 25 + 4 * k, seg + j * 9);
