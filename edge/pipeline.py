@@ -603,11 +603,20 @@ class CompiledFrame:
         self._c = {"parents": np.ascontiguousarray(PARENTS, np.int64), "offsets": OFFSETS,
                    "chains": np.ascontiguousarray(LIMB_CHAINS, np.int64), "poles": LIMB_POLES,
                    "ankles": np.ascontiguousarray(ANKLES, np.int64), "imu_joints": np.ascontiguousarray(IMU_JOINTS, np.int64)}
-        a = self.addr = {k: native.addr(v) for k, v in self._c.items()}
-        for k in ("_local", "_world", "_pos", "_targets", "_weights", "_floor_lift"):
-            a[k] = native.addr(getattr(p, k))
-        for k in ("lock_pos", "locked", "raw", "since_release", "weight"):     # FootLock's state
-            a[k] = native.addr(getattr(p.feet, k))
+        # Every array the core reads or writes is checked once here (dtype, layout, shape); the hot
+        # path then passes addresses only.
+        J, R = NUM_JOINTS, len(p._local)
+        chk = native.checked_addr
+        a = self.addr = {k: chk(v, np.int64 if v.dtype.kind == "i" else np.float64, None, k) for k, v in self._c.items()}
+        for k, shape in (("_local", (R, J, 3, 3)), ("_world", (R, J, 3, 3)), ("_pos", (R, J, 3)), ("_targets", (R, 2, 3)),
+                         ("_weights", (R, 2)), ("_floor_lift", (R, 2))):
+            a[k] = chk(getattr(p, k), np.float64, shape, k)
+        for k, dtype in (("lock_pos", np.float64), ("locked", np.bool_), ("raw", np.bool_), ("since_release", np.float64),
+                         ("weight", np.float64)):      # FootLock's state
+            a[k] = chk(getattr(p.feet, k), dtype, (N,) + getattr(p.feet, k).shape[1:], k)
+        for arr in vars(b).values():                    # the look-ahead ring
+            if isinstance(arr, np.ndarray):
+                chk(arr, arr.dtype, None, "ring buffer")
         self._frame_offsets = np.concatenate([EYE_OFFSET[None], GRIP_OFFSET, (PELVIS_TO_HEAD * p.body_scale)[None]])
         self._prev = np.zeros((4, 3))
         a["_frame_in"], a["_frame_offsets"], a["_prev"] = (native.addr(x) for x in (p._frame_in, self._frame_offsets,
@@ -645,11 +654,13 @@ class CompiledFrame:
         self.first = True           # the first frame's velocity is zero: prev = points
 
     def bind_decoder(self, dec):
-        ctx = self.core.contents
-        self.addr["rot6d"], self.addr["contacts"] = native.addr(dec.rot6d), native.addr(dec.contacts)
+        ctx, chk = self.core.contents, native.checked_addr
+        self.addr["rot6d"] = chk(dec.rot6d, np.float32, (None, None), "decoder rot6d")
+        self.addr["contacts"] = chk(dec.contacts, np.float32, (None, 2), "decoder contacts")
         ctx.rot6d, ctx.contacts, ctx.rot6d_stride = self.addr["rot6d"], self.addr["contacts"], dec.rot6d.shape[1]
-        ctx.dec_features, ctx.dec_rows = native.addr(dec.features), dec.capacity
-        self._hidden_addr = [native.addr(h) for h in dec.hidden]
+        ctx.dec_features = chk(dec.features, np.float32, (None, self.p.n_features), "decoder features")
+        ctx.dec_rows = dec.capacity
+        self._hidden_addr = [chk(h, np.float32, (None, None), "decoder GRU state") for h in dec.hidden]
 
     def sane(self):
         return bool(self.lib.ep_frame_sane(self.addr["_frame_in"], len(self.p._frame_in), POSITION_LIMIT_M))

@@ -42,14 +42,15 @@ class Listener:
         self.latency_ms = deque(maxlen=240)
 
     def poll(self, timeout=0.0):
-        """Pose frames that arrived, waiting up to `timeout` seconds for the first bytes."""
-        ready, _, _ = select.select([self.fd], [], [], timeout)
-        if not ready:
-            return []
+        """Pose frames that arrived, waiting up to `timeout` seconds for the first bytes. Raises OSError
+        when the port is gone (unplugged): silence and a lost port are not the same."""
         try:
+            ready, _, _ = select.select([self.fd], [], [], timeout)
+            if not ready:
+                return []
             chunk = os.read(self.fd, 65536)
-        except OSError:
-            return []
+        except (OSError, ValueError) as e:          # EIO after an unplug; a closed descriptor
+            raise OSError(f"the pose stream's port is gone ({e}); is the board's link unplugged?") from None
         now = time.monotonic()
         if self.record is not None:
             self.record.write(chunk)
@@ -86,9 +87,15 @@ def status_loop(listener, seconds=None, every=0.25):
     final line is always printed."""
     tty = sys.stderr.isatty()
     start = last = time.monotonic()
+    code = 0
     try:
         while seconds is None or time.monotonic() - start < seconds:
-            listener.poll(0.05)
+            try:
+                listener.poll(0.05)
+            except OSError as e:
+                sys.stderr.write(("\n" if tty else "") + f"edge listen: {e}\n")
+                code = 1
+                break
             if tty and time.monotonic() - last > every:
                 last = time.monotonic()
                 sys.stderr.write("\r" + listener.status_line() + "\x1b[K")
@@ -96,7 +103,7 @@ def status_loop(listener, seconds=None, every=0.25):
     except KeyboardInterrupt:
         pass
     sys.stderr.write(("\n" if tty else "") + listener.status_line() + "\n")
-    return 0
+    return code
 
 
 def main(args):

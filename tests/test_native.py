@@ -1,4 +1,5 @@
 """The compiled post-processing core (edge/native) against its numpy references, and the fallback."""
+import ctypes
 import os
 import subprocess
 import sys
@@ -275,3 +276,25 @@ def test_the_live_frame_inputs_land_in_the_ring_bit_identical_to_the_numpy_path(
             assert np.array_equal(getattr(a, k), getattr(b, k)), k
         np.testing.assert_allclose(a.seg_m, b.seg_m, rtol=0, atol=1e-14)     # the torso's midway rotations
         assert np.array_equal(pipes[0].decoder.features, pipes[1].decoder.features)
+
+
+def test_the_ctypes_mirrors_match_the_c_structs_and_a_mismatch_refuses_to_load(monkeypatch):
+    """postproc.c reports its structs' sizes and core_context's field offsets (ep_layout); the loader
+    compares them with the ctypes mirrors and, if one was edited on one side only, says which."""
+    assert native.layout_mismatch(lib) == ""
+
+    class Shifted(ctypes.Structure):      # the mirror with one field's type changed (an int widened to a double)
+        _fields_ = [(n, ctypes.c_double if n == "foot_ik" else t) for n, t in native.CoreContext._fields_]
+    monkeypatch.setattr(native, "CoreContext", Shifted)
+    assert "CoreContext.arm_ik" in native.layout_mismatch(lib)
+
+
+def test_arrays_crossing_into_c_are_checked_for_dtype_layout_and_shape():
+    a = np.zeros((4, 3))
+    assert native.checked_addr(a, np.float64, (None, 3)) == a.ctypes.data
+    with pytest.raises(TypeError, match="float64"):
+        native.checked_addr(a.astype(np.float32), np.float64)
+    with pytest.raises(ValueError, match="contiguous"):
+        native.checked_addr(a[:, :2], np.float64)
+    with pytest.raises(ValueError, match="shape"):
+        native.checked_addr(a, np.float64, (4, 2))

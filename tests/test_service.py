@@ -136,3 +136,77 @@ def test_a_service_that_runs_late_lowers_n_and_keeps_streaming():
     assert [c[1:] for c in summary["samples_changes"]] == [[16, 1, "late"]]
     assert frames[-1].num_samples == 1 and len(frames) > 60
     assert ear.stats["corrupt"] == 0
+
+
+def test_a_links_counters_survive_a_reconnect(tmp_path):
+    """Corrupt frames counted before an unplug still count after the device comes back (real ptys)."""
+    from edgetools.sim.devices import SerialDevice
+    from edgetools.sim.session import SerialLog
+    from firmware_bridge.service import REOPEN_AFTER_S, Link
+    garbage = b"\x05\x01\x02\x03\x04\x00"                      # COBS-valid, CRC wrong: counted as corrupt
+    dev = SerialDevice("hub", SerialLog([0.0] * 3, [garbage] * 3), tmp_path)
+    link = Link(f"serial://{dev.path}?role=hub", required=False)
+    now = [0.0]
+    dev.emit_until(0.0)
+    time.sleep(0.05)
+    link.drain(lambda: now[0])
+    assert link.stats()["corrupt"] == 3
+    dev.unplug()                                               # the port goes away: EIO, the link closes
+    link.drain(lambda: now[0])
+    assert link.source is None and link.stats()["corrupt"] == 3
+    dev.plug()
+    dev.log, dev.next = SerialLog([1.0] * 2, [garbage] * 2), 0
+    now[0] += REOPEN_AFTER_S
+    link.drain(lambda: now[0])                                 # reopened
+    dev.emit_until(1.0)
+    time.sleep(0.05)
+    link.drain(lambda: now[0])
+    assert link.reopens == 1 and link.stats()["corrupt"] == 5
+    link.close()
+    dev.close()
+
+
+def test_a_can_source_stuck_in_bus_errors_is_closed_and_reopened():
+    """A bus that keeps raising CanError (bus-off) shows as state "error" and is reopened after
+    ERROR_REOPEN_S, on python-can's virtual bus."""
+    import can
+    from firmware_bridge.service import ERROR_REOPEN_S, Link
+    from firmware_bridge.transports import open_source
+    opened = []
+
+    def opener(url):
+        source = open_source(url)
+        opened.append(source)
+        return source
+
+    channel = f"busoff-{os.getpid()}"
+    link = Link(f"can://virtual/{channel}?nodes=1:l_foot", opener, required=False)
+    broken = opened[0]
+
+    def bus_off(timeout=None):
+        raise can.CanError("bus-off")
+    broken.bus.recv = bus_off
+    now = [0.0]
+    link.drain(lambda: now[0])
+    assert broken.state == "error" and link.source is broken
+    now[0] += ERROR_REOPEN_S
+    link.drain(lambda: now[0])                                 # stuck for ERROR_REOPEN_S: closed
+    assert link.source is None and broken.state == "closed"
+    link.drain(lambda: now[0])                                 # and opened again
+    assert link.source is opened[1] and link.reopens == 1 and link.source.state == "active"
+    assert link.stats()["errors"] >= 2                         # the broken bus's errors still count
+    link.close()
+
+
+def test_listener_says_when_its_port_goes_away():
+    """An unplugged port raises OSError from Listener.poll, and `edge listen`'s loop ends with exit 1,
+    instead of reading as silence."""
+    from edgetools.listen import status_loop
+    master, slave = os.openpty()
+    ear = Listener(fd=master)
+    assert ear.poll(0.01) == []                # silence: nothing yet
+    os.close(slave)                            # the far end goes away: EIO on the master
+    with pytest.raises(OSError, match="gone"):
+        ear.poll(0.05)
+    assert status_loop(ear, seconds=1.0) == 1
+    os.close(master)

@@ -48,7 +48,11 @@ def live_plot(listener, seconds=None):
     latest = None
     try:
         while seconds is None or time.monotonic() - start < seconds:
-            frames = listener.poll(0.01)
+            try:
+                frames = listener.poll(0.01)
+            except OSError as e:           # the port went away: say so, do not look like silence
+                print(f"edge listen: {e}", file=sys.stderr)
+                break
             latest = frames[-1] if frames else latest
             if not plt.fignum_exists(fig.number):
                 break

@@ -143,8 +143,24 @@ _SIGNATURES = {
     "ep_emit": [ctypes.POINTER(CoreContext), _I, _I],
     "ep_frame_inputs": [ctypes.POINTER(CoreContext), _I, _I],
     "ep_max_joints": [],
+    "ep_layout": [_P, _I],
 }
-_RETURNS_INT = {"ep_switch_to", "ep_max_joints", "ep_frame_sane", "ep_all_finite_f32"}
+_RETURNS_INT = {"ep_switch_to", "ep_max_joints", "ep_frame_sane", "ep_all_finite_f32", "ep_layout"}
+_MIRRORS = (Skeleton, PoseRows, ForwardInputs, LimbGoals, FootLocks, PhysicalParams)
+
+
+def layout_mismatch(lib):
+    """What differs between postproc.c's structs and their ctypes mirrors ('' when nothing does): the
+    sizes of each struct and the offset of every core_context field, as the compiler laid them out."""
+    c = np.zeros(128, np.int64)
+    n = lib.ep_layout(c.ctypes.data, len(c))
+    py = [ctypes.sizeof(m) for m in _MIRRORS] + [ctypes.sizeof(CoreContext)]
+    py += [getattr(CoreContext, name).offset for name, _ in CoreContext._fields_]
+    names = [m.__name__ for m in _MIRRORS] + ["CoreContext"] + [f"CoreContext.{f}" for f, _ in CoreContext._fields_]
+    if n != len(py):
+        return f"postproc.c lays out {n - 7} core_context fields, the ctypes mirror has {len(py) - 7}"
+    bad = [f"{w} (C {int(a)}, ctypes {b})" for w, a, b in zip(names, c[:n], py) if int(a) != b]
+    return "; ".join(bad)
 
 
 def load():
@@ -165,6 +181,11 @@ def load():
         fn = getattr(lib, name)
         fn.argtypes, fn.restype = args, (_I if name in _RETURNS_INT else None)
     from edge.skeleton import NUM_JOINTS
+    mismatch = layout_mismatch(lib)
+    if mismatch:        # a struct edited on one side only: calling in would corrupt memory
+        _error = f"postproc.c's structs and their ctypes mirrors in edge/native/__init__.py differ: {mismatch}"
+        print(f"edgepose: compiled post-processing unavailable ({_error}); using numpy (slower)", file=sys.stderr)
+        return None
     if lib.ep_max_joints() < NUM_JOINTS:
         _error = f"postproc.c is built for at most {lib.ep_max_joints()} joints; the skeleton has {NUM_JOINTS}"
         print(f"edgepose: compiled post-processing unavailable ({_error}); using numpy (slower)", file=sys.stderr)
@@ -187,8 +208,22 @@ def why_unavailable():
 
 
 def addr(a):
-    """Address of an array's first element (the caller guarantees dtype and layout). Not
-    __array_interface__: on numpy 2 that grows a cache on every call on a view (a per-frame leak)."""
+    """Address of an array's first element (the caller guarantees dtype and layout; `checked_addr`
+    checks them). Not __array_interface__: on numpy 2 that grows a cache on every call on a view (a
+    per-frame leak)."""
+    return a.ctypes.data
+
+
+def checked_addr(a, dtype, shape=None, what="array"):
+    """addr(a) after checking what C will assume of it: its dtype, C-contiguity and (when given) its
+    shape, with None for any length. Raises TypeError or ValueError saying which."""
+    if not isinstance(a, np.ndarray) or a.dtype != np.dtype(dtype):
+        got = a.dtype if isinstance(a, np.ndarray) else type(a).__name__
+        raise TypeError(f"{what}: the compiled core needs {np.dtype(dtype).name}, got {got}")
+    if not a.flags.c_contiguous:
+        raise ValueError(f"{what}: the compiled core needs a C-contiguous array (np.ascontiguousarray), got a view")
+    if shape is not None and (a.ndim != len(shape) or any(w is not None and w != g for w, g in zip(shape, a.shape))):
+        raise ValueError(f"{what}: the compiled core needs shape {shape}, got {a.shape}")
     return a.ctypes.data
 
 

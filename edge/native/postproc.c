@@ -625,6 +625,29 @@ typedef struct {
     int segments;
 } core_context;
 
+/* The layout of the structs above, for the loader to hold the ctypes mirrors against (edge.native.load):
+ * out[0..6) the sizes of skeleton, pose_rows, forward_inputs, limb_goals, foot_locks, physical_params;
+ * out[6] sizeof(core_context), then the offset of each of its fields in order. Returns how many it wrote. */
+#include <stddef.h>
+#define CORE_FIELDS(X) X(sk) X(locks) X(foot_ik) X(arm_ik) X(rot6d_stride) X(rot6d) X(contacts) X(goals) X(weights) \
+    X(ring_rows) X(ring_waist) X(ring_anchor) X(ring_wrists) X(ring_hand) X(ring_head) X(ring_rot6d) X(ring_contacts) \
+    X(ring_goal) X(ring_weight) X(ring_lock_weight) X(out_local) X(out_world) X(out_pos) X(ae_in) X(ae_local) \
+    X(ae_root_local) X(frame_in) X(frame_offsets) X(prev) X(fps) X(ring_features) X(dec_features) X(dec_rows) \
+    X(ring_hidden) X(hidden) X(out_contacts) X(n_features) X(imus) X(floor_lift) X(ring_seg_m) X(ring_seg_flag) \
+    X(imu_joints) X(segments)
+int ep_layout(int64_t *out, int n) {
+    int64_t v[128];
+    int k = 0;
+    v[k++] = sizeof(skeleton); v[k++] = sizeof(pose_rows); v[k++] = sizeof(forward_inputs);
+    v[k++] = sizeof(limb_goals); v[k++] = sizeof(foot_locks); v[k++] = sizeof(physical_params);
+    v[k++] = sizeof(core_context);
+#define OFFSET(f) v[k++] = offsetof(core_context, f);
+    CORE_FIELDS(OFFSET)
+#undef OFFSET
+    for (int i = 0; i < k && i < n; i++) out[i] = v[i];
+    return k;
+}
+
 static void copy_f32(float *dst, const float *src, int64_t n) { for (int64_t i = 0; i < n; i++) dst[i] = src[i]; }
 static void copy_f64(double *dst, const double *src, int64_t n) { for (int64_t i = 0; i < n; i++) dst[i] = src[i]; }
 
