@@ -148,7 +148,7 @@ def board_service(cfg, samples, feeder):
         runtime["models"] = cfg["models"]
     board = config_mod.from_dict({"headset": {"url": headset}, "trackers": [{"url": waist}],
                                   "output": {"pose_stream": "headset"}, "runtime": runtime}, "edge profile")
-    return Service(board, clock=lambda: feeder.now, status=None)
+    return Service(board, clock=lambda: feeder.now, status=None, threaded=False)   # the feed is in-process
 
 
 def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None):  # noqa: C901

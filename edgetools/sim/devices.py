@@ -211,4 +211,27 @@ def bno055_for(session, clock, faults):
     edges = np.flatnonzero(np.diff(np.concatenate([[0], (~valid).astype(int), [0]])))
     for start, end in zip(edges[::2], edges[1::2]):            # a disconnected puck NACKs
         chip.fail_between(session.i2c_t[start], session.i2c_t[min(end, len(q) - 1)])
+    if faults.get("i2c_block_ms"):
+        return SlowBus(chip, faults["i2c_block_ms"] / 1000.0, faults.get("i2c_block_every_ms", 200) / 1000.0)
     return chip
+
+
+class SlowBus:
+    """An I2C bus whose block read stalls for `block_s` of real time once every `every_s` (clock
+    stretching at a 10 kHz bus clock, a chip re-initialising): the wall clock, whatever the simulated
+    one says, so a replay shows what a blocking read does to the tick."""
+
+    def __init__(self, bus, block_s, every_s):
+        self.bus, self.block_s, self.every_s = bus, block_s, every_s
+        self.next_stall = time.monotonic() + every_s
+        self.stalls = 0
+
+    def read_i2c_block_data(self, *args, **kw):
+        if time.monotonic() >= self.next_stall:
+            time.sleep(self.block_s)
+            self.stalls += 1
+            self.next_stall = time.monotonic() + self.every_s
+        return self.bus.read_i2c_block_data(*args, **kw)
+
+    def __getattr__(self, name):        # every other SMBus method as the chip has it
+        return getattr(self.bus, name)

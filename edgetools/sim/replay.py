@@ -57,8 +57,9 @@ def board_config(session, devices, can_channel, samples, lookahead, bvh, adaptiv
 
 
 def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=None, bvh=None, status=None,
-           models=None, adaptive=False, precision=DEFAULT_PRECISION, pose_log=None):
-    """Returns the report dict; `pose_log` (a binary file) receives the pose stream's raw bytes."""
+           models=None, adaptive=False, precision=DEFAULT_PRECISION, pose_log=None, threaded=None):
+    """Returns the report dict; `pose_log` (a binary file) receives the pose stream's raw bytes.
+    threaded: reader threads in the service (default: in real time, not at --speed max)."""
     faults = faults or {}
     # Build the compiled core (first use: seconds of cc) before the clock starts, or a real-time replay
     # begins seconds behind its own devices and the synchroniser starts on a backlog.
@@ -91,7 +92,9 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
         cfg = board_config(session, devices, can_channel, samples, lookahead, bvh, adaptive, precision, bench)
         if models:
             cfg.models = models
-        service = Service(cfg, clock=clock, status=status)
+        # Real time: a reader thread per source, as on the board. Max speed: the tick reads the sources
+        # itself, so every run sees the same input (tests/test_golden.py).
+        service = Service(cfg, clock=clock, status=status, threaded=clock.realtime if threaded is None else threaded)
     except BaseException:
         for dev in list(devices.values()) + ([can_dev] if can_dev else []):
             dev.close()
@@ -165,7 +168,7 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
             if len(ticks_by_us) > 600:
                 ticks_by_us.pop(next(iter(ticks_by_us)))
             try:
-                service.step(step_now)
+                service.step(step_now, due=now + 1.0 / hz if clock.realtime else None)
             except Exception as e:          # the run goes on; the report says what broke
                 errors.append(f"tick {k}: {type(e).__name__}: {e}")
             if not clock.realtime:

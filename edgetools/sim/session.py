@@ -179,6 +179,7 @@ FAULTS = {
     "hand-loss": {"hand_loss": 0.025, "hand_gap_s": [0.5, 2.0]},    # RPM: 2.5% per frame per hand, 0.5-2 s
     "unplug": {"unplug_at": 2.0, "unplug_s": 0.5},
     "i2c-errors": {"i2c_error_rate": 0.05},
+    "slow-i2c": {"i2c_block_ms": 50, "i2c_block_every_ms": 200},    # a read that blocks 50 ms every 200 ms
     "can-busoff": {"busoff_at": 2.0, "busoff_s": 1.0},
     "clock-jump": {"clock_jump_at": 2.0, "clock_jump_s": 0.75},
     "unplug-foot": {"tracker_unplug": "l_foot", "tracker_unplug_at": 4.0},  # an extra IMU goes silent for good

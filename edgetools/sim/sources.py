@@ -22,7 +22,7 @@ def tile_take(take, seconds):
 
 # Faults the simulated devices apply while replaying; the others shape the traffic when a session is
 # synthesised from a take, so a recording cannot have them.
-REPLAY_TIME_FAULTS = {"unplug_at", "unplug_s", "i2c_error_rate"}
+REPLAY_TIME_FAULTS = {"unplug_at", "unplug_s", "i2c_error_rate", "i2c_block_ms", "i2c_block_every_ms"}
 
 
 def load_source(source, transports, faults, seed=0, seconds=None, trackers=None):
