@@ -493,7 +493,8 @@ def test_fuzz_up_to_three_flipped_bits_in_a_frame_are_always_caught(wire, data):
         body[bit // 8] ^= 1 << (bit % 8)
     reader = FrameReader()
     assert reader.feed(reencode(bytes(body))) == []
-    assert reader.stats == {"frames": 0, "corrupt": 1, "unexpected": 0, "missed": 0, "clock_jumps": 0}
+    assert reader.stats == {"frames": 0, "corrupt": 1, "corrupt_framing": 1, "unexpected": 0, "missed": 0,
+                            "clock_jumps": 0}
     assert len(reader.feed(wire)) >= 1
 
 
@@ -533,3 +534,22 @@ def test_fuzz_payload_decoders_never_raise_and_only_yield_sane_values(msg_type, 
 def test_header_layout_is_eight_bytes():
     assert HEADER.size == 8 and MAX_ENCODED_FRAME >= 590
     assert quat_to_q14([1.0, 0.0, 0.0, 0.0]).tolist() == [16384, 0, 0, 0]
+
+
+@pytest.mark.parametrize("position, kind", [([3e38, 1.6, 0.0], "range"), ([0.0, 51.0, 0.0], "range"),
+                                             ([0.0, float("nan"), 0.0], "value")])
+def test_a_headset_position_beyond_any_tracked_space_is_dropped_and_counted_by_kind(position, kind):
+    """A valid-CRC frame whose head position is finite but huge is corrupt, counted as `range`."""
+    good = HeadsetSample(1.0, np.array([0.0, 1.6, 0.0]), np.array([1.0, 0, 0, 0]), np.zeros((2, 3)),
+                         np.tile([1.0, 0, 0, 0], (2, 1)))
+    bad = HeadsetSample(1.0, np.zeros(3), good.head_rot, good.hand_pos, good.hand_rot)
+    payload = bytearray(HEADSET_RECORD_FOR_TEST(bad))
+    payload[0:12] = np.array(position, "<f4").tobytes()
+    reader = FrameReader()
+    out = reader.feed(encode_headset_pose(good, 1) + encode_frame(HEADSET_POSE, 2, 2_000_000, bytes(payload)))
+    assert len(out) == 1 and reader.stats["corrupt"] == 1 and reader.stats[f"corrupt_{kind}"] == 1
+
+
+def HEADSET_RECORD_FOR_TEST(sample):
+    """The HEADSET_POSE payload of a sample (the encoder's record, without its framing)."""
+    return cobs_decode(encode_headset_pose(sample, 0)[:-1])[HEADER.size:-2]

@@ -26,7 +26,14 @@ MAX_ENCODED_FRAME = 1024
 
 
 class ProtocolError(ValueError):
-    """A frame that cannot be decoded: bad COBS, bad CRC, bad length, unknown type or version, bad value."""
+    """A frame that cannot be decoded: bad COBS, bad CRC, bad length, unknown type or version, bad value.
+    `kind` says which family, for the counters: "framing" (COBS, CRC, length, version, type),
+    "quaternion" (not a rotation), "range" (a position beyond POSITION_LIMIT_M), "value" (NaN, infinity,
+    a field that contradicts itself)."""
+
+    def __init__(self, message, kind="framing"):
+        super().__init__(message)
+        self.kind = kind
 
 
 # ---------------------------------------------------------------------------------------------

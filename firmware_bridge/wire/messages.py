@@ -22,6 +22,10 @@ from firmware_bridge.wire.framing import (DELIMITER, HEADSET_POSE, MAX_ENCODED_F
                                           encode_frame, seconds_to_us, sequence_gap)
 
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
+# A headset or controller position further than this from the origin (in any axis) is not one any
+# tracked space has: the frame is dropped and counted (kind "range"). edge.pipeline's own guard uses
+# the same limit for what reaches it by other ways.
+POSITION_LIMIT_M = 50.0
 INT16_MAX = q14.INT16_MAX
 NO_ACCEL = -32768                        # all three accel axes at this value: the tracker sent none
 MAX_TRACKER_SAMPLES = 32
@@ -94,7 +98,8 @@ def quat_from_q14(raw):
     q = q14.from_q14(raw)
     off = q14.norm_error(q)
     if np.any(off > q14.NORM_TOLERANCE):
-        raise ProtocolError(f"quaternion norm {float(np.linalg.norm(q.reshape(-1, 4)[np.argmax(off)])):.3f} is not 1")
+        raise ProtocolError(f"quaternion norm {float(np.linalg.norm(q.reshape(-1, 4)[np.argmax(off)])):.3f} is not 1",
+                            "quaternion")
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 
@@ -107,10 +112,14 @@ def finite_float32(values, what):
 
 
 def checked_finite(values, what):
-    """float32 from the wire -> float64; raises ProtocolError on NaN or infinity (checked before the
-    cast: casting a signalling NaN raises a floating-point warning)."""
+    """A position as float32 from the wire -> float64; raises ProtocolError on NaN or infinity (checked
+    before the cast: casting a signalling NaN raises a floating-point warning) and on a coordinate
+    beyond POSITION_LIMIT_M (a finite 3e38 would poison the recurrent state just the same)."""
     if not np.all(np.isfinite(values)):
-        raise ProtocolError(f"{what} is NaN or infinite")
+        raise ProtocolError(f"{what} is NaN or infinite", "value")
+    if np.any(np.abs(values) > POSITION_LIMIT_M):
+        raise ProtocolError(f"{what} is {float(np.abs(values).max()):.3g} m from the origin, beyond the "
+                            f"{POSITION_LIMIT_M:g} m any tracked space spans", "range")
     return np.asarray(values, dtype=np.float64)
 
 
@@ -181,7 +190,7 @@ def accel_from_wire(raw):
     if np.all(raw == NO_ACCEL):
         return None
     if np.any(raw == NO_ACCEL):
-        raise ProtocolError("acceleration mixes the 'not sent' marker with values")
+        raise ProtocolError("acceleration mixes the 'not sent' marker with values", "value")
     return raw.astype(np.float64) / 100.0
 
 
@@ -297,7 +306,9 @@ class FrameReader:
     feed(chunk) returns the messages (TrackerSample, HeadsetSample, PoseFrame) of every frame the
     chunk completed, with times on one unwrapped clock per message type. `stats` counts:
       frames       good frames decoded
-      corrupt      frames dropped: bad COBS, CRC, length, version, type or value (see last_error)
+      corrupt      frames dropped: bad COBS, CRC, length, version, type or value (see last_error),
+                   also counted by ProtocolError.kind as corrupt_framing, corrupt_quaternion,
+                   corrupt_range and corrupt_value
       unexpected   good frames of a type this reader does not accept
       missed       frames lost according to sequence numbers (estimate)
       clock_jumps  device timestamps that went backwards
@@ -341,7 +352,7 @@ class FrameReader:
             # Times come back relative to the frame; the clock only advances on a good frame.
             messages = decode_messages(frame, 0.0, self.tracker_names)
         except ProtocolError as error:
-            self._count_corrupt(str(error))
+            self._count_corrupt(str(error), error.kind)
             return []
         self.stats["frames"] += 1
         self._count_missed(frame)
@@ -350,8 +361,9 @@ class FrameReader:
             message.t += t
         return messages
 
-    def _count_corrupt(self, reason):
+    def _count_corrupt(self, reason, kind="framing"):
         self.stats["corrupt"] += 1
+        self.stats[f"corrupt_{kind}"] = self.stats.get(f"corrupt_{kind}", 0) + 1
         self.last_error = reason
 
     def _count_missed(self, frame):
