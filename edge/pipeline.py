@@ -46,7 +46,7 @@ LIMB_CHAINS = np.array([[JOINT[f"{s}_{a}"], JOINT[f"{s}_{b}"], JOINT[f"{s}_{c}"]
 LIMB_POLES = np.array([[0.0, 0.0, 1.0]] * 2 + [[0.0, 0.0, -1.0]] * 2)   # knees bend forward, elbows back
 NECK, SPINE, CHEST = JOINT["neck"], JOINT["spine"], JOINT["chest"]
 _FRAME_INPUTS = ("waist_m", "anchor", "wrists", "hand_m", "head_m", "seg_m", "seg_flag")  # a frame's inputs to FK and IK, in ep_row_pose's order
-POSITION_LIMIT_M = 50.0     # a tracked position farther from the origin is not a room-scale one (step refuses it)
+POSITION_LIMIT_M = 30.0     # a tracked position farther out is no tracked space's (step refuses it; POSE_FRAME's root ends at 32.767 m)
 # The parts of a live frame, in order; with `timing` on, step() stamps the thread CPU clock after each
 # (Pipeline.stage_ns[k + 1] - stage_ns[k] is stage k's time; `edge profile` reads them).
 STAGES = ("features", "decoder", "poses", "criteria", "selection", "emit")

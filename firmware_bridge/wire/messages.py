@@ -23,9 +23,10 @@ from firmware_bridge.wire.framing import (DELIMITER, HEADSET_POSE, MAX_ENCODED_F
 
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 # A headset or controller position further than this from the origin (in any axis) is not one any
-# tracked space has: the frame is dropped and counted (kind "range"). edge.pipeline's own guard uses
+# tracked space has: the frame is dropped and counted (kind "range"). It also keeps the body inside
+# what POSE_FRAME can carry (the root in int16 millimetres: +-32.767 m). edge.pipeline's own guard uses
 # the same limit for what reaches it by other ways.
-POSITION_LIMIT_M = 50.0
+POSITION_LIMIT_M = 30.0
 INT16_MAX = q14.INT16_MAX
 NO_ACCEL = -32768                        # all three accel axes at this value: the tracker sent none
 MAX_TRACKER_SAMPLES = 32
