@@ -29,6 +29,9 @@ from edge.signals import Signals
 NEUTRAL_HANDS = np.array([[0.22, -0.75, 0.05], [-0.22, -0.75, 0.05]])
 
 
+JUMP_S = 0.25                   # a device clock step this much larger than the board's is a jump, counted
+
+
 class ClockOffset:
     """Board-minus-device clock offset from a minimum-delay filter over a sliding window of samples."""
 
@@ -54,7 +57,9 @@ class Stream:
         self.v = np.zeros((capacity, width))
         self.clock = ClockOffset()
         self.last_device_t = -np.inf
+        self.last_received_t = -np.inf
         self.backwards = 0
+        self.forwards = 0             # the device clock leapt ahead of the board's (>JUMP_S more than it)
         self.dropped = 0
 
     def add(self, device_t, received_t, values):
@@ -64,7 +69,10 @@ class Stream:
             self.backwards += 1
             self.last_device_t = device_t
         else:
+            if device_t - self.last_device_t > received_t - self.last_received_t + JUMP_S:
+                self.forwards += 1
             self.last_device_t = max(self.last_device_t, device_t)
+        self.last_received_t = received_t
         t = device_t + self.clock.update(device_t, received_t)
         oldest = int(np.argmin(self.t))
         if t <= self.t[oldest] or np.any(self.t == t):
@@ -144,11 +152,14 @@ class FrameSynchronizer:
         self.imu_flag = np.zeros(NUM_IMUS)           # the extra IMUs' presence (edge.imus order), faded per tick
         self._imu_rot = np.tile([1.0, 0.0, 0.0, 0.0], (NUM_IMUS, 1))
         self._imu_t = None
+        self.non_finite = 0                          # samples dropped for a NaN or infinity (decoders refuse them first)
+        self.unknown_trackers = 0                    # samples of a tracker the config does not name
 
     def add_headset(self, s, received=None):
         received = s.received if received is None else received
         head = np.concatenate([s.head_pos, s.head_rot])
         if not np.all(np.isfinite(head)):
+            self.non_finite += 1
             return
         self.streams["head"].add(s.t, received, head)
         for k, name in enumerate(self.HANDS):
@@ -158,7 +169,11 @@ class FrameSynchronizer:
 
     def add_tracker(self, s, received=None):
         stream = self.streams.get(s.tracker)
-        if stream is None or s.tracker in ("head",) + self.HANDS or not np.all(np.isfinite(s.quat)):
+        if stream is None or s.tracker in ("head",) + self.HANDS:
+            self.unknown_trackers += 1
+            return
+        if not np.all(np.isfinite(s.quat)):
+            self.non_finite += 1
             return
         stream.add(s.t, s.received if received is None else received, np.concatenate([np.zeros(3), s.quat]))
 

@@ -57,6 +57,10 @@ def test_every_fault_profile_keeps_the_output_going(take, clean, profile):
         assert r["tracker_lost_events"] > 0
     if profile in ("hand-loss", "clock-jump", "i2c-errors", "noise"):
         assert r["missing_output_frames"] == 0 and r["poses_decoded"] == r["frames_out"]
+    if profile == "i2c-errors":           # the injected bus errors happened, were counted and retried
+        assert r["device_errors"] > 0 and r["device_errors"] > clean["device_errors"]
+    if profile == "clock-jump":           # a device clock went backwards and the board saw it
+        assert r["clock_jumps"] > 0 and clean["clock_jumps"] == 0
     if profile == "unplug":
         assert r["reopens"] >= 1 and r["resume_after_replug_s"] is not None and r["resume_after_replug_s"] < 1.0
     if profile != "unplug":       # with the headset gone for 0.5 s the body is held, so errors are large then

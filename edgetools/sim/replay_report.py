@@ -27,6 +27,8 @@ def report(session, summary, m, service, ear, opened, errors, faults, speed, dur
         "sync_delay_ms": 1000.0 * service.cfg.sync_latency, "ssi_switches": service.pipeline.switch_count,
         "samples": service.pipeline.samples, "samples_max": summary["samples_max"], "precision": service.cfg.precision,
         "samples_changes": summary["samples_changes"], "frame_ms": summary["frame_ms"], "reopens": summary["reopens"],
+        "device_errors": summary.get("device_errors", 0), "clock_jumps": summary.get("clock_jumps", 0),
+        "packets_corrupt_by_kind": summary.get("packets_corrupt_by_kind", {}),
         "reader_threads": summary.get("reader_threads", 0), "samples_dropped": summary.get("samples_dropped", 0),
         "compiled_core": summary.get("compiled_core"),
         "output_errors": summary["output_errors"], "resume_after_replug_s": resume_s,
