@@ -44,7 +44,7 @@ class ConfigError(ValueError):
 SECTIONS = {
     "headset": {"url"},
     "trackers": {"url"},
-    "output": {"pose_stream", "vmc", "vrchat", "bvh"},
+    "output": {"pose_stream", "vmc", "vmc_mode", "vrchat", "vrchat_trackers", "bvh"},
     "runtime": {"samples", "adaptive", "precision", "lookahead", "hz", "lost_after_ms", "sync_latency_ms",
                 "calibration", "models"},
 }
@@ -57,6 +57,8 @@ class Config:
     pose_stream: str = "headset"
     vmc: str = ""
     vrchat: str = ""
+    vmc_mode: str = "split"
+    vrchat_trackers: tuple = ("pelvis", "chest", "l_ankle", "r_ankle", "l_knee", "r_knee")
     bvh: str = ""
     samples: int = 16
     adaptive: bool = True
@@ -143,6 +145,18 @@ def from_dict(raw, where="config"):
         if out.get(key):
             _host_port(out[key], f"{where}: [output] {key}")
             setattr(cfg, key, out[key])
+    cfg.vmc_mode = out.get("vmc_mode", cfg.vmc_mode)
+    if cfg.vmc_mode not in ("split", "bundle", "messages"):
+        raise ConfigError(f"{where}: [output] vmc_mode must be \"split\" (bundles of at most 1,472 bytes: one "
+                          f"Ethernet frame each), \"bundle\" (one datagram) or \"messages\", not {cfg.vmc_mode!r}")
+    if "vrchat_trackers" in out:
+        from edge.skeleton import JOINT_NAMES
+        names = out["vrchat_trackers"]
+        if (not isinstance(names, list) or not 1 <= len(names) <= 8 or len(set(names)) != len(names)
+                or any(n not in JOINT_NAMES for n in names)):
+            raise ConfigError(f"{where}: [output] vrchat_trackers is a list of 1 to 8 different joints of "
+                              f"{', '.join(JOINT_NAMES)}; got {names!r}")
+        cfg.vrchat_trackers = tuple(names)
     cfg.bvh = out.get("bvh", "")
     try:
         cfg.samples = int(rt.get("samples", cfg.samples))

@@ -171,7 +171,7 @@ def test_unity_quaternion_is_the_rotation_mirrored_across_x():
 
 def test_vmc_frame_is_one_bundle_of_root_then_all_bones_then_ok_and_time(receiver):
     pose = synthetic_motion(1)[0]
-    with VmcSender(LOOPBACK, receiver.getsockname()[1]) as vmc:
+    with VmcSender(LOOPBACK, receiver.getsockname()[1], mode="bundle") as vmc:
         vmc.send(pose, t=1.25)
     (datagram,) = receive(receiver, 1)
     assert datagram.startswith(b"#bundle\0")
@@ -217,10 +217,10 @@ def test_vmc_left_arm_swung_forward_is_unity_yaw_plus_90(receiver):
 
 def test_vmc_unbundled_sends_the_same_messages_one_datagram_each(receiver):
     pose = synthetic_motion(1, seed=3)[0]
-    with VmcSender(LOOPBACK, receiver.getsockname()[1]) as vmc:
+    with VmcSender(LOOPBACK, receiver.getsockname()[1], mode="bundle") as vmc:
         vmc.send(pose, t=0.5)
     bundled = osc.decode_packet(receive(receiver, 1)[0])
-    with VmcSender(LOOPBACK, receiver.getsockname()[1], bundle=False) as vmc:
+    with VmcSender(LOOPBACK, receiver.getsockname()[1], mode="messages") as vmc:
         vmc.send(pose, t=0.5)
     datagrams = receive(receiver, NUM_JOINTS + 3)
     assert not any(d.startswith(b"#bundle") for d in datagrams)
@@ -379,3 +379,43 @@ def test_bvh_frame_count_is_right_after_flush_and_after_close(tmp_path):
     writer.close()                                  # closing twice is harmless
     assert edge_bvh.load(path).frames == 5
     assert "Frames: 5 " in path.read_text()
+
+
+def test_vmc_split_mode_sends_the_same_frame_in_bundles_that_fit_one_ethernet_frame(receiver):
+    """The default: every datagram at most 1,472 bytes (no IP fragments on a LAN), the frame's messages
+    in order across them, the same values as the single bundle."""
+    pose = synthetic_motion(1)[0]
+    with VmcSender(LOOPBACK, receiver.getsockname()[1]) as vmc, \
+            VmcSender(LOOPBACK, receiver.getsockname()[1], mode="bundle") as whole:
+        vmc.send(pose, t=1.25)
+        split = receive(receiver, len(vmc._packets))
+        whole.send(pose, t=1.25)
+        (one,) = receive(receiver, 1)
+    assert len(split) == 2 and max(len(d) for d in split) <= 1472 < len(one)
+    assert all(d.startswith(b"#bundle\0") for d in split)
+    assert [m for d in split for m in osc.decode_packet(d)] == osc.decode_packet(one)
+
+
+def test_every_output_carries_the_calibrated_body_size(receiver, tmp_path):
+    """scale (1 / height_scale): VMC's Hips and bone offsets, VRChat's positions and BVH's offsets and
+    root are the user's size, not the canonical 1.75 m body's."""
+    from firmware_bridge.outputs.bvh_writer import BvhWriter
+    from firmware_bridge.outputs.vrchat import VrchatSender
+    pose, k = synthetic_motion(1)[0], 1.60 / 1.75
+    with VmcSender(LOOPBACK, receiver.getsockname()[1], mode="bundle", scale=k) as vmc:
+        vmc.send(pose, t=0.0)
+    bones = {args[0]: np.array(args[1:]) for a, args in osc.decode_packet(receive(receiver, 1)[0]) if a.endswith("Bone/Pos")}
+    assert np.allclose(bones["Hips"][:3], pose.positions[0] * k * [-1, 1, 1], atol=FLOAT32_TOL)
+    assert np.allclose(bones["LeftLowerLeg"][:3], OFFSETS[JOINT["l_knee"]] * k * [-1, 1, 1], atol=FLOAT32_TOL)
+    with VrchatSender(LOOPBACK, receiver.getsockname()[1], trackers=("pelvis",), send_head=False, scale=k) as vr:
+        vr.send(pose)
+    position = osc.decode_packet(receive(receiver, 2)[0])[0][1]
+    assert np.allclose(position, pose.positions[0] * k * [-1, 1, 1], atol=FLOAT32_TOL)
+    with BvhWriter(tmp_path / "k.bvh", scale=k) as bvh:
+        bvh.write_frame(pose)
+    from edgetools import bvh as bvh_file
+    clip = bvh_file.load(tmp_path / "k.bvh")
+    named = {n: clip.offsets[i] / 100.0 for i, n in enumerate(clip.names) if n in JOINT}
+    assert len(named) == len(OFFSETS)
+    assert all(np.allclose(named[n], OFFSETS[JOINT[n]] * k, atol=1e-4) for n in named if JOINT[n] > 0)
+    assert np.allclose(clip.positions[0, 0] / 100.0, pose.positions[0] * k, atol=1e-4)

@@ -33,9 +33,10 @@ from firmware_bridge.service import Service
 
 
 def board_config(session, devices, can_channel, samples, lookahead, bvh, adaptive=False, precision=DEFAULT_PRECISION,
-                 bench="replay"):
+                 bench="replay", outputs=None, calibration=""):
     """The board's config for a session: real ptys and CAN, and sim:// sources on the bench devices
-    `{bench}-waist` (the BNO055 fake) and `{bench}-slimevr`."""
+    `{bench}-waist` (the BNO055 fake) and `{bench}-slimevr`; `outputs`: more [output] keys (vmc, vrchat,
+    vmc_mode, vrchat_trackers); `calibration`: a calibration file (edge calibrate's)."""
     place = session.meta.get("placement") or placement(session.transports)
     pairs = lambda ids, names: ",".join(f"{k}:{v}" for k, v in ids.items() if v in names)
     trackers = []
@@ -51,15 +52,18 @@ def board_config(session, devices, can_channel, samples, lookahead, bvh, adaptiv
     return config_mod.from_dict({
         "headset": {"url": f"serial://{devices['headset'].path}?role=headset"},
         "trackers": trackers,
-        "output": {"pose_stream": "headset", **({"bvh": bvh} if bvh else {})},
-        "runtime": {"samples": samples, "lookahead": lookahead, "adaptive": adaptive, "precision": precision},
+        "output": {"pose_stream": "headset", **({"bvh": bvh} if bvh else {}), **(outputs or {})},
+        "runtime": {"samples": samples, "lookahead": lookahead, "adaptive": adaptive, "precision": precision,
+                    **({"calibration": str(calibration)} if calibration else {})},
     }, "replay")
 
 
 def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=None, bvh=None, status=None,
-           models=None, adaptive=False, precision=DEFAULT_PRECISION, pose_log=None, threaded=None):
+           models=None, adaptive=False, precision=DEFAULT_PRECISION, pose_log=None, threaded=None, outputs=None,
+           calibration=""):
     """Returns the report dict; `pose_log` (a binary file) receives the pose stream's raw bytes.
-    threaded: reader threads in the service (default: in real time, not at --speed max)."""
+    threaded: reader threads in the service (default: in real time, not at --speed max). outputs:
+    [output] keys such as {"vmc": "127.0.0.1:39539", "vrchat": "192.168.1.20:9000"}; calibration: a file."""
     faults = faults or {}
     # Build the compiled core (first use: seconds of cc) before the clock starts, or a real-time replay
     # begins seconds behind its own devices and the synchroniser starts on a backlog.
@@ -89,7 +93,8 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
     scheme.BENCH[f"{bench}-waist"] = scheme.BenchDevice(chip, clock, clock.sleep)
     scheme.BENCH[f"{bench}-slimevr"] = scheme.BenchDevice(None, clock, clock.sleep, slimevr_opened)
     try:
-        cfg = board_config(session, devices, can_channel, samples, lookahead, bvh, adaptive, precision, bench)
+        cfg = board_config(session, devices, can_channel, samples, lookahead, bvh, adaptive, precision, bench, outputs,
+                           calibration)
         if models:
             cfg.models = models
         # Real time: a reader thread per source, as on the board. Max speed: the tick reads the sources

@@ -4,6 +4,7 @@ import sys
 from pathlib import Path
 
 from edgetools.sim.replay import replay
+from firmware_bridge.transports import TransportError
 from edgetools.sim.session import fault_profile
 from edgetools.sim.sources import load_source
 
@@ -29,9 +30,14 @@ def main(args):
     samples = 32 if args.samples == "auto" else int(args.samples)
     pose_log = open(args.pose_log, "wb") if getattr(args, "pose_log", None) else None
     try:
+        outputs = {k: v for k, v in (("vmc", getattr(args, "vmc", None)), ("vrchat", getattr(args, "vrchat", None)))
+                   if v}
         result = replay(session, args.speed, samples, args.lookahead, args.seconds, faults, args.bvh, sys.stderr,
                         args.models, adaptive=args.adaptive or args.samples == "auto", precision=args.precision,
-                        pose_log=pose_log)
+                        pose_log=pose_log, outputs=outputs, calibration=getattr(args, "calibration", None) or "")
+    except (ValueError, TransportError) as e:     # a bad --vmc / --vrchat address or calibration file
+        print(f"edge replay: {e}", file=sys.stderr)
+        return 2
     finally:
         if pose_log is not None:
             pose_log.close()

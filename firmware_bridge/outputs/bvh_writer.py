@@ -114,7 +114,8 @@ def frame_values(local_rot, root_pos, order, out=None):
 class BvhWriter:
     """Streams Poses into a BVH file; the frame count is right once flush() or close() has run."""
 
-    def __init__(self, path, fps=60.0):
+    def __init__(self, path, fps=60.0, scale=1.0):
+        """scale sizes the body: the calibrated user's (1 / height_scale) instead of the canonical one."""
         if not fps > 0:
             raise ValueError(f"fps must be positive, got {fps}")
         self.path = str(path)
@@ -124,14 +125,15 @@ class BvhWriter:
         self._row = np.empty(3 + 3 * NUM_JOINTS)
         self._row_format = " ".join([VALUE_FORMAT] * len(self._row)) + "\n"
         self._file = open(self.path, "wb")
-        self._file.write((hierarchy_text() + "MOTION\n").encode("ascii"))
+        self.scale = float(scale)
+        self._file.write((hierarchy_text(offsets=OFFSETS * self.scale) + "MOTION\n").encode("ascii"))
         self._count_at = self._file.tell()
         self._file.write(frame_count_line(0).encode("ascii"))
         self._file.write(f"Frame Time: {1.0 / self.fps:.8f}\n".encode("ascii"))
 
     def write_frame(self, pose):
         """Append one Pose (local rotations and the root position; world positions follow by FK)."""
-        frame_values(pose.rotations, pose.positions[0], self._order, out=self._row)
+        frame_values(pose.rotations, pose.positions[0] * self.scale, self._order, out=self._row)
         self._file.write((self._row_format % tuple(self._row)).encode("ascii"))
         self.frames += 1
 

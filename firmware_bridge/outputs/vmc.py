@@ -14,11 +14,13 @@ Values are Unity transforms (left-handed, Y-up, metres; see firmware_bridge.outp
   skeleton), local rotation = the pose's local rotation. Our rest local rotations are the identity
   in a T-pose facing +Z, which is VRM's normalized-bone convention, so they apply as they are.
 
-One OSC bundle per frame by default (about 1.8 kB): the receiver gets the whole frame in one
-datagram and applies it at once (no frame torn between two poses), and the sender makes one
-system call. On loopback (the default) that is far below the 64 kB limit; over Ethernet the
-kernel splits it into two IP fragments. `bundle=False` sends each message as its own datagram,
-for receivers that do not read bundles.
+`mode` chooses the datagrams (`[output] vmc_mode`):
+- "split" (the default): OSC bundles of at most 1,472 bytes each, one Ethernet frame's UDP payload, in
+  frame order (two per frame): nothing is IP-fragmented on a LAN, where losing one fragment loses both;
+- "bundle": the whole frame in one bundle (about 1.75 kB): one datagram, applied at once by the
+  receiver, fine on loopback, fragmented over Ethernet;
+- "messages": each message its own datagram, for receivers that do not read bundles.
+`scale` sizes the body: the calibrated user's (1 / height_scale) instead of the canonical 1.75 m one.
 
 Nothing is allocated for the wire format per frame: the packets are encoded once and only their
 floats are rewritten (osc.PacketTemplate). Send errors are counted in `stats`, never raised or
@@ -52,6 +54,8 @@ OK_ADDRESS = "/VMC/Ext/OK"
 TIME_ADDRESS = "/VMC/Ext/T"
 TRANSFORM_FLOATS = 7             # position xyz, quaternion xyzw
 IDENTITY_TRANSFORM = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+MAX_DATAGRAM = 1472              # UDP payload of one 1,500-byte Ethernet frame (IPv4, no options)
+MODES = ("split", "bundle", "messages")
 
 
 def frame_messages():
@@ -62,10 +66,24 @@ def frame_messages():
             + [(OK_ADDRESS, (1,)), (TIME_ADDRESS, (0.0,))])
 
 
-def bone_transforms(pose, offsets=OFFSETS, out=None):
-    """Unity local transforms of all bones [J,7] (position xyz, quaternion xyzw) for one Pose."""
+def split_bundles(messages, limit=MAX_DATAGRAM):
+    """The messages, in order, grouped into the fewest bundles of at most `limit` bytes each."""
+    groups, size = [[]], 16                             # '#bundle\0' + time tag
+    for m in messages:
+        need = 4 + len(PacketTemplate([m], bundle=False).buffer)
+        if groups[-1] and size + need > limit:
+            groups.append([])
+            size = 16
+        groups[-1].append(m)
+        size += need
+    return groups
+
+
+def bone_transforms(pose, offsets=OFFSETS, out=None, scale=1.0):
+    """Unity local transforms of all bones [J,7] (position xyz, quaternion xyzw) for one Pose, the
+    body scaled by `scale` (offsets are expected scaled already)."""
     out = np.empty((NUM_JOINTS, TRANSFORM_FLOATS)) if out is None else out
-    out[0, :3] = to_unity_position(pose.positions[0])      # Hips relative to the root at the origin
+    out[0, :3] = to_unity_position(pose.positions[0] * scale)     # Hips relative to the root at the origin
     out[1:, :3] = to_unity_position(offsets[1:])
     out[:, 3:] = to_unity_quaternion(pose.rotations)
     return out
@@ -74,12 +92,17 @@ def bone_transforms(pose, offsets=OFFSETS, out=None):
 class VmcSender(UdpSender):
     """Sends each Pose to a VMC receiver (Marionette) over UDP."""
 
-    def __init__(self, host=DEFAULT_HOST, port=DEFAULT_PORT, bundle=True, offsets=OFFSETS):
+    def __init__(self, host=DEFAULT_HOST, port=DEFAULT_PORT, mode="split", offsets=OFFSETS, scale=1.0):
+        if mode not in MODES:
+            raise ValueError(f"VMC mode must be one of {', '.join(MODES)}, not {mode!r}")
         super().__init__(host, port)
-        self.offsets = np.asarray(offsets, dtype=np.float64)
+        self.scale = float(scale)
+        self.offsets = np.asarray(offsets, dtype=np.float64) * self.scale
         messages = frame_messages()
-        if bundle:
+        if mode == "bundle":
             self._packets = [PacketTemplate(messages)]
+        elif mode == "split":
+            self._packets = [PacketTemplate(group) for group in split_bundles(messages)]
         else:
             self._packets = [PacketTemplate([m], bundle=False) for m in messages]
         # All floats of a frame in wire order: root (7), bones (J x 7), time (1).
@@ -90,7 +113,7 @@ class VmcSender(UdpSender):
 
     def packets(self, pose, t):
         """The encoded datagrams of one frame (views of preallocated buffers, valid until the next call)."""
-        bone_transforms(pose, self.offsets, out=self._bones)
+        bone_transforms(pose, self.offsets, out=self._bones, scale=self.scale)
         self._floats[-1] = t
         start = 0
         for packet in self._packets:

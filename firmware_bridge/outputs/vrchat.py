@@ -65,13 +65,16 @@ def tracker_messages(trackers, send_head):
 class VrchatSender(UdpSender):
     """Sends chosen joints of each Pose to VRChat as OSC trackers over UDP."""
 
-    def __init__(self, host=DEFAULT_HOST, port=DEFAULT_PORT, trackers=DEFAULT_TRACKERS, send_head=True):
+    def __init__(self, host=DEFAULT_HOST, port=DEFAULT_PORT, trackers=DEFAULT_TRACKERS, send_head=True, scale=1.0):
+        """trackers: joint names (edge.skeleton), 1..8 (`[output] vrchat_trackers`); scale sizes the body:
+        the calibrated user's (1 / height_scale), as VRChat's docs ask senders to account for height."""
         if not 1 <= len(trackers) <= MAX_TRACKERS:
             raise ValueError(f"VRChat takes 1..{MAX_TRACKERS} trackers, got {len(trackers)}")
         unknown = [name for name in trackers if name not in JOINT]
         if unknown:
             raise ValueError(f"unknown joint {unknown[0]!r}: trackers are joint names of edge.skeleton")
         super().__init__(host, port)
+        self.scale = float(scale)
         self.trackers = tuple(trackers)
         self.send_head = send_head
         self._joints = np.array([JOINT[name] for name in trackers])
@@ -86,12 +89,12 @@ class VrchatSender(UdpSender):
         # Pose carries local rotations; trackers need world ones.
         fk(pose.rotations, pose.positions[0], out=(self._world_rot, self._world_pos))
         K = len(self._joints)
-        self._values[:K, 0] = to_unity_position(pose.positions[self._joints])
+        self._values[:K, 0] = to_unity_position(pose.positions[self._joints] * self.scale)
         self._values[:K, 1] = unity_euler_degrees(to_unity_matrix(self._world_rot[self._joints]))
         if self.send_head:
             head_rot = self._world_rot[HEAD]
             eyes = pose.positions[HEAD] + head_rot @ EYE_OFFSET
-            self._values[K, 0] = to_unity_position(eyes)
+            self._values[K, 0] = to_unity_position(eyes * self.scale)
             self._values[K, 1] = unity_euler_degrees(to_unity_matrix(head_rot))
         for packet, values in zip(self._packets, self._values.reshape(-1, 3)):
             packet.set_floats(values)
