@@ -88,6 +88,8 @@ def main(argv=None):
                          "l_shin,r_shin (default l_foot,r_foot: the CAN foot trackers; a recording keeps its own)")
     rp.add_argument("--bvh", help="record the output as BVH here")
     rp.add_argument("--pose-log", help="write the pose stream's bytes, as the host read them, to this file")
+    rp.add_argument("--pose-port", metavar="PATH", help="also put the pose stream on a serial port at PATH (a pty), "
+                                                        "for `edge listen PATH` against the simulated board")
     rp.add_argument("--vmc", metavar="HOST:PORT", help="also send the body over VMC (VSeeFace, Warudo, VNyan: port 39539)")
     rp.add_argument("--vrchat", metavar="HOST:PORT", help="also send VRChat OSC trackers (VRChat listens on port 9000)")
     rp.add_argument("--calibration", help="a calibration file (edge calibrate's): the outputs carry its body size")

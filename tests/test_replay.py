@@ -335,3 +335,27 @@ def test_a_replay_drives_vmc_and_vrchat_receivers_with_the_calibrated_body(tmp_p
     assert abs(np.median(head_vr[:, 1]) - np.median(headset)) < 0.02, (np.median(head_vr[:, 1]), np.median(headset))
     for s in socks.values():
         s.close()
+
+
+def test_edge_listen_reads_a_simulated_board_through_replays_pose_port(tmp_path):
+    """`edge replay --pose-port PATH` puts the pose stream on a real pty; a Listener opened on PATH, as
+    `edge listen PATH` opens it (pyserial), decodes it: edge listen without hardware."""
+    from edgetools.cli import main as edge_main
+    from edgetools.listen import Listener
+    port = tmp_path / "board"
+    frames, done = [], threading.Event()
+
+    def listen():
+        while not port.exists() and not done.is_set():
+            time.sleep(0.01)
+        with Listener(str(port)) as ear:
+            while not done.is_set():
+                frames.extend(ear.poll(0.05))
+    reader = threading.Thread(target=listen, daemon=True)
+    reader.start()
+    code = edge_main(["replay", str(SAMPLE), "--speed", "realtime", "--seconds", "2", "--pose-port", str(port),
+                      "--json", str(tmp_path / "r.json")])
+    done.set()
+    reader.join(2.0)
+    assert code == 0 and len(frames) > 60          # 2 s at 60 Hz, less the look-ahead and the start
+    assert all(np.isfinite(f.rotations).all() for f in frames) and not port.exists()

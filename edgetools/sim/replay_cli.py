@@ -9,6 +9,44 @@ from edgetools.sim.session import fault_profile
 from edgetools.sim.sources import load_source
 
 
+class PosePort:
+    """A serial port a host program can open (a pty's slave end, behind the symlink `path`) that carries
+    the replayed board's pose stream: `edge listen PATH` against a simulated board. Bytes nobody reads
+    are dropped, as a UART would lose them."""
+
+    def __init__(self, path):
+        import os
+        self.os, self.path = os, str(path)
+        self.master, self.slave = os.openpty()
+        os.set_blocking(self.master, False)
+        if os.path.lexists(self.path):
+            os.unlink(self.path)
+        os.symlink(os.ttyname(self.slave), self.path)
+
+    def write(self, data):
+        try:
+            self.os.write(self.master, data)
+        except OSError:
+            pass
+
+    def close(self):
+        for fd in (self.master, self.slave):
+            self.os.close(fd)
+        if self.os.path.islink(self.path):
+            self.os.unlink(self.path)
+
+
+class Tee:
+    """write() to every sink."""
+
+    def __init__(self, sinks):
+        self.sinks = sinks
+
+    def write(self, data):
+        for sink in self.sinks:
+            sink.write(data)
+
+
 def main(args):
     try:
         faults = fault_profile(args.faults)
@@ -28,7 +66,14 @@ def main(args):
         print(f"edge replay: cannot use {args.source}: {e}", file=sys.stderr)
         return 2
     samples = 32 if args.samples == "auto" else int(args.samples)
-    pose_log = open(args.pose_log, "wb") if getattr(args, "pose_log", None) else None
+    sinks = []                  # where the pose stream's bytes go besides the replay's own reader
+    if getattr(args, "pose_log", None):
+        sinks.append(open(args.pose_log, "wb"))
+    if getattr(args, "pose_port", None):
+        sinks.append(PosePort(args.pose_port))
+        print(f"edge replay: the pose stream is on {args.pose_port}; read it with: edge listen {args.pose_port}",
+              file=sys.stderr)
+    pose_log = Tee(sinks) if sinks else None
     try:
         outputs = {k: v for k, v in (("vmc", getattr(args, "vmc", None)), ("vrchat", getattr(args, "vrchat", None)))
                    if v}
@@ -39,8 +84,8 @@ def main(args):
         print(f"edge replay: {e}", file=sys.stderr)
         return 2
     finally:
-        if pose_log is not None:
-            pose_log.close()
+        for sink in sinks:
+            sink.close()
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
     keys = ("frames_in", "frames_out", "poses_decoded", "packets_corrupt", "packets_lost", "tracker_lost_events",
