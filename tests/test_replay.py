@@ -359,3 +359,16 @@ def test_edge_listen_reads_a_simulated_board_through_replays_pose_port(tmp_path)
     reader.join(2.0)
     assert code == 0 and len(frames) > 60          # 2 s at 60 Hz, less the look-ahead and the start
     assert all(np.isfinite(f.rotations).all() for f in frames) and not port.exists()
+
+
+def test_the_injected_faults_row_names_every_profile_that_was_injected():
+    """The report's 'injected faults' row: timed faults where they happened, whole-take ones at 0 with
+    how much (disconnect was missing from it)."""
+    from edgetools.sim.replay_report import injected
+    for name in sorted(FAULTS):
+        if name == "clean":
+            continue
+        marks = injected(fault_profile(name))
+        assert marks, f"{name} injects something the row does not show"
+    assert injected(fault_profile("disconnect")) == [{"t": 0.0, "kind": "IMU drops 1 %/frame (DragPoser)"}]
+    assert injected(fault_profile("unplug-foot"))[0] == {"t": 4.0, "kind": "unplug l_foot"}

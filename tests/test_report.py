@@ -292,3 +292,21 @@ def test_report_page_opens_in_chromium_with_every_image_loaded(report, tmp_path)
     (broken / "ssi_timeline.png").unlink()
     done = check_report(broken)
     assert done.returncode == 1 and "image not loaded: ssi_timeline.png" in done.stdout
+
+
+def test_the_health_timeline_has_no_corrupt_legend_when_nothing_was_corrupt(tmp_path, monkeypatch):
+    """A legend entry for corrupt packets only when some were counted."""
+    pytest.importorskip("matplotlib")
+    from viz import canvas, figures
+    labels = {}
+
+    def keep(fig, path):
+        labels[path.name if hasattr(path, "name") else path] = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
+        return path
+    monkeypatch.setattr(canvas, "save_png", keep)
+    t = [0.1 * k for k in range(50)]
+    base = {"t": t, "lost": {"waist": [0] * 20 + [1] * 10 + [0] * 20}, "faults": [{"t": 0.0, "kind": "noise"}]}
+    figures.health_timeline({**base, "corrupt": [0] * 50}, tmp_path / "a.png")
+    figures.health_timeline({**base, "corrupt": [0] * 49 + [3]}, tmp_path / "b.png")
+    assert not any("corrupt" in x for x in labels["a.png"])
+    assert any("corrupt" in x for x in labels["b.png"])

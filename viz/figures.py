@@ -300,8 +300,9 @@ def health_timeline(health, path, title="Tracker health"):
                 label="recovered" if row == 1 else None)
     row, peak = len(rows) - 1, max(corrupt.max(), 1.0)
     hit = corrupt > 0
-    ax.vlines(t[hit], row + 0.3, row + 0.3 - 0.6 * corrupt[hit] / peak, color="#444444", linewidth=1.2,
-              label=f"corrupt packets (tallest tick: {peak:.0f})")
+    if hit.any():                   # no legend entry for what did not happen
+        ax.vlines(t[hit], row + 0.3, row + 0.3 - 0.6 * corrupt[hit] / peak, color="#444444", linewidth=1.2,
+                  label=f"corrupt packets (tallest tick: {peak:.0f})")
     ax.set_yticks(range(len(rows)), rows, fontsize=8.5)
     ax.set_ylim(len(rows) - 0.5, -0.5)
     ax.set_xlim(t[0], t[-1] + dt)

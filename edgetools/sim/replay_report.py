@@ -68,9 +68,27 @@ def health_timeline(changes, duration, faults, step=0.1):
     for when, name, is_lost in changes:
         flags = lost.setdefault(name, np.zeros(len(t), np.int8))
         flags[t >= when] = 1 if is_lost else 0
-    marks = [(k, faults.get(f"{k}_at")) for k in ("unplug", "busoff", "clock_jump")]
     return {"t": [round(x, 3) for x in t], "lost": {k: v.tolist() for k, v in lost.items()},
-            "faults": [{"t": at, "kind": k.replace("_", "-")} for k, at in marks if at is not None]}
+            "faults": injected(faults)}
+
+
+def injected(faults):
+    """The faults a replay injected, as timeline marks: the timed ones where they happen, and those that
+    run the whole take (drops, loss, bit errors, noise) at t = 0, saying how much."""
+    marks = [{"t": faults[f"{k}_at"], "kind": k.replace("_", "-")} for k in ("unplug", "busoff", "clock_jump")
+             if f"{k}_at" in faults]
+    if "tracker_unplug_at" in faults:
+        marks.append({"t": faults["tracker_unplug_at"], "kind": f"unplug {faults.get('tracker_unplug', 'tracker')}"})
+    whole = {"disconnect": lambda f: f"IMU drops {100 * f['disconnect']:g} %/frame (DragPoser)",
+             "loss": lambda f: f"packet loss {100 * f['loss']:g} %",
+             "ber": lambda f: f"bit errors {f['ber']:g}/bit",
+             "hand_loss": lambda f: f"controller loss {100 * f['hand_loss']:g} %/frame",
+             "noise": lambda f: "device noise",
+             "i2c_error_rate": lambda f: f"I2C errors {100 * f['i2c_error_rate']:g} %",
+             "i2c_block_ms": lambda f: f"I2C read stalls {f['i2c_block_ms']:g} ms",
+             "slimevr_flood_pps": lambda f: f"UDP flood {f['slimevr_flood_pps']:g}/s"}
+    marks += [{"t": 0.0, "kind": say(faults)} for key, say in whole.items() if faults.get(key)]
+    return marks
 
 
 def rss_mb():
