@@ -310,3 +310,19 @@ def test_the_health_timeline_has_no_corrupt_legend_when_nothing_was_corrupt(tmp_
     figures.health_timeline({**base, "corrupt": [0] * 49 + [3]}, tmp_path / "b.png")
     assert not any("corrupt" in x for x in labels["a.png"])
     assert any("corrupt" in x for x in labels["b.png"])
+
+
+def test_a_replay_report_has_the_skeleton_pictures(tmp_path):
+    """edge replay --report dumps the decoded poses beside the ground truth, and the report draws the
+    skeleton strip and the animation from them (they were missing for replays)."""
+    pytest.importorskip("matplotlib")
+    from edgetools.cli import main as edge_main
+    out = tmp_path / "report"
+    assert edge_main(["replay", str(ROOT / "samples" / "cmu_09_12_walk.session.npz"), "--speed", "max",
+                      "--seconds", "4", "--json", str(tmp_path / "r.json"), "--report", str(out)]) == 0
+    (dump,) = (out / "dump").glob("*.npz")
+    d = np.load(dump)
+    assert d["pred_pos"].shape == d["gt_pos"].shape and d["pred_pos"].shape[1:] == (21, 3)
+    assert np.isfinite(d["pred_pos"]).all()
+    page = (out / "index.html").read_text()
+    assert '<img src="skeleton_strip.png"' in page and (out / "animation.gif").exists()

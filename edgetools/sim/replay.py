@@ -27,7 +27,7 @@ from edgetools.sim.devices import (CanDevice, SerialDevice, SimClock, SlimeVRDev
                                    pending_bytes)
 from edgetools.sim.replay_report import report, rss_mb
 from edgetools.sim.session import CAN_NODES, HUB_IDS, placement
-from edgetools.sim.stream_metrics import StreamMetrics, score
+from edgetools.sim.stream_metrics import StreamMetrics, score, write_dump
 from firmware_bridge import config as config_mod
 from firmware_bridge.service import Service
 
@@ -60,10 +60,11 @@ def board_config(session, devices, can_channel, samples, lookahead, bvh, adaptiv
 
 def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=None, bvh=None, status=None,
            models=None, adaptive=False, precision=DEFAULT_PRECISION, pose_log=None, threaded=None, outputs=None,
-           calibration=""):
+           calibration="", dump=None):
     """Returns the report dict; `pose_log` (a binary file) receives the pose stream's raw bytes.
     threaded: reader threads in the service (default: in real time, not at --speed max). outputs:
-    [output] keys such as {"vmc": "127.0.0.1:39539", "vrchat": "192.168.1.20:9000"}; calibration: a file."""
+    [output] keys such as {"vmc": "127.0.0.1:39539", "vrchat": "192.168.1.20:9000"}; calibration: a file.
+    dump: a folder for the decoded poses beside the ground truth (edge eval --dump's format)."""
     faults = faults or {}
     # Build the compiled core (first use: seconds of cc) before the clock starts, or a real-time replay
     # begins seconds behind its own devices and the synchroniser starts on a backlog.
@@ -209,6 +210,11 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
             pass
     out = report(session, summary, metrics, service, ear, opened, errors, faults, speed, duration,
                  (replug[1] - replug[0]) if replug[1] is not None else None)
+    if dump:
+        from pathlib import Path
+        from edge.skeleton import JOINT_NAMES, PARENTS
+        Path(dump).mkdir(parents=True, exist_ok=True)
+        write_dump(Path(dump) / f"{Path(session.name).stem or 'replay'}.npz", metrics, JOINT_NAMES, PARENTS, hz)
     # RSS after the first 10% (imports, pools warmed) against the end: a leak shows as growth.
     warm = rss[max(1, len(rss) // 10)] if len(rss) > 2 else rss[0]
     out["rss_mb"] = {"start": rss[0], "after_warmup": warm, "end": rss[-1], "growth_after_warmup": rss[-1] - warm}

@@ -79,7 +79,8 @@ def main(args):
                    if v}
         result = replay(session, args.speed, samples, args.lookahead, args.seconds, faults, args.bvh, sys.stderr,
                         args.models, adaptive=args.adaptive or args.samples == "auto", precision=args.precision,
-                        pose_log=pose_log, outputs=outputs, calibration=getattr(args, "calibration", None) or "")
+                        pose_log=pose_log, outputs=outputs, calibration=getattr(args, "calibration", None) or "",
+                        dump=str(Path(args.report) / "dump") if getattr(args, "report", None) else None)
     except (ValueError, TransportError) as e:     # a bad --vmc / --vrchat address or calibration file
         print(f"edge replay: {e}", file=sys.stderr)
         return 2

@@ -22,6 +22,8 @@ class StreamMetrics:
         self.window = np.zeros((4, 21, 3))
         self.window_frames = np.full(4, -10)
         self.wall = {}                                   # pipeline frame index -> wall time its tick began
+        # Every decoded pose's joints by ground-truth frame, for the report's skeleton pictures.
+        self.pred = None if gt_pos is None else np.full(np.shape(gt_pos), np.nan)
 
     def add(self, f, arrived, ticks):
         """f: a decoded PoseFrame; ticks: microsecond tick time -> (pipeline frame index, wall time of its tick)."""
@@ -41,6 +43,8 @@ class StreamMetrics:
         g = int(round(f.t * self.hz))                                   # ground truth is on the session clock
         if self.gt is not None and self.hz <= g < len(self.gt):         # skip the first second, like eval
             self.error[o] = np.linalg.norm(pos - self.gt[g], axis=-1).mean()
+        if self.pred is not None and 0 <= g < len(self.pred):
+            self.pred[g] = pos
         self.window = np.roll(self.window, -1, axis=0)
         self.window_frames = np.roll(self.window_frames, -1)
         self.window[-1], self.window_frames[-1] = pos, o
@@ -59,3 +63,22 @@ def score(inbox, metrics, ticks_by_us, replug):
         metrics.add(f, arrived, ticks_by_us)
         if replug[0] is not None and replug[1] is None and f.t >= replug[0] - 1e-9:
             replug[1] = f.t
+
+
+def write_dump(path, metrics, names, parents, fps):
+    """The replay's poses beside the ground truth, in `edge eval --dump`'s format (one .npz), for the
+    report's skeleton strip and animation: the decoded span, a frame the host missed holding the last."""
+    if metrics.pred is None:
+        return None
+    have = np.flatnonzero(np.isfinite(metrics.pred[:, 0, 0]))
+    if not len(have):
+        return None
+    a, b = have[0], have[-1] + 1
+    pred = metrics.pred[a:b].copy()
+    for k in range(1, len(pred)):                  # forward-fill the frames the host did not receive
+        if not np.isfinite(pred[k, 0, 0]):
+            pred[k] = pred[k - 1]
+    np.savez_compressed(path, joint_names=np.array(names), parents=parents, fps=fps,
+                        gt_pos=np.asarray(metrics.gt[a:b], np.float32), pred_pos=pred.astype(np.float32),
+                        warmup_frames=max(0, int(fps) - a))
+    return path
