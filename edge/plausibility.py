@@ -57,7 +57,13 @@ class PlausibilityScorer:
     def lower_body_error(self, world_pos, pelvis_rot_m):
         """world_pos [B,J,3], pelvis_rot_m [B,3,3] -> [B] error in metres."""
         B = len(world_pos)
-        if self._native and B == self.autoencoder.rows and world_pos.flags.c_contiguous:
+        # The compiled core takes the caller's arrays only as it needs them (checked on every call: this
+        # is public); anything else takes the numpy path, which accepts any layout and float dtype.
+        if (self._native and B == self.autoencoder.rows and isinstance(world_pos, np.ndarray)
+                and world_pos.dtype == np.float64 and world_pos.shape[1:] == (NUM_JOINTS, 3)
+                and world_pos.flags.c_contiguous and isinstance(pelvis_rot_m, np.ndarray)
+                and pelvis_rot_m.dtype == np.float64 and pelvis_rot_m.shape[-2:] == (3, 3)
+                and pelvis_rot_m.shape[0] == B and pelvis_rot_m[0].flags.c_contiguous):
             return self._lower_body_error_native(B, world_pos, pelvis_rot_m)
         local, root_local = local_pose(world_pos, pelvis_rot_m)
         B = len(local)

@@ -298,3 +298,17 @@ def test_arrays_crossing_into_c_are_checked_for_dtype_layout_and_shape():
         native.checked_addr(a[:, :2], np.float64)
     with pytest.raises(ValueError, match="shape"):
         native.checked_addr(a, np.float64, (4, 2))
+
+
+def test_a_public_call_with_arrays_c_cannot_take_gets_the_numpy_answer():
+    """PlausibilityScorer.lower_body_error is public: float32 or strided positions must not reach C as
+    if they were contiguous float64 (garbage, or a crash); they take the numpy path and agree."""
+    manifest, _, ae_session = open_models()
+    B = 4
+    scorer = PlausibilityScorer(Autoencoder(ae_session, B), manifest["plausibility_threshold_m"])
+    _, W, P = numpy_forward(random_6d(B, 11), random_rotations((B,), 12), np.random.default_rng(13).normal(0, 1, (B, 3)))
+    want = scorer.lower_body_error(P, W[:, 0]).copy()
+    np.testing.assert_allclose(scorer.lower_body_error(P.astype(np.float32), W[:, 0]), want, atol=1e-4)
+    strided = np.zeros((B, NUM_JOINTS, 6))
+    strided[..., ::2] = P
+    np.testing.assert_allclose(scorer.lower_body_error(strided[..., ::2], W[:, 0]), want, atol=1e-9)
