@@ -7,7 +7,9 @@ Seeded, with a progress bar and a log (models/train_log.txt). The decoder reads 
 and the seven extra IMUs (edge.features), trained on random sensor sets with drop-outs and IMU noise
 (models.dataset.random_imus, edge.imus.ImuNoise). The shipped recipe (recipe_losses, --best-of 8):
   L = w_pos * (MSE(FK positions at z=0) + relaxed best-of-K MSE) + w_floor * floor depth^2
-      + gamma * BCE(contacts) + w_rot * MSE(6D)
+      + w_clear * leg-clearance shortfall^2 + gamma * BCE(contacts) + w_rot * MSE(6D)
+(v0.3, shipped: v0.2's run fine-tuned with --best-of 16 --eps 0.02 --clearance 10000 --lr 5e-4; see
+models/MODEL_CARD.md.)
 SSI eq. 1's CVAE loss (w_pos * MSE + lambda * KL + ...) is --best-of 0. Under torchrun each process
 (one per GPU, or CPU processes with the gloo backend) draws its own batches; DDP averages the gradients,
 and rank 0 validates, logs and saves.
