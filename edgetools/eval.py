@@ -9,7 +9,7 @@ import numpy as np
 
 from edgetools.bvh import BvhError
 from edge.contacts import contact_labels
-from edge.imus import IMU_LOCATIONS, ImuNoise, dragposer_drops, mask
+from edge.imus import ImuNoise, dragposer_drops, mask
 from edge.inference import DEFAULT_PRECISION
 from edge.features import head_joint, wrist_joints
 from edge.pipeline import Pipeline

@@ -12,8 +12,6 @@ The ordinary run tries a few examples; the full check is 2,000:
 """
 import os
 import struct
-import tempfile
-import time
 
 import numpy as np
 import pytest
@@ -23,13 +21,13 @@ from hypothesis import strategies as st
 from edge import quat
 from edge.skeleton import fk
 from edgetools.listen import Listener
-from edgetools.sim.devices import pending_bytes
+from edgetools.sim.devices import wait_readable
 from edgetools.takes import from_sample
 from firmware_bridge import config as config_mod
 from firmware_bridge.samples import HeadsetSample, TrackerSample
 from firmware_bridge.service import Service
 from firmware_bridge.wire.framing import HEADSET_POSE, TRACKER_SAMPLES, encode_frame
-from firmware_bridge.wire.messages import HEADSET_RECORD, TRACKER_RECORD, encode_headset_pose, encode_tracker_samples
+from firmware_bridge.wire.messages import HEADSET_RECORD, encode_headset_pose, encode_tracker_samples
 from tests.conftest import SAMPLE
 
 EXAMPLES = int(os.environ.get("EDGEPOSE_FUZZ_EXAMPLES", "25"))
@@ -42,7 +40,6 @@ class Board:
     """One service for every example (a board runs for days): its headset and hub links on ptys."""
 
     def __init__(self):
-        self.folder = tempfile.mkdtemp(prefix="edgepose-fuzz-")
         self.head_m, head_s = os.openpty()
         self.hub_m, hub_s = os.openpty()
         self.slaves = (head_s, hub_s)
@@ -69,9 +66,7 @@ class Board:
 
     def write(self, fd, slave, data):
         os.write(fd, data)
-        give_up = time.monotonic() + 0.5       # the pty hands bytes over a moment later
-        while pending_bytes(slave) < len(data) and time.monotonic() < give_up:
-            time.sleep(0.0001)
+        wait_readable(slave, len(data))        # the pty hands bytes over a moment later
 
     def clean(self):
         """This tick's headset report and waist sample, from the take, on the board's clock."""

@@ -43,6 +43,32 @@ def pending_bytes(fd):
     return struct.unpack("i", fcntl.ioctl(fd, termios.FIONREAD, b"\0\0\0\0"))[0]
 
 
+def wait_readable(slave, sent, timeout=0.5):
+    """Until a pty's slave end holds at least `sent` bytes (those just written to its master: the kernel
+    hands them over from a work queue, a moment later), or `timeout` passes."""
+    give_up = time.monotonic() + timeout
+    while pending_bytes(slave) < sent and time.monotonic() < give_up:
+        time.sleep(0.0001)
+
+
+def open_pty_at(path):
+    """A pty pair whose slave end a program opens at `path` (a symlink, as udev gives a stable name):
+    (master, slave) descriptors."""
+    master, slave = os.openpty()
+    if os.path.lexists(path):
+        os.unlink(path)
+    os.symlink(os.ttyname(slave), path)
+    return master, slave
+
+
+def close_pty_at(path, master, slave):
+    """Undo open_pty_at: the symlink goes, both ends close."""
+    if os.path.islink(path):
+        os.unlink(path)
+    for fd in (master, slave):
+        os.close(fd)
+
+
 class SerialDevice:
     """A serial device on the master side of a pty; the board sees `path` (a symlink to /dev/pts/N).
 
@@ -57,15 +83,10 @@ class SerialDevice:
         self.plug()
 
     def plug(self):
-        self.master, self.slave = os.openpty()
-        if os.path.lexists(self.path):
-            os.unlink(self.path)
-        os.symlink(os.ttyname(self.slave), self.path)
+        self.master, self.slave = open_pty_at(self.path)
 
     def unplug(self):
-        os.unlink(self.path)
-        for fd in (self.master, self.slave):
-            os.close(fd)
+        close_pty_at(self.path, self.master, self.slave)
         self.master = self.slave = None
 
     def emit_until(self, t):
@@ -82,9 +103,8 @@ class SerialDevice:
 
     def wait_readable(self, sent, timeout=0.5):
         """Until the board's end holds at least the `sent` bytes just written (it drains every tick)."""
-        give_up = time.monotonic() + timeout
-        while self.slave is not None and pending_bytes(self.slave) < sent and time.monotonic() < give_up:
-            time.sleep(0.0001)
+        if self.slave is not None:
+            wait_readable(self.slave, sent, timeout)
 
     def close(self):
         if self.master is not None:

@@ -1,8 +1,10 @@
 """`edge replay`'s command: parse the source and the fault profile, replay, write the JSON, say the numbers."""
 import json
+import os
 import sys
 from pathlib import Path
 
+from edgetools.sim.devices import close_pty_at, open_pty_at
 from edgetools.sim.replay import replay
 from firmware_bridge.transports import TransportError
 from edgetools.sim.session import fault_profile
@@ -15,25 +17,18 @@ class PosePort:
     are dropped, as a UART would lose them."""
 
     def __init__(self, path):
-        import os
-        self.os, self.path = os, str(path)
-        self.master, self.slave = os.openpty()
+        self.path = str(path)
+        self.master, self.slave = open_pty_at(self.path)
         os.set_blocking(self.master, False)
-        if os.path.lexists(self.path):
-            os.unlink(self.path)
-        os.symlink(os.ttyname(self.slave), self.path)
 
     def write(self, data):
         try:
-            self.os.write(self.master, data)
+            os.write(self.master, data)
         except OSError:
             pass
 
     def close(self):
-        for fd in (self.master, self.slave):
-            self.os.close(fd)
-        if self.os.path.islink(self.path):
-            self.os.unlink(self.path)
+        close_pty_at(self.path, self.master, self.slave)
 
 
 class Tee:
