@@ -63,9 +63,9 @@ def run_take(pipe, take, max_frames=None, keep_samples=False, signals=None):
     return run
 
 
-def take_signals(take, trackers, faults=None, seed=0, index=0):
+def take_signals(take, trackers, faults=None, seed=0, index=0, imu_noise=None):
     """The take's signals as the board would see them with the extra IMUs `trackers` worn: IMU noise
-    (edge.imus.ImuNoise, as training synthesises it) and, with faults='disconnect', DragPoser's
+    (`imu_noise`, by default edge.imus.ImuNoise as training synthesises it) and, with faults='disconnect', DragPoser's
     faulty-sensor protocol on them (each frame one tracker drops with probability 1 % for 100 frames),
     through the synchroniser's hold and fade. Seeded per take."""
     if not trackers:
@@ -73,12 +73,12 @@ def take_signals(take, trackers, faults=None, seed=0, index=0):
     rng = np.random.default_rng([seed, index, 13])
     worn = mask(trackers)
     alive = dragposer_drops(rng, take.frames, worn, take.fps) if faults == "disconnect" else None
-    return wear(take.signals, worn, take.fps, rng, ImuNoise(), alive)
+    return wear(take.signals, worn, take.fps, rng, ImuNoise() if imu_noise is None else imu_noise, alive)
 
 
 def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECISION, max_frames=None, dump=None,
              models=None, seed=0, lookahead=None, ik=True, log=print, trackers=(), faults=None, segments=True,
-             selection=None, max_clips=None):
+             selection=None, max_clips=None, imu_noise=None):
     files = find_clips(paths, split)
     if max_clips and len(files) > max_clips:        # an even spread over the list (a quick subset)
         files = [files[i] for i in np.linspace(0, len(files) - 1, max_clips).round().astype(int)]
@@ -109,7 +109,7 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECI
                 bar.update()
                 continue
             run = run_take(pipe, take, max_frames, keep_samples=samples > 1,
-                           signals=take_signals(take, trackers, faults, seed, index))
+                           signals=take_signals(take, trackers, faults, seed, index, imu_noise))
             pred, pelvis = run.pred, run.pelvis
             switches += pipe.switch_count
             switch_frames += int(run.transition.sum())

@@ -91,3 +91,17 @@ def test_eval_runs_the_extra_imus_it_is_told_and_says_which(tmp_path):
     assert evaluate([str(SAMPLE)], samples=1, max_frames=200, log=lambda *a: None)["diversity"] == {}
     with pytest.raises(ValueError, match="disconnect"):
         evaluate([str(SAMPLE)], max_frames=100, faults="unplug", log=lambda *a: None)
+
+
+def test_eval_imus_carry_the_noise_they_are_given():
+    """take_signals' IMU noise is a parameter (bench/error_budget.py measures with none): noise-free
+    IMUs report the take's own segment orientations, the default noise does not."""
+    from edge.imus import ImuNoise, mask
+    from edgetools.eval import take_signals
+    take = from_sample(SAMPLE)
+    shins = mask(("l_shin", "r_shin")) > 0
+    clean = take_signals(take, ("l_shin", "r_shin"), imu_noise=ImuNoise(0.0, 0.0, 0.0, 0.0))
+    noisy = take_signals(take, ("l_shin", "r_shin"))
+    angle = lambda a, b: np.degrees(2 * np.arccos(np.clip(np.abs((a * b).sum(-1)), 0, 1)))
+    assert angle(clean.imu_rot[:, shins], take.signals.imu_rot[:, shins]).max() < 0.1     # float32 rounding
+    assert angle(noisy.imu_rot[:, shins], take.signals.imu_rot[:, shins]).mean() > 0.5
