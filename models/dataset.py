@@ -18,7 +18,7 @@ from edge.features import sequence_features
 from edge.progress import Progress
 from edgetools.retarget import load_motion
 from edgetools.synth import DeviceNoise, synthesize_from_pose, wear, world_pose
-from edge.skeleton import FEET, HEAD, PREDICTED
+from edge.skeleton import FEET, HEAD, PREDICTED, TOES
 
 # --sources groups -> folders of ../shared/mocap. CMU terms: cmu, daz; CC BY-NC 4.0: bandai; CC BY-SA 3.0: hdm05.
 SOURCE_FOLDERS = {
@@ -102,6 +102,17 @@ def window_starts(cs: ClipSet, window):
     """Every valid window start (global frame index), stride 1."""
     out = [s + np.arange(n - window + 1) for s, n in zip(cs.starts, cs.lengths()) if n >= window]
     return np.concatenate(out)
+
+
+def vigorous_starts(cs: ClipSet, starts, window, height=0.35, chunk=50_000):
+    """The window starts whose ground truth lifts a toe at least `height` metres off the floor (kicks,
+    high steps, jumps, dance): about 7 % of `train`'s windows, 1.5 % above 0.9 m."""
+    toe = np.zeros(len(cs.root))
+    for i in range(0, len(toe), chunk):
+        _, pos = world_pose(cs.rotations[i:i + chunk].astype(np.float64), cs.root[i:i + chunk].astype(np.float64))
+        toe[i:i + chunk] = pos[:, TOES, 1].max(1)
+    highest = np.lib.stride_tricks.sliding_window_view(toe, window).max(1)
+    return starts[highest[starts] >= height]
 
 
 def random_imus(rng, window, batch):

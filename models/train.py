@@ -38,14 +38,18 @@ from models.nets import CVAE, LATENT, PoseAE, fk_positions, matrix_from_6d
 LOSS = {"w_pos": 1000.0, "lambda_kl": 5.0, "gamma_bce": 0.1, "w_rot": 0.1, "w_floor": 1000.0, "w_clear": 0.0}
 
 
-def _producer(q, root, sources, window, batch, seed):
+def _producer(q, root, sources, window, batch, seed, vigorous=0.0):
     torch.set_num_threads(1)
     cs = ds.build(root, "train", sources)
     starts = ds.window_starts(cs, window)
+    # --vigorous: that share of every batch from windows that lift a toe (kicks are rare in the data)
+    lifted = ds.vigorous_starts(cs, starts, window) if vigorous > 0 else starts
+    n_lifted = int(round(vigorous * batch))
     rng = np.random.default_rng(seed)
     noise, imu_noise = DeviceNoise(), ImuNoise()
     while True:
-        q.put(ds.make_batch(cs, rng.choice(starts, batch), window, rng, noise, imu_noise))
+        picks = np.concatenate([rng.choice(starts, batch - n_lifted), rng.choice(lifted, n_lifted)])
+        q.put(ds.make_batch(cs, picks, window, rng, noise, imu_noise))
 
 
 def to_t(b, device="cpu"):
@@ -244,6 +248,8 @@ def main(argv=None):
     ap.add_argument("--floor", type=float, default=LOSS["w_floor"], help="weight of the floor term (m^2)")
     ap.add_argument("--clearance", type=float, default=LOSS["w_clear"],
                     help="weight of the leg-clearance term (m^2): legs no closer than the truth's, up to 10 cm")
+    ap.add_argument("--vigorous", type=float, default=0.0,
+                    help="share of each batch drawn from windows that lift a toe 35 cm or more (kicks, jumps)")
     ap.add_argument("--posterior", action="store_true", help="encoder also sees the target pose (q(z|x,y))")
     ap.add_argument("--learned-prior", action="store_true",
                     help="conditional prior p(z | trackers, GRU state); implies --posterior")
@@ -283,7 +289,8 @@ def main(argv=None):
 
     ctx = mp.get_context("fork")
     q = ctx.Queue(maxsize=8)
-    procs = [ctx.Process(target=_producer, args=(q, a.data, a.sources, a.window, a.batch, a.seed + 1 + 1000 * rank),
+    procs = [ctx.Process(target=_producer, args=(q, a.data, a.sources, a.window, a.batch, a.seed + 1 + 1000 * rank,
+                                                       a.vigorous),
                          daemon=True)]
     for p in procs:
         p.start()
@@ -383,7 +390,7 @@ def main(argv=None):
     meta = {"plausibility_threshold_m": threshold, "iterations": it, "best_iteration": best_it,
             "val_mpjpe_cm_training": best, "minutes": a.minutes, "sources": a.sources or sorted(ds.SOURCE_FOLDERS),
             "licences": {s: ds.SOURCE_LICENCES[s] for s in (a.sources or sorted(ds.SOURCE_FOLDERS))},
-            "loss": LOSS, "best_of": a.best_of, "eps": a.eps, "posterior_encoder": a.posterior,
+            "loss": LOSS, "best_of": a.best_of, "eps": a.eps, "vigorous": a.vigorous, "posterior_encoder": a.posterior,
             "learned_prior": a.learned_prior, "init": a.init, "batch": a.batch, "window": a.window, "lr": a.lr,
             "seed": a.seed, "processes": world, "device": str(device), "train_clips": len(cs_train.names),
             "train_minutes": len(cs_train.root) / 3600, "features": "4-point + 7 IMUs (edge.features)"}

@@ -138,3 +138,20 @@ def test_learned_prior_step_at_zero_epsilon_decodes_the_prior_mean(torch):
         # and a non-zero epsilon moves the pose: the prior has a spread
         rot_eps, _, _ = step(x[0], torch.ones(3, LATENT), torch.zeros(3, 128))
         assert not torch.allclose(rot_eps, step(x[0], torch.zeros(3, LATENT), torch.zeros(3, 128))[0])
+
+
+def test_vigorous_windows_are_those_that_lift_a_toe():
+    """--vigorous draws from the windows whose truth lifts a toe 35 cm (models.dataset.vigorous_starts):
+    a standing body lifted 50 cm over frames 100..129 makes exactly the 60-frame windows holding one
+    of those frames vigorous."""
+    from models import dataset as ds
+    from edge.skeleton import NUM_JOINTS, PELVIS_HEIGHT
+    F = 400
+    rot = np.zeros((F, NUM_JOINTS, 4), np.float32)
+    rot[..., 0] = 1.0
+    root = np.zeros((F, 3), np.float32)
+    root[:, 1] = PELVIS_HEIGHT
+    root[100:130, 1] += 0.5
+    cs = ds.ClipSet(["standing"], np.array([0]), rot, root, np.zeros((F, 2), np.float32))
+    starts = ds.window_starts(cs, 60)
+    assert list(ds.vigorous_starts(cs, starts, 60)) == list(range(41, 130))
