@@ -13,6 +13,8 @@ Variants (default: all):
   slide-choose-W  the same distance only where a switch chooses its target (the outlier test as shipped)
   kick-scale-S    the high-kick study (SSI Table 3) on the first 8 val clips with kicks, N=1/10/100,
                   latents at S x the prior's spread
+  kick-oracle     on those clips at N=100 without SSI, at each apex: sample 0's distance to the target,
+                  the closest sample's, and the highest sample toe against the truth's
 Each variant is measured with and without SSI where that matters; N=1 on the same clips is the bar.
 Prints one line per run and writes them as JSON. About 20 minutes on 2 cores for all.
 """
@@ -31,6 +33,7 @@ import edgetools.study as study
 from edge.pipeline import Pipeline
 from edge.skeleton import ANKLES
 from edge.ssi import is_outlier
+from edgetools.takes import find_clips, load_take
 
 
 def orthogonal_latents(rng, n, dim, norms):
@@ -90,8 +93,31 @@ def variant_pipeline(variant):
     return Variant
 
 
+def kick_oracle(data, clips=8, n=100):
+    """What selection could reach on the high-kick study at most: every sample's toe at each apex."""
+    takes = []
+    for f in find_clips([data], "val"):
+        take = load_take(f)
+        if study.kick_apexes(take.gt_pos, "high-kick"):
+            takes.append(take)
+        if len(takes) >= clips:
+            break
+    first, best, highest, truth = [], [], [], []
+    for take in takes:
+        run = ev.run_take(Pipeline(samples=n, seed=0, ssi=False), take, keep_samples=True)
+        for f, j in study.kick_apexes(take.gt_pos, "high-kick"):
+            d = np.linalg.norm(run.samples[f][:, j] - take.gt_pos[f, j], axis=-1)
+            first.append(d[0]), best.append(d.min())
+            highest.append(run.samples[f][:, j, 1].max()), truth.append(take.gt_pos[f, j, 1])
+    return {"variant": "kick-oracle", "events": len(first), "sample0_m": round(float(np.mean(first)), 3),
+            f"best_of_{n}_m": round(float(np.mean(best)), 3), "highest_sample_toe_m": round(float(np.mean(highest)), 2),
+            "true_toe_m": round(float(np.mean(truth)), 2)}
+
+
 def _run(job):
     variant, ssi, data, clips = job
+    if variant == "kick-oracle":
+        return kick_oracle(data)
     cls = variant_pipeline(variant)
     if variant.startswith("kick"):
         study.Pipeline = cls
@@ -109,7 +135,7 @@ def _run(job):
 
 
 VARIANTS = ["base", "scale-1.5", "scale-2", "orthogonal", "slide-cost-2", "slide-cost-6", "slide-choose-2",
-            "slide-choose-8", "kick-scale-1", "kick-scale-3"]
+            "slide-choose-8", "kick-scale-1", "kick-scale-3", "kick-oracle"]
 DIVERSITY = ("base", "scale-1.5", "scale-2", "orthogonal")     # also measured without SSI
 
 
