@@ -5,7 +5,7 @@
 Runs edge eval at N=1 (int8 by default) with no extra IMUs, both shins, thighs and shins, and all seven,
 each clean and with DragPoser's faulty-sensor protocol (--faults disconnect), two evals at a time; with
 --baseline, also the 4-point case of another model folder (e.g. the previously shipped one). Prints the
-table of the issue's lines and writes every eval's JSON. Takes about half an hour on 2 cores.
+table of the issue's lines and writes every eval's JSON. Takes about a minute on 2 cores.
 """
 import argparse
 import json

@@ -16,7 +16,7 @@ Variants (default: all):
   kick-oracle     on those clips at N=100 without SSI, at each apex: sample 0's distance to the target,
                   the closest sample's, and the highest sample toe against the truth's
 Each variant is measured with and without SSI where that matters; N=1 on the same clips is the bar.
-Prints one line per run and writes them as JSON. About 20 minutes on 2 cores for all.
+Prints one line per run and writes them as JSON. About 2 minutes on 2 cores for all.
 """
 import argparse
 import json
