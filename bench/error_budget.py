@@ -31,16 +31,16 @@ from edge.inference import DEFAULT_PRECISION
 from edge.skeleton import JOINT
 
 SETS = {"none": "none", "shins": "l_shin,r_shin", "thighs+shins": "l_thigh,r_thigh,l_shin,r_shin", "all seven": "all"}
-NOISE = {"noise-free": ImuNoise(0.0, 0.0, 0.0, 0.0), "mounting only": ImuNoise(ImuNoise.mount_max_deg, 0.0, 0.0, 0.0)}
+NOISE = {"noise_free": ImuNoise(0.0, 0.0, 0.0, 0.0), "mounting_only": ImuNoise(ImuNoise.mount_max_deg, 0.0, 0.0, 0.0)}
 SLOW_S = 1.0
 
 
 def direction_error_deg(pred, gt, a, b):
-    """Mean angle between the predicted and true directions from joint a to joint b, degrees."""
+    """Per frame, the angle between the predicted and true directions from joint a to joint b, degrees."""
     def unit(x):
         v = x[:, b] - x[:, a]
         return v / np.linalg.norm(v, axis=-1, keepdims=True)
-    return float(np.degrees(np.arccos(np.clip((unit(pred) * unit(gt)).sum(-1), -1.0, 1.0))).mean())
+    return np.degrees(np.arccos(np.clip((unit(pred) * unit(gt)).sum(-1), -1.0, 1.0)))
 
 
 def moving_average(x, k):
@@ -51,7 +51,7 @@ def moving_average(x, k):
 
 def split_errors(dump):
     """The error budget of one eval from its --dump folder."""
-    err, pelvis_h, pelvis_v, rel, slow, legs = [], [], [], [], [], {k: [] for k in ("thigh", "shin")}
+    err, pelvis_h, pelvis_v, rel, slow, thigh, shin = [], [], [], [], [], [], []
     for f in sorted(Path(dump).glob("*.npz")):
         z = np.load(f)
         w = int(z["warmup_frames"])
@@ -65,13 +65,13 @@ def split_errors(dump):
         slow.append(np.linalg.norm(moving_average(h, min(int(SLOW_S * z["fps"]), len(h))), axis=-1))
         for side in "lr":
             hip, knee, ankle = JOINT[side + "_hip"], JOINT[side + "_knee"], JOINT[side + "_ankle"]
-            legs["thigh"].append(direction_error_deg(pred, gt, hip, knee) * len(pred))
-            legs["shin"].append(direction_error_deg(pred, gt, knee, ankle) * len(pred))
-    frames = sum(len(e) for e in err)
-    cm = lambda parts: float(np.concatenate(parts).mean() * 100)
+            thigh.append(direction_error_deg(pred, gt, hip, knee))
+            shin.append(direction_error_deg(pred, gt, knee, ankle))
+    mean = lambda parts: float(np.concatenate(parts).mean())
+    cm = lambda parts: mean(parts) * 100
     return {"mpjpe_cm": cm(err), "pelvis_horizontal_cm": cm(pelvis_h), "pelvis_vertical_cm": cm(pelvis_v),
             "pelvis_horizontal_slow_cm": cm(slow), "mpjpe_perfect_pelvis_cm": cm(rel),
-            "thigh_deg": sum(legs["thigh"]) / (2 * frames), "shin_deg": sum(legs["shin"]) / (2 * frames)}
+            "thigh_deg": mean(thigh), "shin_deg": mean(shin)}
 
 
 def _run(job):
@@ -101,7 +101,7 @@ def main():
             if label is None:
                 table[name].update(r)
             else:
-                table[name]["mpjpe_" + label.replace(" ", "_").replace("-", "_") + "_cm"] = r
+                table[name][f"mpjpe_{label}_cm"] = r
     none = table["none"]["mpjpe_cm"]
     cols = [("mpjpe_cm", "mpjpe"), ("mpjpe_perfect_pelvis_cm", "perfect pelvis"),
             ("mpjpe_noise_free_cm", "noise-free IMUs"), ("mpjpe_mounting_only_cm", "mounting only")]

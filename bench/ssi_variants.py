@@ -118,6 +118,8 @@ def _run(job):
     variant, ssi, data, clips = job
     if variant == "kick-oracle":
         return kick_oracle(data)
+    # edge eval and the study build their own Pipeline: the variant's class stands in for it, in this
+    # worker process only (the variants are measurements, not runtime options)
     cls = variant_pipeline(variant)
     if variant.startswith("kick"):
         study.Pipeline = cls
