@@ -3,6 +3,7 @@
     python bench/pipeline.py [--samples 1,10,32,100] [--frames 600] [--precision fp32] [--json OUT]
     python bench/pipeline.py --compare [--samples 1,10,32,100] [--frames 600] [--blocks 10] [--json OUT]
     python bench/pipeline.py --trackers [--samples 100] [--frames 3000] [--blocks 30] [--json OUT]
+    python bench/pipeline.py --against REV [--samples 1,32,100] [--frames 600] [--blocks 10] [--precision int8]
 
 Plain run: the pipeline with --precision models, then its bare decoder call; medians and p99 in
 microseconds and the pipeline / decoder ratio.
@@ -23,6 +24,13 @@ difference < 1e-4).
 --trackers times, per N, the default (int8) pipeline fed the bundled walk with no extra IMUs and with
 all seven worn (edge.imus; the decoder's IMU inputs and each segment's measured rotation), interleaved
 the same way; the ratio is all seven / none.
+
+--against REV times another git revision's pipeline (and its bare decoder) interleaved with this
+tree's, to show a regression (or a fix) in one command: REV is checked out with `git archive` into a
+temporary folder, and each tree runs in a worker process of its own (its own code and models), both
+pinned to the same core and taking turns block by block in alternating order, so only one runs at a
+time and machine noise hits both alike. Printed per N: each side's pipeline and decoder p50 / p99,
+pipeline / decoder, and this tree / REV with the range of the per-block ratios.
 
 Pins itself to one core (like the board's budget). A benchmark, not a test: it prints figures and,
 besides that agreement check, asserts nothing.
@@ -203,6 +211,61 @@ def trackers(a, frames, ns):
     return {"machine": machine(), "blocks": a.blocks, "calls_per_block": per_block, "results": rows}
 
 
+def against(a, ns):
+    """This tree's pipeline against revision a.against's, each in its own worker, interleaved."""
+    import subprocess
+    import tarfile
+    import tempfile
+    here = Path(__file__).resolve().parent.parent
+    with tempfile.TemporaryDirectory() as tmp:
+        arch = subprocess.run(["git", "archive", a.against], cwd=here, check=True, capture_output=True).stdout
+        with tarfile.open(fileobj=__import__("io").BytesIO(arch)) as tar:
+            tar.extractall(tmp, filter="data")
+        rev = subprocess.run(["git", "rev-parse", "--short", a.against], cwd=here, check=True, capture_output=True,
+                             text=True).stdout.strip()
+        trees = {"this": here, rev: Path(tmp)}
+        per_block = a.frames // a.blocks
+        rows = []
+        print(f"this tree against {a.against} ({rev}), {a.precision}, one core; p50 (p99) microseconds; "
+              f"{a.blocks} blocks of {per_block} interleaved")
+        print(f"{'N':>4} {'side':>8} {'pipeline':>16} {'decoder':>14} {'pipe/dec':>9}   this/{rev} pipeline [blocks]")
+        for n in ns:
+            procs = {}
+            for side, tree in trees.items():
+                env = dict(os.environ, PYTHONPATH=str(tree))
+                procs[side] = subprocess.Popen(
+                    [sys.executable, str(Path(__file__).resolve().parent / "pipeline_worker.py"), str(n), a.precision,
+                     str(SAMPLE), str(WARMUP)], cwd=tree, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+            for p in procs.values():
+                json.loads(p.stdout.readline())     # warmed
+            times = {(side, what): np.empty((a.blocks, per_block)) for side in trees for what in ("pipeline", "decoder")}
+            for b in range(a.blocks):
+                for side in (list(trees) if b % 2 == 0 else list(trees)[::-1]):
+                    for what in ("pipeline", "decoder"):
+                        procs[side].stdin.write(f"{what} {per_block}\n")
+                        procs[side].stdin.flush()
+                        times[side, what][b] = json.loads(procs[side].stdout.readline())
+            for p in procs.values():
+                p.stdin.close()
+                p.wait()
+            r = {"samples": n, "sides": {}}
+            for side in trees:
+                pipe_t, dec_t = times[side, "pipeline"], times[side, "decoder"]
+                r["sides"][side] = {"pipeline_us": summary(pipe_t), "decoder_us": summary(dec_t),
+                                    "pipeline_over_decoder": float(np.median(pipe_t) / np.median(dec_t))}
+            per = np.median(times["this", "pipeline"], axis=1) / np.median(times[rev, "pipeline"], axis=1)
+            r["this_over_rev"] = {"p50": float(np.median(times["this", "pipeline"]) / np.median(times[rev, "pipeline"])),
+                                  "blocks_min": float(per.min()), "blocks_max": float(per.max())}
+            rows.append(r)
+            for side in trees:
+                q = r["sides"][side]
+                print(f"{n:>4} {side:>8} {q['pipeline_us']['p50']:>8.0f} ({q['pipeline_us']['p99']:>5.0f}) "
+                      f"{q['decoder_us']['p50']:>6.0f} ({q['decoder_us']['p99']:>5.0f}) {q['pipeline_over_decoder']:>9.2f}"
+                      + (f"   {r['this_over_rev']['p50']:.3f} [{per.min():.2f}, {per.max():.2f}]" if side == "this" else ""))
+    return {"against": a.against, "revision": rev, "precision": a.precision, "machine": machine(),
+            "blocks": a.blocks, "calls_per_block": per_block, "results": rows}
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--samples", default="1,10,32,100")
@@ -211,18 +274,22 @@ def main():
     ap.add_argument("--compare", action="store_true", help="int8 vs fp32 and ONNX Runtime vs PyTorch eager, interleaved")
     ap.add_argument("--trackers", action="store_true", help="all seven extra IMUs against none, interleaved")
     ap.add_argument("--blocks", type=int, default=10, help="--compare/--trackers: blocks the timed calls are split into")
+    ap.add_argument("--against", metavar="REV", help="another git revision's pipeline, interleaved with this tree's")
     ap.add_argument("--json")
     a = ap.parse_args()
-    if (a.compare or a.trackers) and not 1 <= a.blocks <= a.frames:
+    if (a.compare or a.trackers or a.against) and not 1 <= a.blocks <= a.frames:
         ap.error("--blocks must be 1..--frames")
     try:
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
     except (AttributeError, OSError):
         pass
-    take = from_sample(SAMPLE)
-    frames = [take.signals.slice(t, t + 1) for t in range(take.frames)]
     ns = [int(x) for x in a.samples.split(",")]
-    report = (compare if a.compare else trackers if a.trackers else plain)(a, frames, ns)
+    if a.against:
+        report = against(a, ns)
+    else:
+        take = from_sample(SAMPLE)
+        frames = [take.signals.slice(t, t + 1) for t in range(take.frames)]
+        report = (compare if a.compare else trackers if a.trackers else plain)(a, frames, ns)
     if a.json:
         Path(a.json).write_text(json.dumps(report, indent=2) + "\n")
 

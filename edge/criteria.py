@@ -50,15 +50,26 @@ class PhysicalPlausibility:
     name = "physical"
 
     def __init__(self, weight=1.0, floor=1.0, legs=1.0, support=1.0, use_native=True):
-        self.weight, self.floor, self.legs, self.support = weight, floor, legs, support
         self._native = native.load() if use_native else None
         self._segs = np.ascontiguousarray(LEG_SEGMENTS.reshape(-1), np.int64)
         self._feet = np.ascontiguousarray(np.concatenate([FEET, ANKLES]), np.int64)
         self._out = np.zeros(128)
-        self._params = None
+        # The compiled core's copy of the settings (None without it); the term weights below write through.
+        self.params = None
         if self._native:
-            self._params = native.PhysicalParams(native.addr(self._segs), native.addr(self._feet), INTERSECT_M, FLOAT_M,
-                                                 TOE_HEIGHT, ANKLE_HEIGHT, floor, legs, support)
+            self.params = native.PhysicalParams(native.addr(self._segs), native.addr(self._feet), INTERSECT_M, FLOAT_M,
+                                                TOE_HEIGHT, ANKLE_HEIGHT, floor, legs, support)
+        self.weight, self.floor, self.legs, self.support = weight, floor, legs, support
+
+    # The three terms' weights, kept in the compiled core's params as they change (a tuning run sets them).
+    floor = property(lambda self: self._floor, lambda self, w: self._set("floor", w))
+    legs = property(lambda self: self._legs, lambda self, w: self._set("legs", w))
+    support = property(lambda self: self._support, lambda self, w: self._set("support", w))
+
+    def _set(self, term, w):
+        setattr(self, "_" + term, float(w))
+        if self.params is not None:
+            setattr(self.params, "w_" + term, float(w))
 
     def cost(self, ctx):
         N, pos = len(ctx.positions), ctx.positions
@@ -66,9 +77,8 @@ class PhysicalPlausibility:
         contacts = np.zeros((N, 2), np.float32) if ctx.contacts is None else ctx.contacts
         if (self._native and N <= len(self._out) and pos.flags.c_contiguous and lift.flags.c_contiguous
                 and contacts.dtype == np.float32 and contacts.flags.c_contiguous and pos.shape[1] == NUM_JOINTS):
-            a, pp = native.addr, self._params
-            pp.w_floor, pp.w_legs, pp.w_support = self.floor, self.legs, self.support     # as they are now
-            self._native.ep_physical_cost(N, NUM_JOINTS, a(pos), a(contacts), a(lift), ctypes.byref(self._params),
+            a = native.addr
+            self._native.ep_physical_cost(N, NUM_JOINTS, a(pos), a(contacts), a(lift), ctypes.byref(self.params),
                                           a(self._out))
             return self._out[:N]
         legs = np.maximum(INTERSECT_M - leg_gap(pos), 0.0)

@@ -172,7 +172,10 @@ class Pipeline:
             ("head_pos", 0, 3, (3,)), ("head_rot", 3, 7, (4,)), ("hand_pos", 7, 13, (2, 3)),
             ("hand_rot", 13, 21, (2, 4)), ("waist_rot", 21, 25, (4,)),
             ("imu_rot", 25, 25 + 4 * NUM_IMUS, (NUM_IMUS, 4)), ("imu_flag", 25 + 4 * NUM_IMUS, 25 + 5 * NUM_IMUS, (NUM_IMUS,)))}
+        # The Signals fields _load_frame_in copies, each with its [1,...] view of _frame_in.
+        self._in_fields = [(k, v[None]) for k, v in self._in.items() if self.imus or not k.startswith("imu")]
         self._ae_ready = None       # the scorer whose input the compiled core prepares (CompiledFrame)
+        self._fused_criteria = None     # the criteria CompiledFrame.judge computes in C (the defaults), if it can
         # The compiled core (edge/native) runs the whole frame around the two ONNX calls when a C
         # compiler is there; NumpyFrame is the reference and the fallback.
         self.native = native.load() if use_native else None
@@ -253,8 +256,6 @@ class Pipeline:
             dec.state[N] = (1 - a) * dec.state[c] + a * dec.state[n]
             blend = (c, n, float(a))
         dec.step()
-        if not self.path.finite(dec):
-            self._heal(dec, s)
         if timing:
             mark[2] = time.thread_time_ns()
 
@@ -262,39 +263,51 @@ class Pipeline:
         # goals (not lock positions, which are stale for a foot that is free) and, like the samples, runs
         # the leg IK at weight 1: the goals already carry each lock's pull, so the row's first and last
         # frames are the two samples' own poses.
-        keep_world = self.criteria.needs_world_rot      # every joint's world rotation, only for a criterion that asks
-        self.path.poses(s, N + 1 if live else N, N, blend, keep_world)
+        fused = self.criteria.criteria == self._fused_criteria     # the default criteria: judged in one C call
+        keep_world = not fused and self.criteria.needs_world_rot  # every joint's world rotation, only if a criterion asks
+        rows = N + 1 if live else N
+        if not self.path.poses(s, rows, N, blend, keep_world):   # a decoder row went non-finite: nothing was done
+            self._heal(dec, s)
+            self.path.poses(s, rows, N, blend, keep_world)
         if live:
             b.override[s] = True
             b.trans_row[s] = N
         if timing:
             mark[3] = time.thread_time_ns()
 
-        # Judge frame t, the newest, and decide (3.2.4: detection at t + tau relative to the output).
+        # Judge frame t, the newest, and decide (3.2.4: detection at t + tau relative to the output). A new
+        # switch waits until the last transition has been sent, so transitions never overlap.
+        ask = self._pending is None and self.ssi and N > 1 and sw.free(t)
+        n = -1
         if N > 1:
-            ctx = FrameContext(t, self._pos[:N], self._world[:N] if keep_world else None, self._pelvis[s][:N],
-                               ae_ready=self._ae_ready, contacts=dec.contacts[:N], floor_lift=self._floor_lift[:N])
-            if self.criteria.needs_imu and self.imus:       # the extra IMUs the frame has, for SensorAgreement
-                worn = np.flatnonzero(sig.imu_flag[0] > 0)
-                m = quat.to_matrix(sig.imu_rot[0, worn])
-                ctx.imu = {int(IMU_JOINTS[k]): m[i] for i, k in enumerate(worn)}
-                ctx.imu_weight = {int(IMU_JOINTS[k]): float(sig.imu_flag[0, k]) for k in worn}
-            b.cost[s, :N] = self.criteria.cost(ctx)
+            c = sw.current if ask else -1
+            n = self.path.judge(s, N, c) if fused else self._judge(sig, s, N, c, keep_world)
         if timing:
             mark[4] = time.thread_time_ns()
         if self._pending is not None:
             self._apply_samples(t, s)
-        # A new switch waits until the last transition has been sent, so transitions never overlap.
-        elif self.ssi and N > 1 and sw.free(t):
-            n = self.path.switch_to(s, sw.current, self.switch_margin)
-            if n >= 0:
-                self._start_transition(n, t)
+        elif n >= 0:
+            self._start_transition(n, t)
         if timing:
             mark[5] = time.thread_time_ns()
         pose = self._emit(t - self.lookahead)
         if timing:
             mark[6] = time.thread_time_ns()
         return pose
+
+    def _judge(self, sig, s, N, c, keep_world):
+        """Any criteria (edge.criteria, composed): frame t's costs into ring slot s, then the sample to
+        move to from c (c < 0: not asked). The default criteria take CompiledFrame.judge instead."""
+        dec = self.decoder
+        ctx = FrameContext(self.t, self._pos[:N], self._world[:N] if keep_world else None, self._pelvis[s][:N],
+                           ae_ready=self._ae_ready, contacts=dec.contacts[:N], floor_lift=self._floor_lift[:N])
+        if self.criteria.needs_imu and self.imus:       # the extra IMUs the frame has, for SensorAgreement
+            worn = np.flatnonzero(sig.imu_flag[0] > 0)
+            m = quat.to_matrix(sig.imu_rot[0, worn])
+            ctx.imu = {int(IMU_JOINTS[k]): m[i] for i, k in enumerate(worn)}
+            ctx.imu_weight = {int(IMU_JOINTS[k]): float(sig.imu_flag[0, k]) for k in worn}
+        self.buffer.cost[s, :N] = self.criteria.cost(ctx)
+        return self.path.switch_to(s, c, self.switch_margin) if c >= 0 else -1
 
     def _sane_frame(self):
         """Whether this frame's signals are finite and inside POSITION_LIMIT_M of the origin (no play
@@ -336,12 +349,9 @@ class Pipeline:
         self.state_resets += int(bad.sum())
 
     def _load_frame_in(self, sig):
-        """One frame of Signals into _frame_in, the C calls' input layout."""
-        v = self._in
-        v["head_pos"][:], v["head_rot"][:] = sig.head_pos[0], sig.head_rot[0]
-        v["hand_pos"][:], v["hand_rot"][:], v["waist_rot"][:] = sig.hand_pos[0], sig.hand_rot[0], sig.waist_rot[0]
-        if self.imus:
-            v["imu_rot"][:], v["imu_flag"][:] = sig.imu_rot[0], sig.imu_flag[0]
+        """One frame (T=1) of Signals into _frame_in, the C calls' input layout (no temporaries)."""
+        for name, dst in self._in_fields:
+            np.copyto(dst, getattr(sig, name))
 
     def set_samples(self, n):
         """Adaptive N: run the first n (1..max_samples) samples, each keeping its own latent.
@@ -494,8 +504,10 @@ class NumpyFrame:
 
     def poses(self, s, rows, N, blend, keep_world):
         """Every row's pose of frame s: FK, foot locks, the transition row's blended goals, IK; and
-        what the ring keeps of them."""
+        what the ring keeps of them. False, doing nothing, when a decoder row is not finite."""
         p, b, dec = self.p, self.p.buffer, self.p.decoder
+        if not self.finite(dec):
+            return False
         self.forward(dec.rot6d[:rows], b.waist_m[s], b.anchor[s], b.seg_m[s], b.seg_flag[s])
         if p.foot_ik:
             goal, w = self.foot_goals(N)
@@ -509,6 +521,7 @@ class NumpyFrame:
         b.leg_goal[s, :rows] = p._targets[:rows]
         b.leg_weight[s, :rows] = p._weights[:rows]
         b.lock_weight[s, :N] = p.feet.weight[:N]
+        return True
 
     def switch_to(self, s, c, margin):
         return switch_to(self.p.buffer.cost[s, :self.p.samples], c, margin)
@@ -628,6 +641,20 @@ class CompiledFrame:
         ae = p.scorer.buffers() if any(isinstance(c, Plausibility) and c.scorer is p.scorer
                                        for c in p.criteria.criteria) else None
         p._ae_ready = p.scorer if ae else None
+        # The default criteria, judged in one call (judge): the plausibility score on the buffers filled
+        # above, and the physical criterion when the manifest's selection has one.
+        crit = p.criteria.criteria
+        if (ae and 1 <= len(crit) <= 2 and type(crit[0]) is Plausibility and crit[0].scorer is p.scorer
+                and (len(crit) == 1 or (type(crit[1]) is PhysicalPlausibility and crit[1].params is not None))):
+            sc = p.scorer
+            self._physical_cost = np.zeros(N)
+            self._selection = native.Selection(
+                ae_out=native.addr(p.autoencoder.out), ae_rot_dim=p.autoencoder.out.shape[1],
+                leg_rows=native.addr(sc._leg_rows), legs=native.addr(sc._legs), leg_err=native.addr(sc._err),
+                physical=ctypes.addressof(crit[1].params) if len(crit) > 1 else None,
+                physical_cost=native.addr(self._physical_cost), pos=a["_pos"], ring_cost=native.addr(b.cost),
+                cost_stride=b.cost.shape[1])
+            p._fused_criteria = list(crit)
         f, out = p.feet, p.out
         ring = {f"ring_{k}": native.addr(getattr(b, v)) for k, v in (
             ("waist", "waist_m"), ("anchor", "anchor"), ("wrists", "wrists"), ("hand", "hand_m"), ("head", "head_m"),
@@ -671,16 +698,24 @@ class CompiledFrame:
         self.lib.ep_frame_inputs(self.core, s, self.first)
         self.first = False
 
-    def finite(self, dec):
-        lib, R = self.lib, dec.rows
-        return bool(lib.ep_all_finite_f32(self._hidden_addr[dec._cur], R * dec.state.shape[1])
-                    and lib.ep_all_finite_f32(self.addr["rot6d"], R * dec.rot6d.shape[1]))
-
     def poses(self, s, rows, N, blend, keep_world):
-        """ep_frame_poses: FK, foot locks, the blend, IK and the ring copies of NumpyFrame.poses in one call."""
-        self.lib.ep_frame_poses(self.core, s, rows, N, *(blend if blend is not None else (0, 0, 0.0)),
-                                self.addr["_world"] if keep_world else None, self.addr["_pos"],
-                                self._hidden_addr[self.p.decoder.last_read])
+        """ep_frame_poses: FK, foot locks, the blend, IK and the ring copies of NumpyFrame.poses in one
+        call, after its finite test of the decoder's rows (False: not finite, nothing done)."""
+        dec = self.p.decoder
+        c, n, a = blend if blend is not None else (0, 0, 0.0)
+        return self.lib.ep_frame_poses(self.core, s, rows, N, c, n, a, self.addr["_world"] if keep_world else None,
+                                       self.addr["_pos"], self._hidden_addr[1 - dec._cur],
+                                       self._hidden_addr[dec._cur], dec.rows) == 1
+
+    def judge(self, s, N, c):
+        """The default criteria (Plausibility, PhysicalPlausibility) on frame t's N samples into ring slot
+        s, and the sample to move to from c (c < 0: not asked): the autoencoder, then ep_frame_costs,
+        Pipeline._judge's Composite and switch_to in one C call."""
+        p = self.p
+        p.autoencoder.run()
+        crit = p._fused_criteria
+        w_phys = crit[1].weight if len(crit) > 1 else 0.0
+        return self.lib.ep_frame_costs(self.core, self._selection, s, N, crit[0].weight, w_phys, c, p.switch_margin)
 
     def switch_to(self, s, c, margin):
         """ep_switch_to: edge.ssi.switch_to on ring slot s's costs."""

@@ -109,6 +109,9 @@ FootLocks = _struct("FootLocks", "postproc.c's foot_locks: edge.ik.FootLock's se
 PhysicalParams = _struct("PhysicalParams", "postproc.c's physical_params (edge.criteria.PhysicalPlausibility).",
                          [("segs", _P), ("feet", _P)] + [(k, _D) for k in ("gap", "float_m", "toe_h", "ankle_h",
                                                                            "w_floor", "w_legs", "w_support")])
+Selection = _struct("Selection", "postproc.c's selection: what ep_frame_costs reads besides the core context.",
+                    [("ae_out", _P), ("ae_rot_dim", _I), ("leg_rows", _P), ("legs", _P), ("leg_err", _P),
+                     ("physical", _P), ("physical_cost", _P), ("pos", _P), ("ring_cost", _P), ("cost_stride", _I)])
 
 
 class CoreContext(ctypes.Structure):
@@ -139,14 +142,16 @@ _SIGNATURES = {
     "ep_switch_to": [_I, _P, _I, _D],
     "ep_frame_sane": [_P, _I, _D],
     "ep_all_finite_f32": [_P, _I],
-    "ep_frame_poses": [ctypes.POINTER(CoreContext), _I, _I, _I, _I, _I, _D, _P, _P, _P],
+    "ep_frame_poses": [ctypes.POINTER(CoreContext), _I, _I, _I, _I, _I, _D, _P, _P, _P, _P, _I],
+    "ep_frame_costs": [ctypes.POINTER(CoreContext), ctypes.POINTER(Selection), _I, _I, _D, _D, _I, _D],
     "ep_emit": [ctypes.POINTER(CoreContext), _I, _I],
     "ep_frame_inputs": [ctypes.POINTER(CoreContext), _I, _I],
     "ep_max_joints": [],
     "ep_layout": [_P, _I],
 }
-_RETURNS_INT = {"ep_switch_to", "ep_max_joints", "ep_frame_sane", "ep_all_finite_f32", "ep_layout"}
-_MIRRORS = (Skeleton, PoseRows, ForwardInputs, LimbGoals, FootLocks, PhysicalParams)
+_RETURNS_INT = {"ep_switch_to", "ep_max_joints", "ep_frame_sane", "ep_all_finite_f32", "ep_layout", "ep_frame_poses",
+                "ep_frame_costs"}
+_MIRRORS = (Skeleton, PoseRows, ForwardInputs, LimbGoals, FootLocks, PhysicalParams, Selection)
 
 
 def layout_mismatch(lib):
@@ -158,7 +163,8 @@ def layout_mismatch(lib):
     py += [getattr(CoreContext, name).offset for name, _ in CoreContext._fields_]
     names = [m.__name__ for m in _MIRRORS] + ["CoreContext"] + [f"CoreContext.{f}" for f, _ in CoreContext._fields_]
     if n != len(py):
-        return f"postproc.c lays out {n - 7} core_context fields, the ctypes mirror has {len(py) - 7}"
+        head = len(_MIRRORS) + 1
+        return f"postproc.c lays out {n - head} core_context fields, the ctypes mirror has {len(py) - head}"
     bad = [f"{w} (C {int(a)}, ctypes {b})" for w, a, b in zip(names, c[:n], py) if int(a) != b]
     return "; ".join(bad)
 

@@ -2,8 +2,8 @@
  * features, 6D -> rotation, FK hung from the head, foot locks, two-bone limb IK, the plausibility
  * score around the autoencoder (SSI 3.1, 3.2.1), the SSI outlier test (3.2.2) and the look-ahead ring.
  *
- * The live frame is five calls (edge.pipeline.CompiledFrame): ep_frame_inputs, ep_frame_poses,
- * ep_leg_error, ep_switch_to, ep_emit; they read the pipeline's buffers through one core_context.
+ * The live frame is four calls (edge.pipeline.CompiledFrame): ep_frame_inputs, ep_frame_poses,
+ * ep_frame_costs (after the autoencoder: the selection cost and the SSI decision), ep_emit; they read the pipeline's buffers through one core_context.
  * ep_forward, ep_post and ep_foot_locks are the same stages on given rows (tests/test_native.py holds
  * each to its numpy reference). Arguments come as the structs below, mirrored in edge/native/__init__.py;
  * the rotation and matrix helpers are quat.h, named for their edge.quat functions.
@@ -228,6 +228,22 @@ typedef struct {
     const int64_t *segs, *feet;
     double gap, float_m, toe_h, ankle_h, w_floor, w_legs, w_support;
 } physical_params;
+
+/* What SSI's default selection cost reads besides the core context (ep_frame_costs): the autoencoder's
+ * output [N, ae_rot_dim] float, the leg rows and leg joints of ep_leg_error, its result [N] (out), the
+ * physical criterion's settings (NULL: none) and result [N] (out), the rows' world positions after IK
+ * [rows,J,3] (the pipeline's _pos), and the ring's costs [slots, cost_stride] (out). */
+typedef struct {
+    const float *ae_out;
+    int ae_rot_dim;
+    const int64_t *leg_rows, *legs;
+    double *leg_err;
+    const physical_params *physical;
+    double *physical_cost;
+    const double *pos;
+    double *ring_cost;
+    int cost_stride;
+} selection;
 
 static void block_load(block *k, int r0, int nl, int J, const double *local, const double *world, const double *pos) {
     for (int j = 0; j < J; j++) {
@@ -626,8 +642,8 @@ typedef struct {
 } core_context;
 
 /* The layout of the structs above, for the loader to hold the ctypes mirrors against (edge.native.load):
- * out[0..6) the sizes of skeleton, pose_rows, forward_inputs, limb_goals, foot_locks, physical_params;
- * out[6] sizeof(core_context), then the offset of each of its fields in order. Returns how many it wrote. */
+ * out[0..7) the sizes of skeleton, pose_rows, forward_inputs, limb_goals, foot_locks, physical_params,
+ * selection; out[7] sizeof(core_context), then the offset of each of its fields in order. Returns how many it wrote. */
 #include <stddef.h>
 #define CORE_FIELDS(X) X(sk) X(locks) X(foot_ik) X(arm_ik) X(rot6d_stride) X(rot6d) X(contacts) X(goals) X(weights) \
     X(ring_rows) X(ring_waist) X(ring_anchor) X(ring_wrists) X(ring_hand) X(ring_head) X(ring_rot6d) X(ring_contacts) \
@@ -640,7 +656,7 @@ int ep_layout(int64_t *out, int n) {
     int k = 0;
     v[k++] = sizeof(skeleton); v[k++] = sizeof(pose_rows); v[k++] = sizeof(forward_inputs);
     v[k++] = sizeof(limb_goals); v[k++] = sizeof(foot_locks); v[k++] = sizeof(physical_params);
-    v[k++] = sizeof(core_context);
+    v[k++] = sizeof(selection); v[k++] = sizeof(core_context);
 #define OFFSET(f) v[k++] = offsetof(core_context, f);
     CORE_FIELDS(OFFSET)
 #undef OFFSET
@@ -651,6 +667,19 @@ int ep_layout(int64_t *out, int n) {
 static void copy_f32(float *dst, const float *src, int64_t n) { for (int64_t i = 0; i < n; i++) dst[i] = src[i]; }
 static void copy_f64(double *dst, const double *src, int64_t n) { for (int64_t i = 0; i < n; i++) dst[i] = src[i]; }
 
+/* 1 when the n floats are all finite: x * 0 is 0 for a finite x and NaN otherwise, and a NaN stays in
+ * its lane's sum. Sixteen independent lanes, so the compiler vectorises it without reassociating. */
+static int all_finite_f32(const float *x, int64_t n) {
+    float acc[16] = {0};
+    int64_t i = 0;
+    for (; i + 16 <= n; i += 16)
+        for (int l = 0; l < 16; l++) acc[l] += x[i + l] * 0.0f;
+    for (; i < n; i++) acc[0] += x[i] * 0.0f;
+    float all = 0.0f;
+    for (int l = 0; l < 16; l++) all += acc[l];
+    return all == 0.0f;
+}
+
 /* edge.pipeline.NumpyFrame.poses (Pipeline.step between the decoder and the criteria), for R rows: N samples and, when R = N + 1,
  * the transition row from sample c to sample n at blend weight a. Per block of LANES rows, kept on
  * the stack throughout: _forward; the samples' foot locks (_foot_goals: goals drawn by the locks, IK
@@ -659,9 +688,14 @@ static void copy_f64(double *dst, const double *src, int64_t n) { for (int64_t i
  * every row; world rotations and positions [R,J,...] go to world and pos (world skipped when NULL).
  * Then what the ring keeps of each row goes to slot `slot`: the decoder's 6D and contacts, the leg
  * IK's goals and weights, the samples' lock weights, and the GRU state their step read (hidden_read,
- * the decoder's input buffer, which its step does not write). */
-void ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n, double a, double *world,
-                    double *pos, const float *hidden_read) {
+ * the decoder's input buffer, which its step does not write). Returns 1, or 0 without touching anything
+ * when a value of the decoder's dec_rows rows (its output or the state it wrote, hidden_written) is not
+ * finite (NumpyFrame.finite). */
+int ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n, double a, double *world,
+                   double *pos, const float *hidden_read, const float *hidden_written, int dec_rows) {
+    if (!all_finite_f32(hidden_written, (int64_t)dec_rows * x->hidden)
+            || !all_finite_f32(x->rot6d, (int64_t)dec_rows * x->rot6d_stride))
+        return 0;                       /* NumpyFrame.finite: Pipeline._heal first, then call again */
     block k;
     const skeleton *sk = &x->sk;
     int J = sk->J, S = x->ring_rows;
@@ -721,6 +755,33 @@ void ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n,
     copy_f64(x->ring_weight + row0 * 2, x->weights, (int64_t)R * 2);
     copy_f64(x->ring_lock_weight + (int64_t)slot * (S - 1) * 2, x->locks.weight, (int64_t)N * 2);
     copy_f32(x->ring_hidden + (int64_t)slot * (S - 1) * x->hidden, hidden_read, (int64_t)N * x->hidden);
+    return 1;
+}
+
+void ep_physical_cost(int N, int J, const double *pos, const float *contacts, const double *lift,
+                      const physical_params *pp, double *cost);
+int ep_switch_to(int N, const double *cost, int c, double margin);
+
+/* edge.criteria.Composite of the default criteria, Plausibility (SSI 3.2.1) at weight w_plaus and
+ * PhysicalPlausibility at w_phys (skipped when sel->physical is NULL), for the N samples of the live
+ * frame, into ring slot `slot`'s costs, summed in Composite.cost's order; then, when c >= 0,
+ * ep_switch_to from sample c on those costs (SSI eq. 2, 3.2.2): the sample to move to, or -1. The
+ * autoencoder has run on what ep_frame_poses prepared (x->ae_*). One call for the whole judgement. */
+int ep_frame_costs(const core_context *x, const selection *sel, int slot, int N, double w_plaus, double w_phys,
+                   int c, double margin) {
+    const int J = x->sk.J;
+    double *cost = sel->ring_cost + (int64_t)slot * sel->cost_stride;
+    ep_leg_error(N, J, sel->ae_out, sel->ae_rot_dim, sel->leg_rows, sel->legs, x->sk.offsets, x->ae_local,
+                 x->ae_root_local, sel->leg_err);
+    int physical = sel->physical != 0 && w_phys != 0.0;
+    if (physical)
+        ep_physical_cost(N, J, sel->pos, x->contacts, x->floor_lift, sel->physical, sel->physical_cost);
+    for (int r = 0; r < N; r++) {
+        double total = w_plaus != 0.0 ? w_plaus * sel->leg_err[r] : 0.0;
+        if (physical) total = total + w_phys * sel->physical_cost[r];
+        cost[r] = total;
+    }
+    return c >= 0 ? ep_switch_to(N, cost, c, margin) : -1;
 }
 
 /* One row's pose again from what the look-ahead ring keeps of it in slot `slot`: its decoder 6D
@@ -864,11 +925,7 @@ void ep_physical_cost(int N, int J, const double *pos, const float *contacts, co
 }
 
 /* edge.pipeline.NumpyFrame.finite: 1 when the n floats are all finite (the decoder's state and output). */
-int ep_all_finite_f32(const float *x, int n) {
-    for (int i = 0; i < n; i++)
-        if (!(x[i] - x[i] == 0.0f)) return 0;
-    return 1;
-}
+int ep_all_finite_f32(const float *x, int n) { return all_finite_f32(x, n); }
 
 /* edge.pipeline.NumpyFrame.sane: 1 when the frame's n signal values are all finite and its
  * head and controller positions (in[0..3), in[7..13)) lie within `limit` metres of the origin. */
