@@ -93,6 +93,26 @@ def midway_rotation(a, b):
     return quat.matrix_from_6d(0.5 * (quat.matrix_to_6d(a) + quat.matrix_to_6d(b)))
 
 
+def ring_runs(first, K, slots):
+    """Ring slots first, first + 1, ... (K of them, modulo slots) as at most two runs of slices:
+    ((ring slice, row slice), ...), rows counting from 0."""
+    n1 = min(K, slots - first)
+    if n1 == K:
+        return ((slice(first, first + K), slice(0, K)),)
+    return ((slice(first, slots), slice(0, n1)), (slice(0, K - n1), slice(n1, K)))
+
+
+def ease(w, x, y, scratch, out):
+    """out = (1 - a) * x + a * y for weights w = [1 - a, a] laid out as x, in float64 scratch [2,...] and
+    cast into out once: numpy's (1 - a) * x + a * y for float64 weights, without temporaries."""
+    scratch[0], scratch[1] = x, y           # cast first: a mixed-dtype ufunc would allocate a cast buffer
+    np.multiply(w[0], scratch[0], out=scratch[0])
+    np.multiply(w[1], scratch[1], out=scratch[1])
+    np.add(scratch[0], scratch[1], out=scratch[0])
+    if out is not scratch[0]:
+        out[...] = scratch[0]
+
+
 def torso_segments(seg_m, seg_flag, waist_m, head_m):
     """With the chest measured, the two torso segments no IMU sees follow from those that are: the
     spine's halfway between the waist and the chest, the neck's halfway between the chest and the
@@ -145,6 +165,15 @@ class Pipeline:
         self.buffer = LookaheadBuffer(lookahead + 1, N, m["hidden"], m["features"], self.decoder.rot6d.shape[1],
                                       NUM_JOINTS)
         self.switcher = Switcher(lookahead, transition)
+        # A switch's recompute works in these (_recompute_transition): ring slots, the move's weights, and
+        # float64 scratch for each eased quantity, for up to K = tau + 1 frames.
+        K, H, L = lookahead + 1, m["hidden"], m["latent"]
+        w = transition_weight(np.arange(K), transition)
+        w = np.stack([1 - w, w])                # [2,K]: 1 - a and a at each step of a move
+        self._switch_scratch = {"latent": np.zeros((2, K, L)), "hidden_in": np.zeros((2, K, H), np.float32),
+                                "hidden": np.zeros((2, K, H)), "goal_in": np.zeros((2, K, 2, 3)),
+                                "goal": np.zeros((2, K, 2, 3)), "w_latent": np.repeat(w[..., None], L, 2),
+                                "w_hidden": np.repeat(w[..., None], H, 2), "w_goal": np.tile(w[..., None, None], (1, 1, 2, 3))}
         self.feet = FootLock(N)
         R = max(self.rows, lookahead + 1)
         self._local = np.zeros((R, NUM_JOINTS, 3, 3))
@@ -165,7 +194,7 @@ class Pipeline:
         self._pelvis = [np.broadcast_to(self.buffer.waist_m[k], (N, 3, 3)) for k in range(lookahead + 1)]
         self.out = Pose()
         # One frame's tracker signals in (the extra IMUs' orientations and flags after the 25): the C
-        # calls' input, and what step() checks before anything uses it (_sane_frame).
+        # calls' input, and what step() checks before anything uses it (path.inputs).
         self._frame_in = np.zeros(25 + 5 * NUM_IMUS)
         self._good_in = np.zeros_like(self._frame_in)     # the last frame that passed
         self._in = {k: self._frame_in[i:j].reshape(shape) for k, i, j, shape in (
@@ -227,7 +256,7 @@ class Pipeline:
         self.t = -1
         self.switcher.reset()
         self.state_resets = 0       # decoder rows whose GRU state or output went non-finite (see _heal)
-        self.inputs_held = 0        # frames whose signals were non-finite or out of range (see _sane_frame)
+        self.inputs_held = 0        # frames whose signals were non-finite or out of range (see step)
 
     # ------------------------------------------------------------------ per frame
     def step(self, sig):
@@ -237,24 +266,22 @@ class Pipeline:
             mark[0] = time.thread_time_ns()
         self.t += 1
         t, b, N, sw = self.t, self.buffer, self.samples, self.switcher
-        s = b.slot(t)
+        s = t % b.slots
         b.frame[s] = t
         b.override[s] = False
         dec = self.decoder
         self._load_frame_in(sig)
-        if not self._sane_frame():  # a frame no range check upstream caught: the last good one again
+        # During a move the spare row carries it: both latents and GRU states eased (path.inputs does it).
+        live = sw.live(t)
+        blend = (sw.trans[0], sw.trans[1], sw.weight(t)) if live else None
+        # Features and tracker matrices into slot s and the decoder, if the frame is sane: finite, and
+        # inside POSITION_LIMIT_M of the origin (no play space is larger). One that a range check upstream
+        # did not catch is replaced by the last good one.
+        if not self.path.inputs(sig, s, N, blend):
             sig = self._held_frame()
-        self.path.inputs(sig, s)    # features and tracker matrices, into slot s and the decoder
+            self.path.inputs(sig, s, N, blend)
         if timing:
             mark[1] = time.thread_time_ns()
-        live = sw.live(t)
-        blend = None
-        if live:                    # the spare row carries the move: both latents and GRU states eased
-            c, n = sw.trans[:2]
-            a = sw.weight(t)
-            dec.latent[N] = (1 - a) * self.latents[c] + a * self.latents[n]
-            dec.state[N] = (1 - a) * dec.state[c] + a * dec.state[n]
-            blend = (c, n, float(a))
         dec.step()
         if timing:
             mark[2] = time.thread_time_ns()
@@ -309,14 +336,6 @@ class Pipeline:
         self.buffer.cost[s, :N] = self.criteria.cost(ctx)
         return self.path.switch_to(s, c, self.switch_margin) if c >= 0 else -1
 
-    def _sane_frame(self):
-        """Whether this frame's signals are finite and inside POSITION_LIMIT_M of the origin (no play
-        space is larger); the last one that was is kept to stand in for one that is not."""
-        ok = self.path.sane()
-        if ok:
-            np.copyto(self._good_in, self._frame_in)
-        return ok
-
     def _held_frame(self):
         """Stand the last good frame in for this one (counted in inputs_held); before any, a neutral
         one: standing at the origin, facing +Z, no extra IMUs."""
@@ -351,7 +370,7 @@ class Pipeline:
     def _load_frame_in(self, sig):
         """One frame (T=1) of Signals into _frame_in, the C calls' input layout (no temporaries)."""
         for name, dst in self._in_fields:
-            np.copyto(dst, getattr(sig, name))
+            dst[...] = getattr(sig, name)       # not np.copyto: its Python wrapper costs 3x as much
 
     def set_samples(self, n):
         """Adaptive N: run the first n (1..max_samples) samples, each keeping its own latent.
@@ -407,24 +426,29 @@ class Pipeline:
 
     def _recompute_transition(self, c, n, s0, T, t):
         """Re-run the buffered frames s0..t along the transition (one batched decoder call); their
-        poses are made when they are sent."""
-        b = self.buffer
-        frames = np.arange(s0, min(t, s0 + T - 1) + 1)
-        K = len(frames)
-        sl = b.slot(frames)
-        a = transition_weight(frames - s0, T)[:, None]
-        rc = self.recompute
-        rc.features[:K] = b.features[sl]
-        rc.latent[:K] = (1 - a) * self.latents[c] + a * self.latents[n]
-        rc.hidden[0][:K] = (1 - a) * b.hidden_in[sl, c] + a * b.hidden_in[sl, n]
+        poses are made when they are sent. Each eased as (1 - a) x + a y in float64 (a: the move's
+        weights at those frames), in preallocated scratch: a switch makes no arrays."""
+        b, rc, N, sc = self.buffer, self.recompute, self.samples, self._switch_scratch
+        K = min(t, s0 + T - 1) - s0 + 1
+        runs = ring_runs(s0 % b.slots, K, b.slots)
+        h, g = sc["hidden_in"], sc["goal_in"]
+        for ring, rows in runs:                              # gather the frames' inputs (at most two runs)
+            rc.features[rows] = b.features[ring]
+            h[0, rows], h[1, rows] = b.hidden_in[ring, c], b.hidden_in[ring, n]
+            g[0, rows], g[1, rows] = b.leg_goal[ring, c], b.leg_goal[ring, n]
+        # a and 1 - a at the move's steps 0..K-1, laid out as each quantity (a broadcast would allocate)
+        ease(sc["w_latent"][:, :K], self.latents[c], self.latents[n], sc["latent"][:, :K], rc.latent[:K])
+        ease(sc["w_hidden"][:, :K], h[0, :K], h[1, :K], sc["hidden"][:, :K], rc.hidden[0][:K])
+        goal = sc["goal"][:, :K]
+        ease(sc["w_goal"][:, :K], g[0, :K], g[1, :K], goal, goal[0])
         rc.step()
-        N, a3 = self.samples, a[:, :, None]
-        b.override[sl] = True
-        b.trans_row[sl] = N
-        b.rot6d[sl, N] = rc.rot6d[:K]
-        b.contacts[sl, N] = rc.contacts[:K]
-        b.leg_goal[sl, N] = (1 - a3) * b.leg_goal[sl, c] + a3 * b.leg_goal[sl, n]
-        b.leg_weight[sl, N] = 1.0
+        for ring, rows in runs:                              # and the spare row N of each frame
+            b.override[ring] = True
+            b.trans_row[ring] = N
+            b.rot6d[ring, N] = rc.rot6d[rows]
+            b.contacts[ring, N] = rc.contacts[rows]
+            b.leg_goal[ring, N] = goal[0, rows]
+            b.leg_weight[ring, N] = 1.0
 
     # ------------------------------------------------------------------ output
     def _emit(self, o):
@@ -474,9 +498,20 @@ class NumpyFrame:
         return (total - total == 0.0 and -POSITION_LIMIT_M < head.min() and head.max() < POSITION_LIMIT_M
                 and -POSITION_LIMIT_M < hands.min() and hands.max() < POSITION_LIMIT_M)
 
-    def inputs(self, sig, s):
-        """Body points, features and tracker matrices of one frame into ring slot s and the decoder."""
+    def inputs(self, sig, s, N, blend):
+        """Body points, features and tracker matrices of one frame into ring slot s and the decoder, and
+        the spare row N's latent and GRU state eased between a live move's two samples (blend: from,
+        to, weight; or None). False, doing nothing, when the frame is not sane (the pipeline's
+        _frame_in); a frame that is is kept in _good_in."""
         p, b, dec = self.p, self.p.buffer, self.p.decoder
+        if not self.sane():
+            return False
+        np.copyto(p._good_in, p._frame_in)
+        if blend is not None:
+            c, n, a = blend
+            a = np.float64(a)       # eased in float64, rounded once to the decoder's float32 (as ep_frame_inputs)
+            dec.latent[N] = (1 - a) * p.latents[c] + a * p.latents[n]
+            dec.state[N] = (1 - a) * dec.state[c] + a * dec.state[n]
         points, waist_rot = body_points(sig, p.body_scale)
         points, waist_rot = points[0], waist_rot[0]
         prev = points if self.prev_points is None else self.prev_points
@@ -498,6 +533,7 @@ class NumpyFrame:
             torso_segments(b.seg_m[s], b.seg_flag[s], m[0], m[3])
         dec.features[:] = feat
         b.hidden_in[s, :p.samples] = dec.state[:p.samples]
+        return True
 
     def finite(self, dec):
         return bool(np.isfinite(dec.state[:dec.rows]).all() and np.isfinite(dec.rot6d[:dec.rows]).all())
@@ -672,7 +708,9 @@ class CompiledFrame:
             frame_in=a["_frame_in"], frame_offsets=a["_frame_offsets"], prev=a["_prev"], fps=p.fps,
             n_features=p.n_features, imus=p.imus, floor_lift=a["_floor_lift"],
             ring_seg_m=native.addr(b.seg_m), ring_seg_flag=native.addr(b.seg_flag), imu_joints=a["imu_joints"],
-            segments=int(p.segments),
+            segments=int(p.segments), good_in=native.addr(p._good_in), frame_len=len(p._frame_in),
+            position_limit=POSITION_LIMIT_M, latents=chk(p.latents, np.float32, (N, None), "latents"),
+            latent_dim=p.latents.shape[1],
             **(dict(zip(("ae_in", "ae_local", "ae_root_local"), ae)) if ae else {}))
         self.core = ctypes.pointer(ctx)
         self.bind_decoder(p.decoder)
@@ -687,16 +725,19 @@ class CompiledFrame:
         ctx.rot6d, ctx.contacts, ctx.rot6d_stride = self.addr["rot6d"], self.addr["contacts"], dec.rot6d.shape[1]
         ctx.dec_features = chk(dec.features, np.float32, (None, self.p.n_features), "decoder features")
         ctx.dec_rows = dec.capacity
+        ctx.dec_latent = chk(dec.latent, np.float32, (None, self.p.latents.shape[1]), "decoder latent")
         self._hidden_addr = [chk(h, np.float32, (None, None), "decoder GRU state") for h in dec.hidden]
 
-    def sane(self):
-        return bool(self.lib.ep_frame_sane(self.addr["_frame_in"], len(self.p._frame_in), POSITION_LIMIT_M))
-
-    def inputs(self, sig, s):
-        """ep_frame_inputs: features and tracker matrices into ring slot s and the decoder (the frame's
-        signals are already in the pipeline's _frame_in)."""
-        self.lib.ep_frame_inputs(self.core, s, self.first)
-        self.first = False
+    def inputs(self, sig, s, N, blend):
+        """ep_frame_inputs: NumpyFrame.inputs on the frame's signals already in the pipeline's _frame_in."""
+        state = self._hidden_addr[self.p.decoder._cur]
+        if blend is None:
+            ok = self.lib.ep_frame_inputs(self.core, s, self.first, N, -1, -1, 0.0, state)
+        else:
+            ok = self.lib.ep_frame_inputs(self.core, s, self.first, N, blend[0], blend[1], blend[2], state)
+        if ok:
+            self.first = False
+        return ok == 1
 
     def poses(self, s, rows, N, blend, keep_world):
         """ep_frame_poses: FK, foot locks, the blend, IK and the ring copies of NumpyFrame.poses in one

@@ -64,6 +64,7 @@ class Switcher:
 
     def __init__(self, lookahead, length):
         self.lookahead, self.length = lookahead, length
+        self._weights = [float(w) for w in transition_weight(np.arange(length), length)]   # per step of a move
         self.reset()
 
     def reset(self):
@@ -79,7 +80,7 @@ class Switcher:
 
     def weight(self, t):
         """The move's blend weight at frame t (0: the sample it leaves, 1: the one it reaches)."""
-        return transition_weight(t - self.trans[2], self.trans[3])
+        return self._weights[t - self.trans[2]]
 
     def free(self, t):
         """Whether a new move may start at frame t: the last one has been sent."""

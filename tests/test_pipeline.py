@@ -113,6 +113,42 @@ def test_ring_buffer_memory_is_fixed_over_20000_frames(take):
     assert pipe.buffer.nbytes() < 16 * 1024 * 1024
 
 
+def frame_memory(pipe, frames, count):
+    """Each of `count` frames' transient peak of traced memory (bytes above what was live before it),
+    and whether an SSI switch started in it; tracemalloc must be running."""
+    peaks, switched = np.zeros(count), np.zeros(count, bool)
+    for k in range(count):
+        before, was = tracemalloc.get_traced_memory()[0], pipe.switch_count
+        tracemalloc.reset_peak()
+        pipe.step(frames[k % len(frames)])
+        peaks[k], switched[k] = tracemalloc.get_traced_memory()[1] - before, pipe.switch_count > was
+    return peaks, switched
+
+
+@pytest.mark.skipif(not __import__("edge.native").native.load(), reason="the compiled core is the board's frame")
+def test_a_frame_makes_no_arrays_at_any_n_and_a_switch_none_either(take):
+    """The board's frame allocates no arrays: what a frame's memory peaks at is the Python bindings'
+    own call objects (ctypes arguments, ONNX Runtime's run wrapper, under 1 KB), the same at N=2 and
+    N=128 (a temporary per sample would be 1 KB more at N=128), and a frame that starts an SSI switch
+    (which re-runs the look-ahead) adds no more than another call's worth."""
+    frames = [take.signals.slice(t, t + 1) for t in range(take.frames)]
+    runs = {}
+    for n in (2, 128):
+        pipe = Pipeline(samples=n)
+        for t in range(200):
+            pipe.step(frames[t % len(frames)])
+        tracemalloc.start()
+        try:
+            runs[n] = frame_memory(pipe, frames[200:] + frames[:200], 600)
+        finally:
+            tracemalloc.stop()
+    (small, _), (large, switched) = runs[2], runs[128]
+    assert switched.sum() >= 3, "the take should make the SSI switch a few times at N=128"
+    assert np.median(large) <= 1024 and abs(np.median(large) - np.median(small)) <= 64
+    assert np.percentile(large[~switched], 99) <= 2048
+    assert large[switched].max() <= 2048
+
+
 # ------------------------------------------------------------------ adaptive N
 
 # int8 quantizes the decoder's activations per call, over the whole batch: a row's output depends on

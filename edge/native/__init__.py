@@ -127,7 +127,9 @@ class CoreContext(ctypes.Structure):
                                      "frame_offsets", "prev")]
                 + [("fps", _D), ("ring_features", _P), ("dec_features", _P), ("dec_rows", _I), ("ring_hidden", _P),
                    ("hidden", _I), ("out_contacts", _P), ("n_features", _I), ("imus", _I), ("floor_lift", _P),
-                   ("ring_seg_m", _P), ("ring_seg_flag", _P), ("imu_joints", _P), ("segments", _I)])
+                   ("ring_seg_m", _P), ("ring_seg_flag", _P), ("imu_joints", _P), ("segments", _I),
+                   ("good_in", _P), ("frame_len", _I), ("position_limit", _D), ("dec_latent", _P), ("latents", _P),
+                   ("latent_dim", _I)])
 
 
 _SIGNATURES = {
@@ -145,12 +147,12 @@ _SIGNATURES = {
     "ep_frame_poses": [ctypes.POINTER(CoreContext), _I, _I, _I, _I, _I, _D, _P, _P, _P, _P, _I],
     "ep_frame_costs": [ctypes.POINTER(CoreContext), ctypes.POINTER(Selection), _I, _I, _D, _D, _I, _D],
     "ep_emit": [ctypes.POINTER(CoreContext), _I, _I],
-    "ep_frame_inputs": [ctypes.POINTER(CoreContext), _I, _I],
+    "ep_frame_inputs": [ctypes.POINTER(CoreContext), _I, _I, _I, _I, _I, _D, _P],
     "ep_max_joints": [],
     "ep_layout": [_P, _I],
 }
 _RETURNS_INT = {"ep_switch_to", "ep_max_joints", "ep_frame_sane", "ep_all_finite_f32", "ep_layout", "ep_frame_poses",
-                "ep_frame_costs"}
+                "ep_frame_costs", "ep_frame_inputs"}
 _MIRRORS = (Skeleton, PoseRows, ForwardInputs, LimbGoals, FootLocks, PhysicalParams, Selection)
 
 

@@ -639,6 +639,16 @@ typedef struct {
     double *ring_seg_m, *ring_seg_flag;
     const int64_t *imu_joints;
     int segments;
+    /* ep_frame_inputs' sanity test: frame_in's length, the largest |position| it accepts (m), and where
+     * a frame that passes is kept (good_in [frame_len]) to stand in for one that does not */
+    double *good_in;
+    int frame_len;
+    double position_limit;
+    /* the decoder's latent input [dec_rows, latent_dim] float and the samples' own latents [N, latent_dim]
+     * float, for a move's spare row (ep_frame_inputs) */
+    float *dec_latent;
+    const float *latents;
+    int latent_dim;
 } core_context;
 
 /* The layout of the structs above, for the loader to hold the ctypes mirrors against (edge.native.load):
@@ -650,7 +660,7 @@ typedef struct {
     X(ring_goal) X(ring_weight) X(ring_lock_weight) X(out_local) X(out_world) X(out_pos) X(ae_in) X(ae_local) \
     X(ae_root_local) X(frame_in) X(frame_offsets) X(prev) X(fps) X(ring_features) X(dec_features) X(dec_rows) \
     X(ring_hidden) X(hidden) X(out_contacts) X(n_features) X(imus) X(floor_lift) X(ring_seg_m) X(ring_seg_flag) \
-    X(imu_joints) X(segments)
+    X(imu_joints) X(segments) X(good_in) X(frame_len) X(position_limit) X(dec_latent) X(latents) X(latent_dim)
 int ep_layout(int64_t *out, int n) {
     int64_t v[128];
     int k = 0;
@@ -996,10 +1006,30 @@ static void midway_rotation(const double *a, const double *b, double *out) {
     quat_matrix_from_6d(u, v, out);
 }
 
+int ep_frame_sane(const double *in, int n, double limit);
+
+/* dst = (1 - a) * from + a * to over n floats, in double and rounded once, as numpy computes it with a
+ * float64 weight (SSI 3.2.3: a move eases the latent and the GRU state). */
+static void ease_f32(float *dst, const float *from, const float *to, int n, double a) {
+    for (int i = 0; i < n; i++) dst[i] = (float)((1 - a) * (double)from[i] + a * (double)to[i]);
+}
+
 /* edge.pipeline.NumpyFrame.inputs for the live frame, straight into ring slot `slot` and the decoder's
- * input: ep_frame_features (first: no previous frame, velocity 0), then the points, features and
- * tracker matrices where Pipeline.step keeps them. */
-void ep_frame_inputs(const core_context *x, int slot, int first) {
+ * input. First ep_frame_sane on frame_in: a frame that fails returns 0 and changes nothing (the
+ * pipeline stands the last good one in and calls again); one that passes is kept in good_in. Then
+ * ep_frame_features (first: no previous frame, velocity 0), the points, features and tracker matrices
+ * where Pipeline.step keeps them, and, when c >= 0 (a move from sample c to n is live at weight a), the
+ * spare row N's latent and GRU state (in `state`, the buffer the decoder reads next) eased between
+ * the two samples'. Returns 1. */
+int ep_frame_inputs(const core_context *x, int slot, int first, int N, int c, int n, double a, float *state) {
+    if (!ep_frame_sane(x->frame_in, x->frame_len, x->position_limit))
+        return 0;
+    copy_f64(x->good_in, x->frame_in, x->frame_len);
+    if (c >= 0) {
+        const int L = x->latent_dim, H = x->hidden;
+        ease_f32(x->dec_latent + (int64_t)N * L, x->latents + (int64_t)c * L, x->latents + (int64_t)n * L, L, a);
+        ease_f32(state + (int64_t)N * H, state + (int64_t)c * H, state + (int64_t)n * H, H, a);
+    }
     double points[12], mats[36];
     float feat[MAX_FEATURES];
     const int F = x->n_features;
@@ -1030,4 +1060,5 @@ void ep_frame_inputs(const core_context *x, int slot, int first) {
     copy_f64(x->ring_head + slot * 9, mats + 27, 9);
     copy_f32(x->ring_features + slot * F, feat, F);
     for (int r = 0; r < x->dec_rows; r++) copy_f32(x->dec_features + (int64_t)r * F, feat, F);
+    return 1;
 }
