@@ -127,7 +127,7 @@ def torso_segments(seg_m, seg_flag, waist_m, head_m):
 class Pipeline:
     def __init__(self, models=None, samples=1, seed=0, fps=60.0, body_scale=1.0, precision=DEFAULT_PRECISION, threads=1,
                  lookahead=None, transition=10, ssi=True, criteria=None, foot_ik=True, arm_ik=True,
-                 use_native=True, segments=True, selection=None):
+                 use_native=True, segments=True, selection=None, refine=None):
         if not 1 <= samples <= 128:
             raise ValueError(f"samples must be 1..128, got {samples}")
         lookahead = (10 if samples > 1 else 0) if lookahead is None else lookahead
@@ -211,6 +211,12 @@ class Pipeline:
         self.reference = NumpyFrame(self)
         self.path = CompiledFrame(self, self.native) if self.native else self.reference
         self.timing, self.stage_ns = False, np.zeros(len(STAGES) + 1, np.int64)
+        # Latent refinement of the shown sample (edge.refine), when asked: refine=True, or a dict of
+        # Refiner settings (steps, eps, prior, continuity, terms, ...).
+        self.refiner = None
+        if refine:
+            from edge.refine import Refiner
+            self.refiner = Refiner(dec_session, m, self._forward_rows, **(refine if isinstance(refine, dict) else {}))
         self.reset()
 
 
@@ -248,6 +254,7 @@ class Pipeline:
     # ------------------------------------------------------------------ state
     def reset(self):
         self.decoder.reset()
+        self.decoder.latent[:self.max_samples] = self.latents     # refinement moved the shown one
         self.feet.reset()
         self.path.reset()
         self._pending = None        # a change of N waiting for a transition to be sent
@@ -283,6 +290,8 @@ class Pipeline:
         if timing:
             mark[1] = time.thread_time_ns()
         dec.step()
+        if self.refiner is not None:
+            self._refine(s, N, sw.current)
         if timing:
             mark[2] = time.thread_time_ns()
 
@@ -321,6 +330,21 @@ class Pipeline:
         if timing:
             mark[6] = time.thread_time_ns()
         return pose
+
+    def _refine(self, s, N, c):
+        """edge.refine on the shown sample's row of this frame: its latent moves (and stays moved for
+        the next frame), and its decode (6D, contacts, the GRU state it wrote) replaces the row's."""
+        dec, f = self.decoder, self.feet
+        self._slot_now = s
+        out = self.refiner.refine(self.t, dec.latent[c], self.latents[c], dec.hidden[dec.last_read][c], dec.features[0],
+                                  self.buffer.seg_m[s], self.buffer.seg_flag[s], f.lock_pos[c], f.weight[c])
+        if out is not None:
+            dec.rot6d[c], dec.contacts[c], dec.state[c] = out
+
+    def _forward_rows(self, rot6d, rows, segments, out):
+        """FK of `rows` decoder rows (rot6d [R,D] float32) against the live frame's inputs, into out =
+        (local, world, pos): the refiner's forward."""
+        self.path.forward_rows(self._slot_now, rot6d, rows, segments, out)
 
     def _judge(self, sig, s, N, c, keep_world):
         """Any criteria (edge.criteria, composed): frame t's costs into ring slot s, then the sample to
@@ -421,6 +445,8 @@ class Pipeline:
 
     def _start_transition(self, n, t):
         c = self.switcher.current
+        if self.refiner is not None:        # the sample left behind goes back to its own latent
+            self.decoder.latent[c] = self.latents[c]
         s0 = self.switcher.start(n, t)
         self._recompute_transition(c, n, s0, self.transition, t)
 
@@ -592,6 +618,18 @@ class NumpyFrame:
             fk(loc, p._zero3, out=(W, P))
         P += anchor[..., None, :] - P[:, HEAD:HEAD + 1]
 
+    def forward_rows(self, s, rot6d, rows, segments, out):
+        """forward() of decoder rows against ring slot s's inputs, into out = (local, world, pos)."""
+        b = self.p.buffer
+        loc, W, P = out
+        loc[:, 0] = b.waist_m[s]
+        quat.matrix_from_6d(rot6d[:rows].reshape(rows, NUM_PREDICTED, 6), out=loc[:, 1:])
+        if segments and b.seg_flag[s].any():
+            fk_with_segments(loc, W, P, b.seg_m[s], b.seg_flag[s])
+        else:
+            fk(loc, self.p._zero3, out=(W, P))
+        P += b.anchor[s][None, None, :] - P[:, HEAD:HEAD + 1]
+
     def foot_goals(self, N):
         """Update the N samples' foot-contact locks from the decoder's contacts and the FK ankles; each
         sample's foot goal (in _targets) is where its lock draws the ankle, so the leg IK runs at weight 1.
@@ -714,6 +752,10 @@ class CompiledFrame:
             **(dict(zip(("ae_in", "ae_local", "ae_root_local"), ae)) if ae else {}))
         self.core = ctypes.pointer(ctx)
         self.bind_decoder(p.decoder)
+        # forward_rows' arguments (the refiner's FK), filled per call.
+        self._fin, self._rows_out = native.ForwardInputs(), native.PoseRows()
+        self._ring_addr = {"waist": native.addr(b.waist_m), "anchor": native.addr(b.anchor), "seg_m": native.addr(b.seg_m),
+                           "seg_flag": native.addr(b.seg_flag)}
 
     def reset(self):
         self.first = True           # the first frame's velocity is zero: prev = points
@@ -747,6 +789,19 @@ class CompiledFrame:
         return self.lib.ep_frame_poses(self.core, s, rows, N, c, n, a, self.addr["_world"] if keep_world else None,
                                        self.addr["_pos"], self._hidden_addr[1 - dec._cur],
                                        self._hidden_addr[dec._cur], dec.rows) == 1
+
+    def forward_rows(self, s, rot6d, rows, segments, out):
+        """ep_forward: NumpyFrame.forward_rows in one C call."""
+        b, fin = self.p.buffer, self._fin
+        fin.rot6d, fin.rot6d_stride = native.addr(rot6d), rot6d.shape[1]
+        fin.root_m = self._ring_addr["waist"] + s * 72
+        fin.anchor = self._ring_addr["anchor"] + s * 24
+        J = NUM_JOINTS
+        fin.seg_m = self._ring_addr["seg_m"] + s * J * 72 if segments else None
+        fin.seg_flag = self._ring_addr["seg_flag"] + s * J * 8 if segments else None
+        loc, W, P = out
+        self._rows_out.local, self._rows_out.world, self._rows_out.pos = native.addr(loc), native.addr(W), native.addr(P)
+        self.lib.ep_forward(ctypes.byref(self.core.contents.sk), rows, ctypes.byref(fin), ctypes.byref(self._rows_out))
 
     def judge(self, s, N, c):
         """The default criteria (Plausibility, PhysicalPlausibility) on frame t's N samples into ring slot

@@ -1,0 +1,281 @@
+"""Latent refinement: move the shown sample's latent until its decoded pose meets the constraints.
+
+SSI can only choose among the samples it drew; a kick that no sample makes stays out of reach. After
+the choice, and before IK, the refiner takes a few Gauss-Newton (Levenberg-Marquardt) steps on the
+shown sample's latent against the live constraints, with the decoder fixed (DragPoser 4.4), and the
+refined latent's GRU state goes forward, so refinement shapes the frames after it too.
+
+The board has no autograd: the Jacobian of the constraints' residuals with respect to the 30 latent
+dimensions comes from one batched decoder call on the latent and 30 small steps along its axes (what
+N=31 costs), FK of those 31 rows, and the terms' residuals on each (forward differences). A step
+solves (J^T J + (prior + continuity + damping) I) dz = -(J^T r + prior and continuity gradients).
+
+Constraint terms (each a small class like the SSI criteria, on and off by config and by what is live):
+- ImuOrientation: each worn IMU's segment as the decoder makes it against its measured orientation
+  (chordal distance of the rotations; tilt only where heading is not trusted);
+- FloorContact: no toe or ankle under the floor, and a planted foot (its lock) stays where it was;
+- TargetReach: a point a joint should reach within a radius during a window of frames (SSI 5.3's
+  targets, given by the headset or by `edge ssi-study`).
+The latent prior (towards the sample's own latent, which the CVAE drew from its prior) and the
+continuity with the last frame's latent are analytic and always on.
+
+Targets are untrusted input: one with a non-finite value, on an unknown joint or farther than
+MAX_REACH_M from the pelvis is refused and counted (`refused`), never applied.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+from edge.imus import IMU_JOINTS
+from edge.skeleton import ANKLES, JOINT, NUM_JOINTS, TOES
+
+MAX_REACH_M = 1.5           # a target farther than this from the pelvis is no reach of the user's
+FLOOR_TOE, FLOOR_ANKLE = 0.0, 0.07      # the lowest a toe and an ankle joint may go (as the IK's floor)
+
+
+@dataclass
+class Target:
+    """A point `joint` should reach (world, metres) within `radius`, for frames first..last inclusive."""
+    joint: int
+    position: np.ndarray
+    radius: float = 0.05
+    first: int = 0
+    last: int = 1 << 62
+    weight: float = 1.0
+
+
+class RefineContext:
+    """What the terms see of one batch of latent rows: world positions after FK with the worn IMUs'
+    segments set [R,J,3] (the pose the user sees before IK), the decoder's own world rotations
+    [R,J,3,3] (raw_world: no IMU override; only when a term asks), the frame's measurements, the
+    shown sample's foot locks, and the frame index."""
+
+    def __init__(self):
+        self.frame = 0
+        self.positions = self.raw_world = None
+        self.seg_m = self.seg_flag = None
+        self.lock_pos = self.lock_weight = None
+
+
+class ImuOrientation:
+    """Each worn IMU's segment (edge.imus) as the decoder makes it, against its measurement: the chordal
+    distance of the two rotations (9 residuals an IMU, weighted by its presence flag), or with
+    `tilt_only` the gravity direction in the segment's frame (3: blind to heading, for IMUs whose
+    heading is not trusted)."""
+    name = "imus"
+    needs_raw_world = True
+
+    def __init__(self, weight=1.0, tilt_only=False):
+        self.weight, self.tilt_only = weight, tilt_only
+
+    def worn(self, ctx):
+        return IMU_JOINTS[ctx.seg_flag[IMU_JOINTS] > 0]
+
+    def size(self, ctx):
+        return len(self.worn(ctx)) * (3 if self.tilt_only else 9)
+
+    def residuals(self, ctx):
+        j = self.worn(ctx)
+        w = np.sqrt(self.weight) * ctx.seg_flag[j]                           # [K]
+        R, M = ctx.raw_world[:, j], ctx.seg_m[j]                             # [B,K,3,3], [K,3,3]
+        if self.tilt_only:                                                   # world up in each segment's frame
+            d = R[..., 1, :] - M[..., 1, :]
+        else:
+            d = (R - M).reshape(len(R), len(j), 9)
+        return (d * w[:, None]).reshape(len(R), -1)
+
+
+class FloorContact:
+    """No toe or ankle under the floor (FLOOR_TOE, FLOOR_ANKLE), and each planted foot's ankle where its
+    lock holds it, at the lock's weight (LoBSTR 3.4.1's contacts as a constraint on the whole body: a
+    planted foot places the pelvis)."""
+    name = "floor"
+    needs_raw_world = False
+
+    def __init__(self, weight=1.0, planted=1.0):
+        self.weight, self.planted = weight, planted
+
+    def size(self, ctx):
+        return 4 + 6
+
+    def residuals(self, ctx):
+        P = ctx.positions
+        under = np.minimum(P[:, np.r_[TOES, ANKLES], 1] - np.array([FLOOR_TOE] * 2 + [FLOOR_ANKLE] * 2), 0.0)
+        hold = (P[:, ANKLES] - ctx.lock_pos) * (np.sqrt(self.planted) * ctx.lock_weight)[:, None]
+        return np.concatenate([np.sqrt(self.weight) * under, hold.reshape(len(P), 6)], axis=1)
+
+
+class TargetReach:
+    """SSI 5.3's targets as constraints: while a target is live, its joint's distance beyond the
+    radius (3 residuals a target, along the offset)."""
+    name = "targets"
+    needs_raw_world = False
+
+    def __init__(self, weight=1.0):
+        self.weight = weight
+        self.targets = []
+
+    def live(self, frame):
+        return [g for g in self.targets if g.first <= frame <= g.last]
+
+    def size(self, ctx):
+        return 3 * len(self.live(ctx.frame))
+
+    def residuals(self, ctx):
+        out = []
+        for g in self.live(ctx.frame):
+            d = ctx.positions[:, g.joint] - g.position                       # [B,3]
+            dist = np.linalg.norm(d, axis=1, keepdims=True)
+            beyond = np.maximum(1.0 - g.radius / np.maximum(dist, 1e-9), 0.0)
+            out.append(np.sqrt(self.weight * g.weight) * d * beyond)
+        return np.concatenate(out, axis=1)
+
+    def forget(self, frame):
+        """Drop targets whose window has passed."""
+        self.targets = [g for g in self.targets if g.last >= frame]
+
+
+class Refiner:
+    """K Gauss-Newton steps a frame on one row's latent (see the module's docstring).
+
+    `decoder_session` is the pipeline's decoder model; `forward(rot6d [R,D] float32, rows, segments,
+    out)` is the pipeline's FK of decoder rows against the live frame's inputs (CompiledFrame's C
+    call or NumpyFrame's numpy), into out = (local, world, pos) [R,...]."""
+
+    def __init__(self, decoder_session, manifest, forward, steps=2, eps=0.5, prior=0.001, continuity=0.001,
+                 damping=1e-3, max_step=3.0, release_s=0.5, fps=60.0, terms=None):
+        from edge.inference import Decoder
+        L, H, F = manifest["latent"], manifest["hidden"], manifest["features"]
+        self.L, self.steps, self.eps = L, steps, eps
+        self.prior, self.continuity, self.damping, self.max_step = prior, continuity, damping, max_step
+        # With no term live the latent eases back to the sample's own, by this fraction a frame (a time
+        # constant of release_s), so a constraint that ends lets go smoothly (as a foot lock does).
+        self.release = 1.0 - np.exp(-1.0 / (fps * release_s))
+        self.batch = Decoder(decoder_session, L + 1, L, H, F, recurrent=False)    # the latent and L steps
+        self.final = Decoder(decoder_session, 1, L, H, F, recurrent=False)        # the refined latent's decode
+        self.forward = forward
+        R = L + 1
+        self._local = np.zeros((R, NUM_JOINTS, 3, 3))
+        self._world = np.zeros((R, NUM_JOINTS, 3, 3))
+        self._raw_world = np.zeros((R, NUM_JOINTS, 3, 3))
+        self._pos = np.zeros((R, NUM_JOINTS, 3))
+        self._raw_pos = np.zeros((R, NUM_JOINTS, 3))
+        self._steps = np.eye(L, dtype=np.float32) * np.float32(eps)
+        self.terms = list(terms) if terms is not None else [ImuOrientation(), FloorContact(), TargetReach()]
+        self.ctx = RefineContext()
+        self.refused = {"non_finite": 0, "unknown_joint": 0, "out_of_reach": 0}
+        self.applied = 0            # frames refined
+        self.last_cost = (0.0, 0.0)     # the constraints' cost before and after the last frame's steps
+
+    # ---- the terms
+    def term(self, name):
+        return next((t for t in self.terms if t.name == name), None)
+
+    def add_target(self, joint, position, radius=0.05, first=0, last=1 << 62, pelvis=None, weight=1.0):
+        """Add a target (joint name or index, world position [3] in metres) unless it is unsafe: a
+        non-finite value, an unknown joint, or farther than MAX_REACH_M from `pelvis` [3] (when given).
+        Returns the Target, or None (counted in `refused` by reason)."""
+        if isinstance(joint, str):
+            joint = JOINT.get(joint, -1)
+        position = np.asarray(position, dtype=np.float64).reshape(-1)
+        numbers = np.array([radius, weight] + list(position[:3]), dtype=np.float64)
+        if position.shape != (3,) or not np.isfinite(numbers).all() or radius < 0 or weight < 0:
+            self.refused["non_finite"] += 1
+            return None
+        if not 0 <= int(joint) < NUM_JOINTS:
+            self.refused["unknown_joint"] += 1
+            return None
+        if pelvis is not None and np.linalg.norm(position - pelvis) > MAX_REACH_M:
+            self.refused["out_of_reach"] += 1
+            return None
+        reach = self.term("targets")
+        if reach is None:
+            return None
+        g = Target(int(joint), position.copy(), float(radius), int(first), int(last), float(weight))
+        reach.targets.append(g)
+        return g
+
+    def live_terms(self, ctx):
+        """The terms with something to do this frame (a term without residuals drops out: an
+        unplugged IMU's, a target outside its window)."""
+        return [t for t in self.terms if t.weight > 0 and t.size(ctx) > 0]
+
+    # ---- one frame
+    def refine(self, frame, latent, prior_latent, hidden, features, seg_m, seg_flag, lock_pos, lock_weight):
+        """Refine `latent` [L] float32 (in place) for this frame: K steps from it against the live terms,
+        with the prior towards `prior_latent` and continuity with `latent` as it came in. `hidden` [H]
+        is the GRU state the row read, `features` [F] the frame's decoder input. Returns the refined
+        row's decode (rot6d [D], contacts [2], GRU state out [H]), or None when no term is live."""
+        ctx = self.ctx
+        ctx.frame, ctx.seg_m, ctx.seg_flag, ctx.lock_pos, ctx.lock_weight = frame, seg_m, seg_flag, lock_pos, lock_weight
+        terms = self.live_terms(ctx)
+        if not terms:
+            return self._let_go(latent, prior_latent, hidden, features)
+        raw = any(t.needs_raw_world for t in terms)
+        b = self.batch
+        b.features[:] = features
+        b.hidden[0][:] = hidden
+        z_prev = latent.astype(np.float64)
+        z = z_prev.copy()
+        zp = prior_latent.astype(np.float64)
+        cost0 = None
+        for _ in range(self.steps):
+            b.latent[:] = z.astype(np.float32)
+            b.latent[1:] += self._steps
+            r = self._residuals(terms, raw)                       # [L+1, m]
+            if cost0 is None:
+                cost0 = float(r[0] @ r[0])
+            J = (r[1:] - r[0]) / self.eps                        # [L, m]: d r / d z_k
+            A = J @ J.T
+            A[np.diag_indices_from(A)] += self.prior + self.continuity + self.damping
+            g = J @ r[0] + self.prior * (z - zp) + self.continuity * (z - z_prev)
+            dz = -np.linalg.solve(A, g)
+            n = np.linalg.norm(dz)
+            if n > self.max_step:
+                dz *= self.max_step / n
+            z += dz
+        latent[:] = z.astype(np.float32)
+        out = self._decode(latent, hidden, features)
+        self.applied += 1
+        self.last_cost = (cost0, self._cost_of(self.final.rot6d, terms, raw))
+        return out
+
+    def _let_go(self, latent, prior_latent, hidden, features):
+        """No term live: ease the latent back towards the sample's own; None once it is there."""
+        gap = prior_latent - latent
+        if not np.abs(gap).max() > 1e-3:
+            latent[:] = prior_latent
+            return None
+        latent += np.float32(self.release) * gap
+        return self._decode(latent, hidden, features)
+
+    def _decode(self, latent, hidden, features):
+        """One row's decode at `latent`: (rot6d [D], contacts [2], GRU state out [H])."""
+        f = self.final
+        f.features[:] = features
+        f.hidden[0][:] = hidden
+        f.latent[0] = latent
+        f.step()
+        return f.rot6d[0], f.contacts[0], f.hidden[1][0]
+
+    def _residuals(self, terms, raw):
+        b, ctx = self.batch, self.ctx
+        b.step()
+        R = b.rows
+        self.forward(b.rot6d, R, True, (self._local[:R], self._world[:R], self._pos[:R]))
+        ctx.positions = self._pos[:R]
+        if raw:
+            self.forward(b.rot6d, R, False, (self._local[:R], self._raw_world[:R], self._raw_pos[:R]))
+            ctx.raw_world = self._raw_world[:R]
+        return np.concatenate([t.residuals(ctx) for t in terms], axis=1)
+
+    def _cost_of(self, rot6d, terms, raw):
+        """The constraints' cost of one decoded row (what the last step reached)."""
+        ctx = self.ctx
+        self.forward(rot6d, 1, True, (self._local[:1], self._world[:1], self._pos[:1]))
+        ctx.positions = self._pos[:1]
+        if raw:
+            self.forward(rot6d, 1, False, (self._local[:1], self._raw_world[:1], self._raw_pos[:1]))
+            ctx.raw_world = self._raw_world[:1]
+        r = np.concatenate([t.residuals(ctx) for t in terms], axis=1)[0]
+        return float(r @ r)
