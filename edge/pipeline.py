@@ -646,7 +646,7 @@ class CompiledFrame:
             n_features=p.n_features, imus=p.imus, floor_lift=a["_floor_lift"],
             ring_seg_m=native.addr(b.seg_m), ring_seg_flag=native.addr(b.seg_flag), imu_joints=a["imu_joints"],
             segments=int(p.segments),
-            **(dict(zip(("ae_in", "ae_local", "ae_root_local"), ae)) if ae else {}))
+            **(dict(zip(("ae_in", "ae_local", "ae_root_local"), ae, strict=True)) if ae else {}))
         self.core = ctypes.pointer(ctx)
         self.bind_decoder(p.decoder)
 

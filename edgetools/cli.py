@@ -138,7 +138,6 @@ def main(argv=None):
             code = replay_cli.main(args)
             if code == 0 and args.report:
                 from viz.report import build_report
-                from pathlib import Path
                 dump = Path(args.report) / "dump"
                 print(f"wrote {build_report(args.json, args.report, dump if any(dump.glob('*.npz')) else None)}")
             return code

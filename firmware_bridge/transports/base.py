@@ -66,8 +66,8 @@ class Source(ABC):
             self._closed = True
             self._close_internal()
 
-    def _close_internal(self):
-        """What a transport releases on close."""
+    def _close_internal(self):  # noqa: B027 (a hook, not abstract: a transport with nothing to release keeps it)
+        """What a transport releases on close (nothing, unless a transport overrides it)."""
 
     def __enter__(self):
         return self
