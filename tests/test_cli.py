@@ -40,3 +40,10 @@ def test_eval_with_report_writes_the_metrics_and_the_report_page(tmp_path):
     assert (tmp_path / "out/report/index.html").is_file()
     assert list((tmp_path / "out/report/dump").glob("*.npz")), "the report's dump folder is empty"
     assert "wrote" in run.stdout and "index.html" in run.stdout
+
+
+def test_replay_without_json_prints_its_summary_and_writes_nothing(tmp_path):
+    run = edge("replay", SESSION, "--speed", "max", "--seconds", 2, "--samples", 4, cwd=tmp_path)
+    assert run.returncode == 0, said(run)
+    assert "frames_in=" in run.stderr and "mpjpe_cm=" in run.stderr and "latency p50" in run.stderr
+    assert list(tmp_path.iterdir()) == [], "a replay without --json or --bvh wrote files"
