@@ -1,4 +1,5 @@
 """`edge run` end to end through real ptys: headset and tracker hub in, pose stream out to `edge listen`."""
+import json
 import os
 import threading
 import time
@@ -105,12 +106,26 @@ def test_bad_config_fails_at_start_with_what_to_fix(raw, message):
         config_mod.from_dict(raw)
 
 
-def test_run_with_a_missing_device_says_which_and_why(tmp_path, capsys):
+def test_run_without_its_headset_waits_for_it_and_says_which_device_and_why(tmp_path, capsys):
+    """A board that boots before the headset is plugged in runs and waits (tests/test_cli.py sees the
+    headset arrive); the start-up message and the status line name the port and what to check."""
     cfg = tmp_path / "board.toml"
-    cfg.write_text('[headset]\nurl = "serial:///dev/ttyNOPE?role=headset"\n')
-    assert edge_main(["run", "--config", str(cfg), "--seconds", "0.1"]) == 2
+    cfg.write_text('[headset]\nurl = "serial:///dev/ttyNOPE?role=headset"\n[runtime]\nsamples = 1\n')
+    assert edge_main(["run", "--config", str(cfg), "--seconds", "0.6", "--json", str(tmp_path / "run.json")]) == 0
     err = capsys.readouterr().err
-    assert "/dev/ttyNOPE" in err and "plugged in" in err
+    assert "/dev/ttyNOPE" in err and "plugged in" in err and "waiting for it" in err
+    assert "headset: waiting for /dev/ttyNOPE" in err
+    summary = json.loads((tmp_path / "run.json").read_text())
+    assert summary["frames_in"] == 0 and summary["no_input"] > 0 and "/dev/ttyNOPE" in str(summary["start_errors"])
+
+
+@pytest.mark.parametrize("query, message", [("baud=fast", "baud must be a positive integer"),
+                                            ("role=tracker", "role must be one of")])
+def test_a_headset_url_the_transport_cannot_use_still_fails_at_start(tmp_path, capsys, query, message):
+    cfg = tmp_path / "board.toml"
+    cfg.write_text(f'[headset]\nurl = "serial:///dev/ttyNOPE?{query}"\n')
+    assert edge_main(["run", "--config", str(cfg), "--seconds", "0.1"]) == 2
+    assert message in capsys.readouterr().err
 
 
 def test_unreadable_config_is_a_clear_error(tmp_path, capsys):

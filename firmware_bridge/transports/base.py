@@ -27,6 +27,12 @@ class TransportError(RuntimeError):
     """A source that cannot be opened or has failed for good; the message says what to check."""
 
 
+class DeviceUnavailable(TransportError):
+    """The device a well-formed URL names cannot be opened now: not plugged in yet, unplugged, not
+    enumerated, or busy. A service waits for it and retries; a mistake in the URL itself (a bad baud
+    rate, an unknown role) is a plain TransportError, reported at start-up."""
+
+
 class Source(ABC):
     """A device link that yields timestamped samples. Implementations never raise on one bad frame:
     they count it in `stats` and carry on. `state` is ACTIVE, ERROR (the device reports a fault, e.g.
