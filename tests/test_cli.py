@@ -140,3 +140,189 @@ def test_run_waits_for_a_headset_plugged_in_after_it_started_then_streams_poses(
     assert summary["no_input"] > 0, "the pipeline ticked before the headset was there"
     assert summary["frames_out"] > 60 and len(poses) > 60, (summary, len(poses), text)
     assert ear.stats["corrupt"] == 0
+
+
+def raw_pty():
+    """A pty whose slave end a command opens by path, in raw mode as a UART is (no echo):
+    (master fd, slave fd, slave path)."""
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    return master, slave, os.ttyname(slave)
+
+
+def play_headset_and_hub(headset_fd, hub_fd, stop, hz=60.0):
+    """The bundled take as a headset (HEADSET_POSE) and a tracker hub with the waist puck
+    (TRACKER_SAMPLES) send it, each on its pty master."""
+    from tests.test_service import feed
+    from edgetools.takes import from_sample
+    feed(from_sample(SAMPLE), headset_fd, hub_fd, stop, hz)
+
+
+class Devices:
+    """A simulated headset and tracker hub on raw ptys, playing the bundled take while the block runs."""
+
+    def __enter__(self):
+        self.headset, self.hub = raw_pty(), raw_pty()
+        self.stop = threading.Event()
+        self.player = threading.Thread(target=play_headset_and_hub, args=(self.headset[0], self.hub[0], self.stop),
+                                       daemon=True)
+        self.player.start()
+        return self
+
+    def config(self, folder):
+        path = Path(folder) / "board.toml"
+        path.write_text(f'[headset]\nurl = "serial://{self.headset[2]}?role=headset"\n\n'
+                        f'[[trackers]]\nurl = "serial://{self.hub[2]}?role=hub&trackers=0:waist"\n')
+        return path
+
+    def __exit__(self, *exc):
+        self.stop.set()
+        self.player.join(2)
+        for fd in (*self.headset[:2], *self.hub[:2]):
+            os.close(fd)
+
+
+def test_report_draws_the_chosen_clip_of_an_eval_run_with_the_main_eval_flags(tmp_path):
+    """`edge eval --data --samples --max-frames --trackers --precision --json --dump`, then `edge report
+    RUN.json --dump --out --clip` (with the short picture flags) on what it wrote."""
+    needs_plotting()
+    run = edge("eval", "--data", SAMPLE, "--samples", 4, "--max-frames", 150, "--trackers", "l_shin,r_shin",
+               "--precision", "fp32", "--json", "out/e.json", "--dump", "out/dump", cwd=tmp_path)
+    assert run.returncode == 0, said(run)
+    metrics = json.loads((tmp_path / "out/e.json").read_text())
+    assert metrics["samples"] == 4 and metrics["precision"] == "fp32", metrics
+    assert metrics["trackers"] == ["waist", "l_shin", "r_shin"], metrics["trackers"]
+    dumps = sorted((tmp_path / "out/dump").glob("*.npz"))
+    assert len(dumps) == 1
+    run = edge("report", "out/e.json", "--dump", "out/dump", "--out", "out/report", "--clip", dumps[0].name,
+               "--every", 10, "--strip-frames", 3, "--gif-seconds", 1, cwd=tmp_path)
+    assert run.returncode == 0, said(run)
+    page = (tmp_path / "out/report/index.html").read_text()
+    images = [p.name for p in (tmp_path / "out/report").iterdir() if p.suffix in (".png", ".gif")]
+    assert any(name.endswith(".gif") for name in images) and len(images) >= 3, images
+    assert all(name in page for name in images)
+    assert edge("report", "out/e.json", "--dump", "out/dump", "--out", "out/r2", "--clip", "nope.npz",
+                cwd=tmp_path).returncode != 0, "an unknown --clip was accepted"
+
+
+def test_ssi_study_writes_the_rate_for_each_n(tmp_path):
+    """`edge ssi-study --data --task --samples --runs --max-clips --json` on the bundled take (it has no
+    kick, so the collision-avoidance task; the kick tasks say so and exit non-zero)."""
+    run = edge("ssi-study", "--data", SAMPLE, "--task", "avoid", "--samples", "1,4", "--runs", 1, "--max-clips", 1,
+               "--json", "out/study.json", cwd=tmp_path)
+    assert run.returncode == 0, said(run)
+    study = json.loads((tmp_path / "out/study.json").read_text())
+    assert study["task"] == "avoid" and [r["samples"] for r in study["results"]] == [1, 4]
+    kick = edge("ssi-study", "--data", SAMPLE, "--task", "high-kick", "--samples", "1", "--runs", 1,
+                "--json", "out/kick.json", cwd=tmp_path)
+    assert kick.returncode != 0 and "has a high-kick event" in kick.stderr, said(kick)
+
+
+def test_replay_main_flags_write_the_json_bvh_and_report(tmp_path):
+    """`edge replay TAKE --transport --trackers --faults --speed max --samples --precision --seconds --json
+    --bvh --report`: a sample take (with ground truth) through every transport, two shin IMUs, packet loss."""
+    needs_plotting()
+    run = edge("replay", SAMPLE, "--transport", "serial,i2c,can", "--trackers", "l_shin,r_shin", "--faults", "loss",
+               "--speed", "max", "--samples", 4, "--precision", "fp32", "--seconds", 2, "--json", "out/r.json",
+               "--bvh", "out/r.bvh", "--report", "out/report", cwd=tmp_path)
+    assert run.returncode == 0, said(run)
+    result = json.loads((tmp_path / "out/r.json").read_text())
+    assert result["frames_out"] > 60 and result["poses_decoded"] > 60 and result["mpjpe_cm"] < 50, result
+    assert result["packets_lost"] > 0, "--faults loss lost nothing"
+    assert "MOTION" in (tmp_path / "out/r.bvh").read_text()
+    assert (tmp_path / "out/report/index.html").is_file()
+    assert "wrote out/r.json and out/r.bvh" in run.stderr
+
+
+def test_calibrate_stores_the_body_size_and_tracker_mounting(tmp_path):
+    """`edge calibrate --config --seconds --out` with a headset and a waist puck on a tracker hub (ptys);
+    `edge replay --calibration` reads the file it wrote."""
+    with Devices() as devices:
+        run = edge("calibrate", "--config", devices.config(tmp_path), "--seconds", 1, "--out", "cal.json",
+                   cwd=tmp_path, timeout=60)
+    assert run.returncode == 0, said(run)
+    cal = json.loads((tmp_path / "cal.json").read_text())
+    assert "waist" in json.dumps(cal) and "height scale" in run.stderr, cal
+    replay = edge("replay", SESSION, "--speed", "max", "--seconds", 1, "--samples", 1, "--calibration", "cal.json",
+                  cwd=tmp_path)
+    assert replay.returncode == 0, said(replay)
+
+
+def test_calibrate_without_its_devices_names_the_missing_one(tmp_path):
+    (tmp_path / "board.toml").write_text(f'[headset]\nurl = "serial://{tmp_path}/ttyNONE?role=headset"\n')
+    run = edge("calibrate", "--config", "board.toml", "--seconds", 1, "--out", "cal.json", cwd=tmp_path)
+    assert run.returncode == 2 and "ttyNONE" in run.stderr and "plugged in" in run.stderr, said(run)
+    assert not (tmp_path / "cal.json").exists()
+
+
+def test_record_captures_a_session_that_replay_plays_back(tmp_path):
+    """`edge record --config --seconds --out` on a headset and a tracker hub (ptys), then `edge replay` of
+    the file it wrote."""
+    with Devices() as devices:
+        run = edge("record", "--config", devices.config(tmp_path), "--seconds", 1.5, "--out", "take.npz",
+                   cwd=tmp_path, timeout=60)
+    assert run.returncode == 0, said(run)
+    assert (tmp_path / "take.npz").is_file() and "headset frames" in run.stderr
+    from edgetools.sim.session import Session
+    session = Session.load(tmp_path / "take.npz")
+    assert len(session.headset.frames) > 45 and len(session.hub.frames) > 45, run.stderr
+    replay = edge("replay", "take.npz", "--speed", "max", "--samples", 2, "--json", "r.json", cwd=tmp_path)
+    assert replay.returncode == 0, said(replay)
+    assert json.loads((tmp_path / "r.json").read_text())["frames_out"] > 30
+
+
+def test_listen_decodes_the_pose_stream_and_records_its_bytes(tmp_path):
+    """`edge listen PORT --baud --seconds --record` on a pty a simulated board writes pose frames to."""
+    import numpy as np
+    from firmware_bridge.wire import messages
+    master, slave, path = raw_pty()
+    stop = threading.Event()
+
+    def board():
+        k = 0
+        while not stop.is_set():
+            frame = messages.PoseFrame(time.monotonic(), np.array([0, 0.95, 0]), np.tile([1.0, 0, 0, 0], (21, 1)))
+            os.write(master, messages.encode_pose_frame(frame, k & 0xFFFF))
+            k += 1
+            time.sleep(1 / 60)
+
+    writer = threading.Thread(target=board, daemon=True)
+    writer.start()
+    try:
+        run = edge("listen", path, "--baud", 460800, "--seconds", 1.5, "--record", "pose.bin", cwd=tmp_path, timeout=60)
+    finally:
+        stop.set()
+        writer.join(2)
+        os.close(master)
+        os.close(slave)
+    assert run.returncode == 0, said(run)
+    assert "edge listen |" in run.stderr and "corrupt 0" in run.stderr, said(run)
+    frames = int(run.stderr.rsplit("frames ", 1)[1].split()[0])
+    assert frames > 45, said(run)
+    recorded = messages.FrameReader(accept=(messages.POSE_FRAME,)).feed((tmp_path / "pose.bin").read_bytes())
+    assert len(recorded) >= frames - 1
+
+
+def test_listen_on_a_port_that_is_not_there_says_so(tmp_path):
+    run = edge("listen", tmp_path / "ttyNONE", "--seconds", 1, cwd=tmp_path)
+    assert run.returncode == 2 and "ttyNONE" in run.stderr, said(run)
+
+
+def test_profile_at_a_fixed_n_writes_the_profile(tmp_path):
+    """`edge profile --samples --frames --hz --precision --no-cgroup --json` (the quota and the auto search
+    have their own tests in test_profile.py; --quick is about 40 s)."""
+    run = edge("profile", "--samples", 2, "--frames", 60, "--hz", 60, "--precision", "int8", "--no-cgroup",
+               "--json", "out/p.json", cwd=tmp_path)
+    assert run.returncode == 0, said(run)
+    profile = json.loads((tmp_path / "out/p.json").read_text())
+    assert profile["chosen_samples"] == 2 and profile["frames"] == 60 and profile["frame_ms"]["p50"] > 0
+
+
+def test_every_subcommand_in_edge_help_has_a_subprocess_test_here(tmp_path):
+    run = edge("--help", cwd=tmp_path)
+    assert run.returncode == 0, said(run)
+    listed = run.stdout.split("{", 1)[1].split("}", 1)[0].split(",")
+    assert {"eval", "replay", "run", "calibrate", "listen", "record", "report", "profile", "ssi-study"} <= set(listed)
+    tests = [name for name in globals() if name.startswith("test_")]
+    untested = [cmd for cmd in listed if not any(name.startswith(f"test_{cmd.replace('-', '_')}_") for name in tests)]
+    assert not untested, f"no subprocess test in tests/test_cli.py for: edge {', edge '.join(untested)}"
