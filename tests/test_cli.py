@@ -39,11 +39,12 @@ def needs_plotting():
 def test_eval_with_report_writes_the_metrics_and_the_report_page(tmp_path):
     """`edge eval --data CLIP --report OUT` in one go (it used to crash with UnboundLocalError on Path)."""
     needs_plotting()
-    run = edge("eval", "--data", SAMPLE, "--max-frames", 150, "--json", "out/e.json", "--report", "out/report",
-               cwd=tmp_path)
+    run = edge("eval", "--data", SAMPLE, "--max-frames", 150, "--samples", 2, "--no-ssi", "--json", "out/e.json",
+               "--report", "out/report", cwd=tmp_path)
     assert run.returncode == 0, said(run)
     metrics = json.loads((tmp_path / "out/e.json").read_text())
     assert metrics["frames"] > 0 and 0 < metrics["mpjpe_cm"] < 50
+    assert metrics["ssi"] is False and metrics["ssi_switches"] == 0
     assert (tmp_path / "out/report/index.html").is_file()
     assert list((tmp_path / "out/report/dump").glob("*.npz")), "the report's dump folder is empty"
     assert "wrote" in run.stdout and "index.html" in run.stdout
@@ -54,6 +55,15 @@ def test_replay_without_json_prints_its_summary_and_writes_nothing(tmp_path):
     assert run.returncode == 0, said(run)
     assert "frames_in=" in run.stderr and "mpjpe_cm=" in run.stderr and "latency p50" in run.stderr
     assert list(tmp_path.iterdir()) == [], "a replay without --json or --bvh wrote files"
+
+
+def test_replay_with_a_report_and_no_json_keeps_the_json_in_the_report_folder(tmp_path):
+    needs_plotting()
+    run = edge("replay", SESSION, "--speed", "max", "--seconds", 2, "--samples", 2, "--report", "out/report",
+               cwd=tmp_path)
+    assert run.returncode == 0, said(run)
+    assert json.loads((tmp_path / "out/report/replay.json").read_text())["frames_out"] > 60
+    assert (tmp_path / "out/report/index.html").is_file()
 
 
 class Lines:
@@ -183,14 +193,15 @@ class Devices:
 
 
 def test_report_draws_the_chosen_clip_of_an_eval_run_with_the_main_eval_flags(tmp_path):
-    """`edge eval --data --samples --max-frames --trackers --precision --json --dump`, then `edge report
-    RUN.json --dump --out --clip` (with the short picture flags) on what it wrote."""
+    """`edge eval --data --samples --max-frames --trackers --faults --precision --json --dump`, then `edge
+    report RUN.json --dump --out --clip` (with the short picture flags) on what it wrote."""
     needs_plotting()
     run = edge("eval", "--data", SAMPLE, "--samples", 4, "--max-frames", 150, "--trackers", "l_shin,r_shin",
-               "--precision", "fp32", "--json", "out/e.json", "--dump", "out/dump", cwd=tmp_path)
+               "--faults", "disconnect", "--precision", "fp32", "--json", "out/e.json", "--dump", "out/dump",
+               cwd=tmp_path)
     assert run.returncode == 0, said(run)
     metrics = json.loads((tmp_path / "out/e.json").read_text())
-    assert metrics["samples"] == 4 and metrics["precision"] == "fp32", metrics
+    assert metrics["samples"] == 4 and metrics["precision"] == "fp32" and metrics["faults"] == "disconnect", metrics
     assert metrics["trackers"] == ["waist", "l_shin", "r_shin"], metrics["trackers"]
     dumps = sorted((tmp_path / "out/dump").glob("*.npz"))
     assert len(dumps) == 1
@@ -271,36 +282,65 @@ def test_record_captures_a_session_that_replay_plays_back(tmp_path):
     assert json.loads((tmp_path / "r.json").read_text())["frames_out"] > 30
 
 
-def test_listen_decodes_the_pose_stream_and_records_its_bytes(tmp_path):
-    """`edge listen PORT --baud --seconds --record` on a pty a simulated board writes pose frames to."""
-    import numpy as np
-    from firmware_bridge.wire import messages
-    master, slave, path = raw_pty()
-    stop = threading.Event()
+class PoseBoard:
+    """A simulated board writing POSE_FRAMEs at 60 Hz on a raw pty while the block runs; `path` is the
+    port a host program opens."""
 
-    def board():
+    def __enter__(self):
+        self.master, self.slave, self.path = raw_pty()
+        self.stop = threading.Event()
+        self.writer = threading.Thread(target=self._write, daemon=True)
+        self.writer.start()
+        return self
+
+    def _write(self):
+        import numpy as np
+        from firmware_bridge.wire import messages
         k = 0
-        while not stop.is_set():
+        while not self.stop.is_set():
             frame = messages.PoseFrame(time.monotonic(), np.array([0, 0.95, 0]), np.tile([1.0, 0, 0, 0], (21, 1)))
-            os.write(master, messages.encode_pose_frame(frame, k & 0xFFFF))
+            os.write(self.master, messages.encode_pose_frame(frame, k & 0xFFFF))
             k += 1
             time.sleep(1 / 60)
 
-    writer = threading.Thread(target=board, daemon=True)
-    writer.start()
-    try:
-        run = edge("listen", path, "--baud", 460800, "--seconds", 1.5, "--record", "pose.bin", cwd=tmp_path, timeout=60)
-    finally:
-        stop.set()
-        writer.join(2)
-        os.close(master)
-        os.close(slave)
+    def __exit__(self, *exc):
+        self.stop.set()
+        self.writer.join(2)
+        os.close(self.master)
+        os.close(self.slave)
+
+
+def recorded_frames(path):
+    from firmware_bridge.wire import messages
+    return messages.FrameReader(accept=(messages.POSE_FRAME,)).feed(Path(path).read_bytes())
+
+
+def test_listen_decodes_the_pose_stream_and_records_its_bytes(tmp_path):
+    """`edge listen PORT --baud --seconds --record` on a pty a simulated board writes pose frames to."""
+    with PoseBoard() as board:
+        run = edge("listen", board.path, "--baud", 460800, "--seconds", 1.5, "--record", "pose.bin", cwd=tmp_path,
+                   timeout=60)
     assert run.returncode == 0, said(run)
     assert "edge listen |" in run.stderr and "corrupt 0" in run.stderr, said(run)
     frames = int(run.stderr.rsplit("frames ", 1)[1].split()[0])
     assert frames > 45, said(run)
-    recorded = messages.FrameReader(accept=(messages.POSE_FRAME,)).feed((tmp_path / "pose.bin").read_bytes())
-    assert len(recorded) >= frames - 1
+    assert len(recorded_frames(tmp_path / "pose.bin")) >= frames - 1
+
+
+def test_listen_plot_without_a_display_keeps_the_status_line_and_the_recording(tmp_path):
+    """`edge listen PORT --plot --record` where there is no display: it says so, shows the status line
+    instead, and still records (the flags are the same with and without --plot)."""
+    needs_plotting()
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY", "MPLBACKEND")}
+    with PoseBoard() as board:
+        run = subprocess.run(edge_cmd("listen", board.path, "--plot", "--seconds", 1.5, "--record", "pose.bin"),
+                             cwd=tmp_path, capture_output=True, text=True, timeout=60, env=env)
+    assert run.returncode == 0, said(run)
+    assert "display" in run.stderr and "edge listen |" in run.stderr, said(run)
+    assert len(recorded_frames(tmp_path / "pose.bin")) > 45
+    missing = subprocess.run(edge_cmd("listen", tmp_path / "ttyNONE", "--plot", "--seconds", 1), cwd=tmp_path,
+                             capture_output=True, text=True, timeout=60, env=env)
+    assert missing.returncode == 2 and "ttyNONE" in missing.stderr and "Traceback" not in missing.stderr, said(missing)
 
 
 def test_listen_on_a_port_that_is_not_there_says_so(tmp_path):
