@@ -1,4 +1,5 @@
 """`edge run` end to end through real ptys: headset and tracker hub in, pose stream out to `edge listen`."""
+import io
 import json
 import os
 import threading
@@ -225,3 +226,44 @@ def test_listener_says_when_its_port_goes_away():
         ear.poll(0.05)
     assert status_loop(ear, seconds=1.0) == 1
     os.close(master)
+
+
+def test_a_pose_stream_port_plugged_in_after_start_is_opened_and_gets_the_poses(tmp_path):
+    """[output] pose_stream on its own serial port (a USB adapter to a PC) that is not there when the
+    service starts: the service runs, says it waits, and the poses flow once the port appears."""
+    import tty
+    from edgetools.sim.devices import close_pty_at, open_pty_at
+    port = tmp_path / "ttyPOSE"
+    take = from_sample(SAMPLE)
+    hm, hs, hpath = pty_pair()
+    tm, ts, tpath = pty_pair()
+    cfg = config_mod.from_dict({
+        "headset": {"url": f"serial://{hpath}?role=headset"},
+        "trackers": [{"url": f"serial://{tpath}?role=hub"}],
+        "output": {"pose_stream": f"serial://{port}"},
+        "runtime": {"samples": 1, "adaptive": False},
+    })
+    status = io.StringIO()
+    service = Service(cfg, status=status)
+    assert service.pose_out.source is None and f"pose stream serial://{port}" in status.getvalue()
+    stop = threading.Event()
+    feeder = threading.Thread(target=feed, args=(take, hm, tm, stop), daemon=True)
+    runner = threading.Thread(target=lambda: service.run(stop=stop.is_set), daemon=True)
+    feeder.start()
+    runner.start()
+    time.sleep(0.8)
+    assert service.stats["frames_out"] > 0 and runner.is_alive()
+    master, slave = open_pty_at(port)
+    tty.setraw(slave)
+    ear, frames = Listener(fd=master), []
+    deadline = time.monotonic() + 1.5
+    while time.monotonic() < deadline:
+        frames += ear.poll(0.05)
+    stop.set()
+    runner.join(5)
+    feeder.join(5)
+    close_pty_at(port, master, slave)
+    for fd in (hm, hs, tm, ts):
+        os.close(fd)
+    assert len(frames) > 45 and ear.stats["corrupt"] == 0
+    assert "pose stream: waiting for" in status.getvalue()
