@@ -60,14 +60,14 @@ RUN = {
     "sudo /opt/edgepose/venv/bin/edge profile --cpu-quota 0.25 --hz 60 --samples auto --frames 3600 "
     "--json profile.json": Short(
         "this venv's edge (root in CI already; without root it says the quota was not enforced); the "
-        "ladder up to N=4 with 30-frame probes and a 120-frame run instead of up to N=128 and 3,600 frames",
-        add="--max-samples 4 --probe-frames 30 --frames 120",
+        "ladder up to N=2 with 20-frame probes and a 60-frame run instead of up to N=128 and 3,600 frames",
+        add="--max-samples 2 --probe-frames 20 --frames 60",
         replace={"sudo /opt/edgepose/venv/bin/edge": "edge"}),
     "sudo /opt/edgepose/venv/bin/edge profile --samples 128 --adaptive --frames 4200 --hog-at 15 --hog-seconds 30 "
     "--hog-procs 5 --json hog.json": Short(
-        "this venv's edge; N=8 for 240 frames with a 1.5 s one-process hog after 1 s, instead of N=128 for "
+        "this venv's edge; N=8 for 180 frames with a 1 s one-process hog after 1 s, instead of N=128 for "
         "70 s with a 30 s five-process hog",
-        add="--samples 8 --frames 240 --hog-at 1 --hog-seconds 1.5 --hog-procs 1",
+        add="--samples 8 --frames 180 --hog-at 1 --hog-seconds 1 --hog-procs 1",
         replace={"sudo /opt/edgepose/venv/bin/edge": "edge"}),
 }
 
