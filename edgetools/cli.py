@@ -75,7 +75,8 @@ def main(argv=None):
                                    "either way; with --report and no --json it goes to REPORT/replay.json)")
     rp.add_argument("--transport", default="serial,i2c,can", help="which transports carry the IMUs")
     rp.add_argument("--faults", default="clean", help="a profile (" + ", ".join(
-        ["noise", "loss", "corrupt", "disconnect", "hand-loss", "unplug", "i2c-errors", "slow-i2c", "can-busoff", "clock-jump", "unplug-foot"])
+        ["noise", "loss", "corrupt", "disconnect", "hand-loss", "unplug", "i2c-errors", "slow-i2c", "can-busoff", "clock-jump", "unplug-foot",
+         "slimevr-restart", "slimevr-flood"])
         + "), several joined by '+', or a JSON object")
     rp.add_argument("--speed", choices=("realtime", "max"), default="realtime")
     rp.add_argument("--samples", default="16", help="N, or auto (adaptive N up to 32)")

@@ -366,3 +366,12 @@ def test_every_subcommand_in_edge_help_has_a_subprocess_test_here(tmp_path):
     tests = [name for name in globals() if name.startswith("test_")]
     untested = [cmd for cmd in listed if not any(name.startswith(f"test_{cmd.replace('-', '_')}_") for name in tests)]
     assert not untested, f"no subprocess test in tests/test_cli.py for: edge {', edge '.join(untested)}"
+
+
+def test_replay_help_names_every_fault_profile(tmp_path):
+    from edgetools.sim.session import FAULTS
+    run = edge("replay", "--help", cwd=tmp_path, env={"COLUMNS": "1000"})
+    assert run.returncode == 0, said(run)
+    line = next(ln for ln in run.stdout.splitlines() if "--faults" in ln and "profile" in ln)
+    missing = [name for name in FAULTS if name not in line]
+    assert not missing, f"edge replay --help does not name the fault profiles {missing}"
