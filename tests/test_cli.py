@@ -321,8 +321,10 @@ def test_listen_decodes_the_pose_stream_and_records_its_bytes(tmp_path):
         run = edge("listen", board.path, "--baud", 460800, "--seconds", 1.5, "--record", "pose.bin", cwd=tmp_path,
                    timeout=60)
     assert run.returncode == 0, said(run)
-    assert "edge listen |" in run.stderr and "corrupt 0" in run.stderr, said(run)
+    assert "edge listen |" in run.stderr, said(run)
     frames = int(run.stderr.rsplit("frames ", 1)[1].split()[0])
+    corrupt = int(run.stderr.rsplit("corrupt ", 1)[1].split()[0])
+    assert corrupt <= 1, said(run)        # at most the frame the port was opened in the middle of
     assert frames > 45, said(run)
     assert len(recorded_frames(tmp_path / "pose.bin")) >= frames - 1
 
