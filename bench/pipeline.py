@@ -92,8 +92,8 @@ def plain(a, frames, ns):
     for n in ns:
         pipe = Pipeline(samples=n, precision=a.precision)
         warm(pipe, frames)
-        whole = time_calls(lambda i: pipe.step(frames[(i + WARMUP) % len(frames)]), a.frames)
-        bare = time_calls(lambda i: pipe.decoder.step(), a.frames)
+        whole = time_calls(lambda i, pipe=pipe: pipe.step(frames[(i + WARMUP) % len(frames)]), a.frames)
+        bare = time_calls(lambda i, pipe=pipe: pipe.decoder.step(), a.frames)
         r = {"samples": n, "pipeline_us": summary(whole), "decoder_us": summary(bare)}
         r["ratio_p50"] = r["pipeline_us"]["p50"] / r["decoder_us"]["p50"]
         rows.append(r)
@@ -110,7 +110,7 @@ def interleaved(calls, blocks, per_block):
     for b in range(blocks):
         t0 = WARMUP + b * per_block
         for k in names[b % len(names):] + names[:b % len(names)]:
-            out[k][b] = time_calls(lambda i: calls[k](t0 + i), per_block)
+            out[k][b] = time_calls(lambda i, k=k, t0=t0: calls[k](t0 + i), per_block)
     return out
 
 

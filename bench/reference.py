@@ -87,6 +87,6 @@ def max_abs_diff(session, model, manifest, rows=8, steps=5, seed=0):
             for d in (onnx, ref):
                 d.features[:] = features
                 d.step()
-            for a, b in zip((onnx.rot6d, onnx.contacts, *onnx.hidden), (ref.rot6d, ref.contacts, *ref.hidden)):
+            for a, b in zip((onnx.rot6d, onnx.contacts, *onnx.hidden), (ref.rot6d, ref.contacts, *ref.hidden), strict=True):
                 worst = max(worst, float(np.abs(a - b).max()))
     return worst

@@ -70,8 +70,8 @@ def main():
         t: (out / f"study_{t.replace('-', '_')}.json", {"data": a.data, "task": t, "runs": a.runs, "models": a.models,
                                                         "precision": a.precision}) for t in ("high-kick", "low-kick")}
     with ProcessPoolExecutor(a.jobs) as ex:
-        ev = dict(zip(jobs, ex.map(_eval, jobs.values())))
-        st = dict(zip(studies, ex.map(_study, studies.values())))
+        ev = dict(zip(jobs, ex.map(_eval, jobs.values()), strict=True))
+        st = dict(zip(studies, ex.map(_study, studies.values()), strict=True))
     n1, ssi, base = ev["n1"], ev["ssi"], ev["no_ssi"]
     gt = ssi["ground_truth"]
     rows = []

@@ -61,7 +61,7 @@ def main():
           f"skate {n1['foot_skate_cm_s']:.2f}, physical sum {physical(n1):.4f}")
     print(f"{'weight':>7} {'mpjpe':>7} {'skate':>7} {'pen':>7} {'legs':>7} {'float':>7} {'sum':>7} {'switches':>9}")
     best = None
-    for w, r in zip(ws, runs):
+    for w, r in zip(ws, runs, strict=True):
         ok = r["mpjpe_cm"] <= 1.03 * n1["mpjpe_cm"] and r["foot_skate_cm_s"] <= n1["foot_skate_cm_s"]
         print(f"{w:7g} {r['mpjpe_cm']:7.3f} {r['foot_skate_cm_s']:7.2f} {r['penetration_rate']:7.4f} "
               f"{r['leg_intersect_rate']:7.4f} {r['float_rate']:7.4f} {physical(r):7.4f} {r['ssi_switches']:>9}"

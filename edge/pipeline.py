@@ -749,7 +749,7 @@ class CompiledFrame:
             segments=int(p.segments), good_in=native.addr(p._good_in), frame_len=len(p._frame_in),
             position_limit=POSITION_LIMIT_M, latents=chk(p.latents, np.float32, (N, None), "latents"),
             latent_dim=p.latents.shape[1],
-            **(dict(zip(("ae_in", "ae_local", "ae_root_local"), ae)) if ae else {}))
+            **(dict(zip(("ae_in", "ae_local", "ae_root_local"), ae, strict=True)) if ae else {}))
         self.core = ctypes.pointer(ctx)
         self.bind_decoder(p.decoder)
         # forward_rows' arguments (the refiner's FK), filled per call.
@@ -792,7 +792,7 @@ class CompiledFrame:
 
     def forward_rows(self, s, rot6d, rows, segments, out):
         """ep_forward: NumpyFrame.forward_rows in one C call."""
-        b, fin = self.p.buffer, self._fin
+        fin = self._fin
         fin.rot6d, fin.rot6d_stride = native.addr(rot6d), rot6d.shape[1]
         fin.root_m = self._ring_addr["waist"] + s * 72
         fin.anchor = self._ring_addr["anchor"] + s * 24

@@ -71,10 +71,12 @@ def main(argv=None):
 
     rp = sub.add_parser("replay", help="replay a session through simulated devices into the real service")
     rp.add_argument("source", help="a session recording (.npz), a BVH clip or a sample take")
-    rp.add_argument("--json", required=True)
+    rp.add_argument("--json", help="also write every figure of the run here, for scripts (the summary is printed "
+                                   "either way; with --report and no --json it goes to REPORT/replay.json)")
     rp.add_argument("--transport", default="serial,i2c,can", help="which transports carry the IMUs")
     rp.add_argument("--faults", default="clean", help="a profile (" + ", ".join(
-        ["noise", "loss", "corrupt", "disconnect", "hand-loss", "unplug", "i2c-errors", "slow-i2c", "can-busoff", "clock-jump", "unplug-foot"])
+        ["noise", "loss", "corrupt", "disconnect", "hand-loss", "unplug", "i2c-errors", "slow-i2c", "can-busoff", "clock-jump", "unplug-foot",
+         "slimevr-restart", "slimevr-flood"])
         + "), several joined by '+', or a JSON object")
     rp.add_argument("--speed", choices=("realtime", "max"), default="realtime")
     rp.add_argument("--samples", default="16", help="N, or auto (adaptive N up to 32)")
@@ -135,10 +137,10 @@ def main(argv=None):
             if args.report:
                 from viz.canvas import require_plotting
                 require_plotting()                   # say what to install before replaying, not after
+                args.json = args.json or str(Path(args.report) / "replay.json")     # the report draws from it
             code = replay_cli.main(args)
             if code == 0 and args.report:
                 from viz.report import build_report
-                from pathlib import Path
                 dump = Path(args.report) / "dump"
                 print(f"wrote {build_report(args.json, args.report, dump if any(dump.glob('*.npz')) else None)}")
             return code

@@ -106,7 +106,10 @@ def status_loop(listener, seconds=None, every=0.25):
     return code
 
 
-def main(args):
+def main(args, loop=None):
+    """`edge listen PORT [--baud B] [--seconds S] [--record FILE]`: open the port (and the recording), then
+    run `loop(listener, seconds)`: the status line, or viz.live's window for --plot."""
+    loop = loop or status_loop
     record = None
     try:
         record = open(args.record, "wb") if getattr(args, "record", None) else None
@@ -118,7 +121,7 @@ def main(args):
         return 2
     with ear:
         try:
-            return status_loop(ear, args.seconds)
+            return loop(ear, args.seconds)
         finally:
             if record is not None:
                 record.close()

@@ -290,7 +290,7 @@ def worker(cfg):
     if cfg["samples"] == "auto":
         best = None
         for n in [n for n in LADDER if n <= cfg["max_samples"]]:
-            for attempt in range(2):          # a failed probe is repeated once: one busy second is not a verdict
+            for _attempt in range(2):          # a failed probe is repeated once: one busy second is not a verdict
                 st, _ = paced_run(cfg, n, cfg["probe_frames"], f"probe N={n:<3d}")
                 st["fits"] = fits(st)
                 probes.append({k: st[k] for k in ("samples", "frames", "deadline_misses", "frame_ms", "cpu_ms", "fits")})

@@ -20,7 +20,7 @@ _SIDES = ("l", "r")
 SOURCE_MAPS = {
     "cmu": {
         "pelvis": "Hips", "spine": "Spine", "chest": "Spine1", "neck": "Neck", "head": "Head",
-        **{f"{s}_{k}": f"{S}{v}" for s, S in zip(_SIDES, ("Left", "Right")) for k, v in (
+        **{f"{s}_{k}": f"{S}{v}" for s, S in zip(_SIDES, ("Left", "Right"), strict=True) for k, v in (
             ("collar", "Shoulder"), ("shoulder", "Arm"), ("elbow", "ForeArm"), ("wrist", "Hand"),
             ("hip", "UpLeg"), ("knee", "Leg"), ("ankle", "Foot"), ("toe", "ToeBase"))},
     },
@@ -32,7 +32,7 @@ SOURCE_MAPS = {
     },
     "bandai": {
         "pelvis": "Hips", "spine": "Spine", "chest": "Chest", "neck": "Neck", "head": "Head",
-        **{f"{s}_{k}": f"{v}_{S}" for s, S in zip(_SIDES, ("L", "R")) for k, v in (
+        **{f"{s}_{k}": f"{v}_{S}" for s, S in zip(_SIDES, ("L", "R"), strict=True) for k, v in (
             ("collar", "Shoulder"), ("shoulder", "UpperArm"), ("elbow", "LowerArm"), ("wrist", "Hand"),
             ("hip", "UpperLeg"), ("knee", "LowerLeg"), ("ankle", "Foot"), ("toe", "Toes"))},
     },

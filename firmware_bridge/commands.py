@@ -27,7 +27,7 @@ def run(args):
         return 2
     from firmware_bridge.service import Service
     try:
-        service = Service(cfg)
+        service = Service(cfg, status=sys.stderr)      # the stderr of now, not of import time
     except (TransportError, CalibrationError) as e:
         print(f"edge run: {e}", file=sys.stderr)
         return 2
@@ -50,6 +50,12 @@ def calibrate(args):
         links = [Link(u) for u in [cfg.headset] + cfg.trackers]
     except TransportError as e:
         print(f"edge calibrate: {e}", file=sys.stderr)
+        return 2
+    absent = [link for link in links if link.source is None]     # a T-pose needs every device there now
+    if absent:
+        for link in links:
+            link.close()
+        print(f"edge calibrate: {absent[0].start_error}", file=sys.stderr)
         return 2
     print("Stand upright, arms out to the sides (T-pose), facing forward. Hold still...", file=sys.stderr)
     heads, rots, trackers = [], [], {name: [] for name in cfg.tracker_names}

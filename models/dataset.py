@@ -100,7 +100,7 @@ def build(root, split, sources=None, cache_dir=".cache", workers=2):
 
 def window_starts(cs: ClipSet, window):
     """Every valid window start (global frame index), stride 1."""
-    out = [s + np.arange(n - window + 1) for s, n in zip(cs.starts, cs.lengths()) if n >= window]
+    out = [s + np.arange(n - window + 1) for s, n in zip(cs.starts, cs.lengths(), strict=True) if n >= window]
     return np.concatenate(out)
 
 

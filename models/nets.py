@@ -189,7 +189,7 @@ class PoseAE(nn.Module):
         super().__init__()
         self.norm = Normalizer(NUM_JOINTS * 3)
         layers = []
-        for a, b in zip(self.SIZES[:-1], self.SIZES[1:]):
+        for a, b in zip(self.SIZES[:-1], self.SIZES[1:], strict=True):
             layers += [nn.Linear(a, b), nn.ReLU()]
         self.net = nn.Sequential(*layers[:-1])
         self.register_buffer("identity6d", _IDENTITY_6D.clone())

@@ -78,7 +78,7 @@ def selection_agreement(data, samples, max_clips, models):
     pd = np.concatenate(pose_diff) * 100 if pose_diff else np.zeros(1)
     return {"frames": frames, "agreement": same / max(frames, 1), "worst_take_agreement": per_take_min,
             "switches": switches, "takes": len(first_diff),
-            "takes_never_disagreeing": int(sum(f == len(d) for f, d in zip(first_diff, pose_diff))),
+            "takes_never_disagreeing": int(sum(f == len(d) for f, d in zip(first_diff, pose_diff, strict=True))),
             "first_disagreement_frame_median": float(np.median(first_diff)) if first_diff else None,
             "output_pose_diff_cm": {"mean": float(pd.mean()), "p95": float(np.percentile(pd, 95)),
                                     "note": "mean joint distance between the fp32 and int8 outputs, per frame"}}
@@ -150,7 +150,7 @@ def latency(models, frames=600, rounds=6):
             for p in (PRECISIONS if r % 2 == 0 else PRECISIONS[::-1]):
                 pipe = pipes[p]
                 if n == 100:
-                    whole[p].append(time_calls(lambda i, pipe=pipe, r=r: pipe.step(sig[(120 + r * k + i) % len(sig)]), k))
+                    whole[p].append(time_calls(lambda i, pipe=pipe, r=r, k=k: pipe.step(sig[(120 + r * k + i) % len(sig)]), k))
                 bare[p].append(time_calls(lambda i, pipe=pipe: pipe.decoder.step(), k))
         for p in PRECISIONS:
             b = np.concatenate(bare[p])

@@ -49,7 +49,7 @@ def frames(stream):
 def first_difference(got, want):
     """Where two pose streams part: the frame and its fields that differ."""
     a, b = frames(got), frames(want)
-    for i, (x, y) in enumerate(zip(a, b)):
+    for i, (x, y) in enumerate(zip(a, b, strict=False)):
         fields = [k for k in ("t", "root_pos", "rotations", "contacts", "num_samples", "ssi_flags", "trackers_lost")
                   if not np.array_equal(np.asarray(getattr(x, k)), np.asarray(getattr(y, k)))]
         if fields:

@@ -27,7 +27,7 @@ def test_an_idle_board_keeps_the_largest_n():
 def test_contention_halves_n_at_once_and_slack_brings_it_back_one_step_at_a_time():
     g = SampleGovernor(PERIOD_MS, 32)
     ns = run(g, [0.25] * 300 + [0.08] * 1200 + [0.25] * 3000)
-    late = [frame_ms(n, s) > PERIOD_MS for n, s in zip(ns, [0.25] * 300 + [0.08] * 1200 + [0.25] * 3000)]
+    late = [frame_ms(n, s) > PERIOD_MS for n, s in zip(ns, [0.25] * 300 + [0.08] * 1200 + [0.25] * 3000, strict=True)]
     during = ns[300:1500]
     assert min(during) < 32 and during[-1] < 32
     assert sum(late) / len(late) < 0.005              # the bound: under 0.5 % of frames
@@ -46,7 +46,7 @@ def test_a_raise_that_is_undone_doubles_the_wait_before_the_next_try():
         return 14.0 if n > 16 else (8.0 if next(frame) % 25 == 0 else 5.0)
     run(g, [0.25] * 6000, throttled)
     probes = [c[0] for c in g.changes if c[3] == "slack"]
-    gaps = [b - a for a, b in zip(probes, probes[1:])]
+    gaps = [b - a for a, b in zip(probes, probes[1:], strict=False)]
     assert len(probes) >= 3 and gaps == sorted(gaps) and gaps[-1] >= 4 * 120
 
 

@@ -64,7 +64,7 @@ def test_forward_matches_numpy_6d_fk_and_head_anchor(shared):
     r6 = random_6d(R, 0)
     root = random_rotations(() if shared else (R,), 1)
     anchor = np.array([0.3, 1.6, -0.2]) if shared else np.random.default_rng(2).normal(0, 1, (R, 3))
-    for ref, got in zip(numpy_forward(r6, root, anchor), native_forward(r6, root, anchor)):
+    for ref, got in zip(numpy_forward(r6, root, anchor), native_forward(r6, root, anchor), strict=True):
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
 
 
@@ -98,7 +98,7 @@ def test_limb_ik_matches_numpy_on_reachable_unreachable_and_straight_chains():
                 native.PoseRows(A(cl), A(cw), A(cp)))
     results.append([cl, cw, cp])
     # A straight chain puts acos at +-1, where 1e-16 differences in its argument become 1e-8 in angle.
-    for r, g in zip(*results):
+    for r, g in zip(*results, strict=True):
         np.testing.assert_allclose(g[8:], r[8:], rtol=0, atol=1e-10)
         np.testing.assert_allclose(g[:8], r[:8], rtol=0, atol=1e-6)
 
@@ -193,9 +193,11 @@ def test_foot_locks_match_numpy_through_contacts_releases_and_slips():
     assert ref.locked.any() and (~ref.locked).any()
 
 
-def frame_inputs(pipe, sig, first, state={}):
+def frame_inputs(pipe, sig, state):
     """ep_frame_features and ep_imu_features (the first half of ep_frame_inputs) on one frame ->
-    (body points [4,3], features [n_features] float32, matrices [4,3,3]: waist, hands, head)."""
+    (body points [4,3], features [n_features] float32, matrices [4,3,3]: waist, hands, head). `state` is
+    the caller's dict of the C side's buffers, kept from frame to frame; empty on the first frame."""
+    first = not state
     if first:
         state.update(points=np.zeros((4, 3)), prev=np.zeros((4, 3)), feat=np.zeros(pipe.n_features, np.float32),
                      mats=np.zeros((4, 3, 3)))
@@ -215,7 +217,7 @@ def test_frame_features_are_bit_identical_to_the_numpy_features_training_used():
     take = from_sample(SAMPLE)
     signals = worn_signals(take)
     pipe = Pipeline(samples=1, body_scale=1.07)
-    prev = None
+    prev, state = None, {}
     for t in range(300):
         sig = signals.slice(t, t + 1)
         points, waist_rot = body_points(sig, 1.07)
@@ -226,7 +228,7 @@ def test_frame_features_are_bit_identical_to_the_numpy_features_training_used():
         want = want.astype(np.float32)
         prev = points
         q = np.stack([waist_rot, *sig.hand_rot[0], sig.head_rot[0]])
-        got_points, got, mats = frame_inputs(pipe, sig, first=t == 0)
+        got_points, got, mats = frame_inputs(pipe, sig, state)
         assert np.array_equal(got, want), t
         assert np.array_equal(got_points, points)
         assert np.array_equal(mats, quat.to_matrix(q))

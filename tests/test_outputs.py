@@ -315,7 +315,7 @@ def bvh_package_world_positions(mocap):
         world_rot = [None] * len(names)
         for k, name in enumerate(names):
             channels = mocap.joint_channels(name)
-            values = dict(zip(channels, mocap.frame_joint_channels(t, name, channels)))
+            values = dict(zip(channels, mocap.frame_joint_channels(t, name, channels), strict=True))
             local = np.eye(3)
             for channel in channels:
                 if channel.endswith("rotation"):

@@ -394,7 +394,7 @@ def test_bytes_fed_one_at_a_time_decode_like_one_chunk():
     reader = FrameReader()
     pieces = [m for i in range(len(stream)) for m in reader.feed(stream[i:i + 1])]
     assert len(pieces) == len(whole) >= 20
-    for got, want in zip(pieces, whole):
+    for got, want in zip(pieces, whole, strict=True):
         assert_same_message(got, want)
 
 
@@ -444,7 +444,7 @@ def test_clock_going_backwards_is_counted_and_never_decreases_the_output():
     times = [clock.unwrap(t) for t in (5_000_000, 5_016_000, 4_000_000, 4_016_000, 10, 16_010)]
     assert times == pytest.approx([5.0, 5.016, 5.016, 5.032, 5.032, 5.048])
     assert clock.backward_jumps == 2
-    assert all(b >= a for a, b in zip(times, times[1:]))
+    assert all(b >= a for a, b in zip(times, times[1:], strict=False))
 
 
 def test_reader_stamps_messages_on_the_unwrapped_clock():

@@ -92,7 +92,7 @@ def test_decoder_written_from_the_doc_reads_the_encoders_pose_stream():
     frames, stream = pose_stream(120)
     decoded = doc_read_pose_stream(stream)
     assert len(decoded) == len(frames)
-    for k, (got, want) in enumerate(zip(decoded, frames)):
+    for k, (got, want) in enumerate(zip(decoded, frames, strict=True)):
         assert got["seq"] == (65530 + k) & 0xFFFF
         assert got["t_us"] == round(want.t * 1e6)
         np.testing.assert_allclose(got["root_pos"], want.root_pos, atol=0.0005 + 1e-9)
@@ -109,7 +109,7 @@ def test_decoder_written_from_the_doc_agrees_with_the_reference_reader():
     reference = FrameReader().feed(stream)
     decoded = doc_read_pose_stream(stream)
     assert len(decoded) == len(reference) == 60
-    for got, want in zip(decoded, reference):
+    for got, want in zip(decoded, reference, strict=True):
         assert got["t_us"] * 1e-6 == pytest.approx(want.t, abs=1e-9)
         np.testing.assert_allclose(got["rotations"], want.rotations, rtol=0, atol=1e-12)
         np.testing.assert_array_equal(got["root_pos"], want.root_pos)

@@ -36,7 +36,7 @@ def take():
 def test_manifest_lists_fp32_and_int8_and_the_int8_record_their_fp32_source(manifest):
     for name in FP32 + INT8:
         assert manifest["files"][name]["sha256"] == sha256(DEFAULT_DIR / name)
-    for src, q in zip(FP32, INT8):
+    for src, q in zip(FP32, INT8, strict=True):
         entry = manifest["files"][q]
         assert entry["source"] == src and entry["source_sha256"] == manifest["files"][src]["sha256"]
         assert entry["precision"] == "int8" and entry["method"] in ("dynamic", "static")

@@ -313,7 +313,7 @@ def test_a_replay_drives_vmc_and_vrchat_receivers_with_the_calibrated_body(tmp_p
         bones = {p[0]: np.array(p[1:], float) for a, p in f if a == "/VMC/Ext/Bone/Pos"}
         assert list(bones) == list(BONE_NAMES)
         world_r, world_p = {}, {}       # FK in Unity's frame (x mirrored), quaternions x y z w
-        for j, name in enumerate(JOINT_NAMES):
+        for j in range(len(JOINT_NAMES)):
             local = bones[BONE_NAMES[j]]
             rot = np.array([local[6], *local[3:6]])
             if PARENTS[j] < 0:

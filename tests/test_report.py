@@ -141,7 +141,7 @@ def test_views_turn_with_the_body_and_show_its_left_on_the_right_from_the_front(
     turn = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
     moved = body_views(gt @ turn.T + [3.0, 0, -2.0], pred @ turn.T + [3.0, 0, -2.0], names, fps)
     for v in views:
-        for a, b in zip(views[v], moved[v]):
+        for a, b in zip(views[v], moved[v], strict=True):
             assert np.allclose(a, b, atol=1e-6)
     front = views["front"][0]
     assert (front[:, JOINT["l_shoulder"], 0] > front[:, JOINT["r_shoulder"], 0]).all()
@@ -246,7 +246,7 @@ def test_live_view_draws_the_forward_kinematics_of_a_pose_frame():
     assert np.allclose(p, REST + rest.root_pos)
     view = LiveView(canvas.new_figure(5, 6))
     view.show(rest, "status")
-    segments = {(a, b): s for (a, b), s in zip(view.bones, view.segments)}
+    segments = {(a, b): s for (a, b), s in zip(view.bones, view.segments, strict=True)}
     assert np.allclose(segments[(JOINT["l_knee"], JOINT["l_ankle"])], p[[JOINT["l_knee"], JOINT["l_ankle"]]])
     assert np.allclose(np.array(view.feet.get_data_3d()).T, p[[JOINT["l_toe"]]])   # only the left foot is down
 

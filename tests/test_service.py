@@ -1,4 +1,6 @@
 """`edge run` end to end through real ptys: headset and tracker hub in, pose stream out to `edge listen`."""
+import io
+import json
 import os
 import threading
 import time
@@ -105,12 +107,26 @@ def test_bad_config_fails_at_start_with_what_to_fix(raw, message):
         config_mod.from_dict(raw)
 
 
-def test_run_with_a_missing_device_says_which_and_why(tmp_path, capsys):
+def test_run_without_its_headset_waits_for_it_and_says_which_device_and_why(tmp_path, capsys):
+    """A board that boots before the headset is plugged in runs and waits (tests/test_cli.py sees the
+    headset arrive); the start-up message and the status line name the port and what to check."""
     cfg = tmp_path / "board.toml"
-    cfg.write_text('[headset]\nurl = "serial:///dev/ttyNOPE?role=headset"\n')
-    assert edge_main(["run", "--config", str(cfg), "--seconds", "0.1"]) == 2
+    cfg.write_text('[headset]\nurl = "serial:///dev/ttyNOPE?role=headset"\n[runtime]\nsamples = 1\n')
+    assert edge_main(["run", "--config", str(cfg), "--seconds", "0.6", "--json", str(tmp_path / "run.json")]) == 0
     err = capsys.readouterr().err
-    assert "/dev/ttyNOPE" in err and "plugged in" in err
+    assert "/dev/ttyNOPE" in err and "plugged in" in err and "waiting for it" in err
+    assert "headset: waiting for /dev/ttyNOPE" in err
+    summary = json.loads((tmp_path / "run.json").read_text())
+    assert summary["frames_in"] == 0 and summary["no_input"] > 0 and "/dev/ttyNOPE" in str(summary["start_errors"])
+
+
+@pytest.mark.parametrize("query, message", [("baud=fast", "baud must be a positive integer"),
+                                            ("role=tracker", "role must be one of")])
+def test_a_headset_url_the_transport_cannot_use_still_fails_at_start(tmp_path, capsys, query, message):
+    cfg = tmp_path / "board.toml"
+    cfg.write_text(f'[headset]\nurl = "serial:///dev/ttyNOPE?{query}"\n')
+    assert edge_main(["run", "--config", str(cfg), "--seconds", "0.1"]) == 2
+    assert message in capsys.readouterr().err
 
 
 def test_unreadable_config_is_a_clear_error(tmp_path, capsys):
@@ -210,3 +226,44 @@ def test_listener_says_when_its_port_goes_away():
         ear.poll(0.05)
     assert status_loop(ear, seconds=1.0) == 1
     os.close(master)
+
+
+def test_a_pose_stream_port_plugged_in_after_start_is_opened_and_gets_the_poses(tmp_path):
+    """[output] pose_stream on its own serial port (a USB adapter to a PC) that is not there when the
+    service starts: the service runs, says it waits, and the poses flow once the port appears."""
+    import tty
+    from edgetools.sim.devices import close_pty_at, open_pty_at
+    port = tmp_path / "ttyPOSE"
+    take = from_sample(SAMPLE)
+    hm, hs, hpath = pty_pair()
+    tm, ts, tpath = pty_pair()
+    cfg = config_mod.from_dict({
+        "headset": {"url": f"serial://{hpath}?role=headset"},
+        "trackers": [{"url": f"serial://{tpath}?role=hub"}],
+        "output": {"pose_stream": f"serial://{port}"},
+        "runtime": {"samples": 1, "adaptive": False},
+    })
+    status = io.StringIO()
+    service = Service(cfg, status=status)
+    assert service.pose_out.source is None and f"pose stream serial://{port}" in status.getvalue()
+    stop = threading.Event()
+    feeder = threading.Thread(target=feed, args=(take, hm, tm, stop), daemon=True)
+    runner = threading.Thread(target=lambda: service.run(stop=stop.is_set), daemon=True)
+    feeder.start()
+    runner.start()
+    time.sleep(0.8)
+    assert service.stats["frames_out"] > 0 and runner.is_alive()
+    master, slave = open_pty_at(port)
+    tty.setraw(slave)
+    ear, frames = Listener(fd=master), []
+    deadline = time.monotonic() + 1.5
+    while time.monotonic() < deadline:
+        frames += ear.poll(0.05)
+    stop.set()
+    runner.join(5)
+    feeder.join(5)
+    close_pty_at(port, master, slave)
+    for fd in (hm, hs, tm, ts):
+        os.close(fd)
+    assert len(frames) > 45 and ear.stats["corrupt"] == 0
+    assert "pose stream: waiting for" in status.getvalue()

@@ -106,7 +106,7 @@ def per_joint_errors(errors_cm, names, path, title="Per-joint position error"):
     ax.set_xlabel("mean position error (cm)")
     ax.set_title(title, fontsize=10.5, loc="left")
     reach = max(errors_cm.max(), 1e-6)
-    for yi, e in zip(y, errors_cm):
+    for yi, e in zip(y, errors_cm, strict=True):
         ax.text(e + reach * 0.01, yi, f"{e:.1f}" if e >= 0.05 else "0 (tracked)", va="center", fontsize=7.5,
                 color=canvas.TEXT_MUTED, bbox=dict(facecolor="white", edgecolor="none", pad=0.4), zorder=4)
     mean = errors_cm.mean()
@@ -237,7 +237,7 @@ def _shade_spans(ax, t, mask, colour, label):
     """Shade the runs where mask is true (label only the first, for the legend)."""
     edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(int), [0]])))
     dt = t[1] - t[0] if len(t) > 1 else 1.0
-    for k, (a, b) in enumerate(zip(edges[::2], edges[1::2])):
+    for k, (a, b) in enumerate(zip(edges[::2], edges[1::2], strict=True)):
         ax.axvspan(t[a], t[b - 1] + dt, color=colour, zorder=0, label=label if k == 0 else None)
 
 
@@ -291,9 +291,9 @@ def health_timeline(health, path, title="Tracker health"):
         ax.plot(fault["t"], 0, "D", color="#7b4fa0", markersize=6, label="injected fault" if k == 0 else None)
         ax.text(fault["t"], -0.32, f" {fault['kind']}", fontsize=7.5, color="#7b4fa0", va="center",
                 bbox=dict(facecolor="white", edgecolor="none", pad=0.3))
-    for row, (name, flags) in enumerate(lost.items(), start=1):
+    for row, flags in enumerate(lost.values(), start=1):
         edges = np.flatnonzero(np.diff(np.concatenate([[0], flags.astype(int), [0]])))
-        spans = [(t[a], t[b - 1] + dt - t[a]) for a, b in zip(edges[::2], edges[1::2])]
+        spans = [(t[a], t[b - 1] + dt - t[a]) for a, b in zip(edges[::2], edges[1::2], strict=True)]
         ax.broken_barh(spans, (row - 0.3, 0.6), color="#d9534f", zorder=2, label="lost" if row == 1 else None)
         back = [t[b] for b in edges[1::2] if b < len(t)]
         ax.plot(back, [row] * len(back), "^", color="#2e8b57", markersize=8, zorder=3,
@@ -327,7 +327,7 @@ def contention_timeline(frame_ms, samples_timeline, period_ms, hog, path, title=
     ms = np.asarray(frame_ms, dtype=float)
     t = np.arange(len(ms)) * period_ms / 1000.0
     n = np.empty(len(ms))
-    for (a, v), nxt in zip(samples_timeline, samples_timeline[1:] + [[len(ms), None]]):
+    for (a, v), nxt in zip(samples_timeline, samples_timeline[1:] + [[len(ms), None]], strict=True):
         n[a:nxt[0]] = v
     fig = canvas.new_figure(8.0, 4.6)
     top = fig.add_axes([0.09, 0.52, 0.88, 0.38])

@@ -131,8 +131,7 @@ def status_loop(listener, seconds=None):
 
 
 def main(args):
-    """`edge listen PORT --plot [--baud B] [--seconds S]`."""
-    from edgetools.listen import Listener
+    """`edge listen PORT --plot [--baud B] [--seconds S] [--record FILE]`: `edge listen` with the window."""
+    from edgetools import listen
 
-    with Listener(args.port, args.baud) as ear:
-        return live_plot(ear, args.seconds)
+    return listen.main(args, loop=live_plot)

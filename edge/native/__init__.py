@@ -167,7 +167,7 @@ def layout_mismatch(lib):
     if n != len(py):
         head = len(_MIRRORS) + 1
         return f"postproc.c lays out {n - head} core_context fields, the ctypes mirror has {len(py) - head}"
-    bad = [f"{w} (C {int(a)}, ctypes {b})" for w, a, b in zip(names, c[:n], py) if int(a) != b]
+    bad = [f"{w} (C {int(a)}, ctypes {b})" for w, a, b in zip(names, c[:n], py, strict=True) if int(a) != b]
     return "; ".join(bad)
 
 
@@ -230,7 +230,7 @@ def checked_addr(a, dtype, shape=None, what="array"):
         raise TypeError(f"{what}: the compiled core needs {np.dtype(dtype).name}, got {got}")
     if not a.flags.c_contiguous:
         raise ValueError(f"{what}: the compiled core needs a C-contiguous array (np.ascontiguousarray), got a view")
-    if shape is not None and (a.ndim != len(shape) or any(w is not None and w != g for w, g in zip(shape, a.shape))):
+    if shape is not None and (a.ndim != len(shape) or any(w is not None and w != g for w, g in zip(shape, a.shape, strict=True))):
         raise ValueError(f"{what}: the compiled core needs shape {shape}, got {a.shape}")
     return a.ctypes.data
 
@@ -247,7 +247,7 @@ def rows(a, row_ndim, dtype=np.float64):
             raise ValueError("a shared row must be contiguous")
         return addr(a), 0
     want = a.itemsize
-    for n, s in zip(reversed(inner), reversed(a.strides[a.ndim - row_ndim:])):
+    for n, s in zip(reversed(inner), reversed(a.strides[a.ndim - row_ndim:]), strict=True):
         if s != want:
             raise ValueError("rows must be contiguous inside")
         want *= n

@@ -142,7 +142,7 @@ class FakeBNO055:
         self.clock = clock
         self.sleep = sleep
         self.chip_id = chip_id
-        self.calibration_seconds = dict(zip(("gyr", "acc", "mag"), calibration_seconds))
+        self.calibration_seconds = dict(zip(("gyr", "acc", "mag"), calibration_seconds, strict=True))
         self.during_switch = during_switch
         self.error_rate = error_rate
         self.stuck_timeout = stuck_timeout

@@ -229,7 +229,7 @@ def bno055_for(session, clock, faults):
     chip = FakeBNO055(motion, clock=clock, sleep=clock.sleep, boot_seconds=0.0, calibration_seconds=(0, 0, 0),
                       error_rate=faults.get("i2c_error_rate", 0.0), seed=1)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], (~valid).astype(int), [0]])))
-    for start, end in zip(edges[::2], edges[1::2]):            # a disconnected puck NACKs
+    for start, end in zip(edges[::2], edges[1::2], strict=True):            # a disconnected puck NACKs
         chip.fail_between(session.i2c_t[start], session.i2c_t[min(end, len(q) - 1)])
     if faults.get("i2c_block_ms"):
         return SlowBus(chip, faults["i2c_block_ms"] / 1000.0, faults.get("i2c_block_every_ms", 200) / 1000.0)

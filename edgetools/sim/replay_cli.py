@@ -82,14 +82,16 @@ def main(args):
     finally:
         for sink in sinks:
             sink.close()
-    Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-    Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
+    written = [path for path in (args.json, args.bvh) if path]
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
     keys = ("frames_in", "frames_out", "poses_decoded", "packets_corrupt", "packets_lost", "tracker_lost_events",
             "deadline_misses", "ssi_switches", "mpjpe_cm", "jitter_m_s3")
     print("\n" + "  ".join(f"{k}={result[k]:.4g}" if isinstance(result.get(k), float) else f"{k}={result.get(k)}"
                            for k in keys), file=sys.stderr)
     print(f"latency p50 {result['latency_ms']['p50']:.2f} ms p99 {result['latency_ms']['p99']:.2f} ms "
-          f"(+ look-ahead {result['lookahead_ms']:.0f} ms); wrote {args.json}" + (f" and {args.bvh}" if args.bvh else ""),
+          f"(+ look-ahead {result['lookahead_ms']:.0f} ms)" + (f"; wrote {' and '.join(written)}" if written else ""),
           file=sys.stderr)
     if result["errors"]:        # the run went on, but something broke: say so in the exit code
         print(f"edge replay: {len(result['errors'])} error(s), the first: {result['errors'][0]}", file=sys.stderr)

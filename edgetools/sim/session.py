@@ -90,8 +90,8 @@ class Session:
         ht, hl, hd = pack(self.headset)
         bt, bl, bd = pack(self.hub)
         extra = {} if self.gt_pos is None else {"gt_pos": self.gt_pos.astype(np.float32)}
-        for i, (mac, log) in enumerate(self.slimevr.items()):
-            extra.update(zip((f"slimevr{i}_t", f"slimevr{i}_len", f"slimevr{i}_bytes"), pack(log)))
+        for i, log in enumerate(self.slimevr.values()):
+            extra.update(zip((f"slimevr{i}_t", f"slimevr{i}_len", f"slimevr{i}_bytes"), pack(log), strict=True))
         slimevr_macs = list(self.slimevr)
         np.savez_compressed(path, kind="edgepose-session", version=1, meta=json.dumps(
             {"name": self.name, "fps": self.fps, "duration": self.duration, "transports": list(self.transports),
@@ -110,7 +110,7 @@ class Session:
             ends = np.cumsum(d[f"{prefix}_len"])
             data = d[f"{prefix}_bytes"].tobytes()
             starts = ends - d[f"{prefix}_len"]
-            return SerialLog(list(d[f"{prefix}_t"]), [data[a:b] for a, b in zip(starts, ends)])
+            return SerialLog(list(d[f"{prefix}_t"]), [data[a:b] for a, b in zip(starts, ends, strict=True)])
         slimevr = {mac: unpack(f"slimevr{i}") for i, mac in enumerate(meta.pop("slimevr_macs", []))}
         return cls(meta.pop("name"), meta.pop("fps"), meta.pop("duration"), tuple(meta.pop("transports")),
                    unpack("headset"), unpack("hub"), d["can_t"], d["can_id"], d["can_data"], d["i2c_t"],
@@ -122,7 +122,7 @@ class Session:
         import hashlib
         h = hashlib.sha256()
         for log in (self.headset, self.hub, *self.slimevr.values()):
-            for t, f in zip(log.t, log.frames):
+            for t, f in zip(log.t, log.frames, strict=True):
                 h.update(np.float64(t).tobytes() + f)
         for arr in (self.can_t, self.can_id, self.can_data, self.i2c_t, self.i2c_quat.astype(np.float32),
                     self.i2c_accel.astype(np.float32)):

@@ -173,7 +173,7 @@ class PacketTemplate:
         encoded = [encode_message(address, *args) for address, args in messages]
         offsets = []
         start = len(BUNDLE_TAG) + 8 if bundle else 0
-        for (address, args), message in zip(messages, encoded):
+        for (address, args), message in zip(messages, encoded, strict=True):
             if bundle:
                 start += 4                                   # the element's size prefix
             offsets += [start + o for o in float_offsets(address, args)]

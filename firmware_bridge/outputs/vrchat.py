@@ -96,7 +96,7 @@ class VrchatSender(UdpSender):
             eyes = pose.positions[HEAD] + head_rot @ EYE_OFFSET
             self._values[K, 0] = to_unity_position(eyes * self.scale)
             self._values[K, 1] = unity_euler_degrees(to_unity_matrix(head_rot))
-        for packet, values in zip(self._packets, self._values.reshape(-1, 3)):
+        for packet, values in zip(self._packets, self._values.reshape(-1, 3), strict=True):
             packet.set_floats(values)
         return [packet.buffer for packet in self._packets]
 

@@ -8,5 +8,5 @@ BusABC are the models).
     sample = source.recv(timeout=0.01)                          # TrackerSample / HeadsetSample / None
     source.close()
 """
-from firmware_bridge.transports.base import (Source, TransportError, open_source, parse_url,  # noqa: F401
-                                             register_scheme, tracker_names)
+from firmware_bridge.transports.base import (DeviceUnavailable, Source, TransportError, open_source,  # noqa: F401
+                                             parse_url, register_scheme, tracker_names)

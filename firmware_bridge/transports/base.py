@@ -27,6 +27,12 @@ class TransportError(RuntimeError):
     """A source that cannot be opened or has failed for good; the message says what to check."""
 
 
+class DeviceUnavailable(TransportError):
+    """The device a well-formed URL names cannot be opened now: not plugged in yet, unplugged, not
+    enumerated, or busy. A service waits for it and retries; a mistake in the URL itself (a bad baud
+    rate, an unknown role) is a plain TransportError, reported at start-up."""
+
+
 class Source(ABC):
     """A device link that yields timestamped samples. Implementations never raise on one bad frame:
     they count it in `stats` and carry on. `state` is ACTIVE, ERROR (the device reports a fault, e.g.
@@ -66,8 +72,8 @@ class Source(ABC):
             self._closed = True
             self._close_internal()
 
-    def _close_internal(self):
-        """What a transport releases on close."""
+    def _close_internal(self):  # noqa: B027 (a hook, not abstract: a transport with nothing to release keeps it)
+        """What a transport releases on close (nothing, unless a transport overrides it)."""
 
     def __enter__(self):
         return self

@@ -14,7 +14,7 @@ import time
 
 import serial
 
-from firmware_bridge.transports.base import Source, TransportError, id_names
+from firmware_bridge.transports.base import DeviceUnavailable, Source, TransportError, id_names
 from firmware_bridge.wire.messages import (DEFAULT_TRACKER_NAMES, HEADSET_POSE, TRACKER_SAMPLES, FrameReader,
                                            encode_pose_frame)
 
@@ -73,7 +73,7 @@ class SerialSource(Source):
             # exclusive: two programs reading one UART would each see half the bytes.
             self.port = serial.Serial(port, baud, timeout=0, write_timeout=WRITE_TIMEOUT, exclusive=True)
         except (serial.SerialException, ValueError, OSError) as error:
-            raise TransportError(
+            raise DeviceUnavailable(
                 f"cannot open serial port {port} at {baud} baud: {error}. Check that the device is "
                 f"plugged in, the path is right, you may use it (the 'dialout' group) and no other "
                 f"program has it open.") from error

@@ -166,7 +166,7 @@ def encode_tracker_samples(samples, seq, tracker_names=None):
     sample_us = [round(s.t * 1e6) for s in samples]
     frame_us = max(sample_us)
     records = np.zeros(len(samples), TRACKER_RECORD)
-    for record, sample, t_us in zip(records, samples, sample_us):
+    for record, sample, t_us in zip(records, samples, sample_us, strict=True):
         record["id"] = tracker_id(sample.tracker, tracker_names)
         record["status"] = check_range(sample.status, "status")
         record["age_us"] = check_range(frame_us - t_us, "sample age (us)", MAX_SAMPLE_AGE_US)
@@ -210,7 +210,7 @@ def decode_tracker_samples(payload, t=0.0, tracker_names=None):
                           quat=quat,
                           accel=accel_from_wire(r["accel_cm_s2"]),
                           status=int(r["status"]))
-            for r, quat in zip(records, quats)]
+            for r, quat in zip(records, quats, strict=True)]
 
 
 # ---------------------------------------------------------------------------------------------
