@@ -203,6 +203,12 @@ class Pipeline:
             ("imu_rot", 25, 25 + 4 * NUM_IMUS, (NUM_IMUS, 4)), ("imu_flag", 25 + 4 * NUM_IMUS, 25 + 5 * NUM_IMUS, (NUM_IMUS,)))}
         # The Signals fields _load_frame_in copies, each with its [1,...] view of _frame_in.
         self._in_fields = [(k, v[None]) for k, v in self._in.items() if self.imus or not k.startswith("imu")]
+        # A live target on a foot of the refined row: the row (-1: none), per foot the target's joint
+        # (ankle or toe), point and pull on the leg's IK goal (edge.refine.Refiner.foot_pull).
+        self._target_row = np.full(1, -1, np.int64)
+        self._target_joint = np.array(ANKLES, np.int64)
+        self._target_goal = np.zeros((2, 3))
+        self._target_weight = np.zeros(2)
         self._ae_ready = None       # the scorer whose input the compiled core prepares (CompiledFrame)
         self._fused_criteria = None     # the criteria CompiledFrame.judge computes in C (the defaults), if it can
         # The compiled core (edge/native) runs the whole frame around the two ONNX calls when a C
@@ -340,6 +346,10 @@ class Pipeline:
                                   self.buffer.seg_m[s], self.buffer.seg_flag[s], f.lock_pos[c], f.weight[c])
         if out is not None:
             dec.rot6d[c], dec.contacts[c], dec.state[c] = out
+        row = c if self.refiner.foot_pull(self.t, self._target_joint, self._target_goal, self._target_weight) else -1
+        if row != self._target_row[0]:
+            self._target_row[0] = row
+            self.path.set_target_row(row)
 
     def _forward_rows(self, rot6d, rows, segments, out):
         """FK of `rows` decoder rows (rot6d [R,D] float32) against the live frame's inputs, into out =
@@ -517,6 +527,9 @@ class NumpyFrame:
     def bind_decoder(self, dec):
         pass
 
+    def set_target_row(self, row):
+        pass                        # foot_goals reads the pipeline's _target_row
+
     def sane(self):
         p = self.p
         v, head, hands = p._frame_in, p._in["head_pos"], p._in["hand_pos"]
@@ -643,6 +656,11 @@ class NumpyFrame:
         goal *= w[..., None]
         goal += ankle
         p._weights[:N] = 1.0
+        r = p._target_row[0]
+        if 0 <= r < N:              # a live target on a foot of the refined row pulls its leg goal (edge.refine)
+            tw = p._target_weight
+            want = p._target_goal - (pos[r, p._target_joint] - pos[r, ANKLES])
+            goal[r] += tw[:, None] * (want - goal[r])
         return goal, w
 
     def post(self, rows, wrists, hand_m, head_m):
@@ -748,7 +766,8 @@ class CompiledFrame:
             ring_seg_m=native.addr(b.seg_m), ring_seg_flag=native.addr(b.seg_flag), imu_joints=a["imu_joints"],
             segments=int(p.segments), good_in=native.addr(p._good_in), frame_len=len(p._frame_in),
             position_limit=POSITION_LIMIT_M, latents=chk(p.latents, np.float32, (N, None), "latents"),
-            latent_dim=p.latents.shape[1],
+            latent_dim=p.latents.shape[1], target_row=-1, target_joint=native.addr(p._target_joint),
+            target_goal=native.addr(p._target_goal), target_weight=native.addr(p._target_weight),
             **(dict(zip(("ae_in", "ae_local", "ae_root_local"), ae, strict=True)) if ae else {}))
         self.core = ctypes.pointer(ctx)
         self.bind_decoder(p.decoder)
@@ -789,6 +808,9 @@ class CompiledFrame:
         return self.lib.ep_frame_poses(self.core, s, rows, N, c, n, a, self.addr["_world"] if keep_world else None,
                                        self.addr["_pos"], self._hidden_addr[1 - dec._cur],
                                        self._hidden_addr[dec._cur], dec.rows) == 1
+
+    def set_target_row(self, row):
+        self.core.contents.target_row = row
 
     def forward_rows(self, s, rot6d, rows, segments, out):
         """ep_forward: NumpyFrame.forward_rows in one C call."""

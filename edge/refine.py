@@ -42,6 +42,16 @@ class Target:
     first: int = 0
     last: int = 1 << 62
     weight: float = 1.0
+    ramp: bool = True           # the pull grows over the window, full at `last`
+
+    def pull(self, frame):
+        """How hard the target pulls at `frame` (0..1): with `ramp`, growing over the window (smoothstep)
+        to full at its last frame, the time the point is to be reached, so a foot is not dragged there
+        the moment the target appears."""
+        if not self.ramp:
+            return 1.0
+        x = min((frame - self.first + 1) / max(self.last - self.first + 1, 1), 1.0)
+        return x * x * (3 - 2 * x)
 
 
 class RefineContext:
@@ -127,12 +137,40 @@ class TargetReach:
             d = ctx.positions[:, g.joint] - g.position                       # [B,3]
             dist = np.linalg.norm(d, axis=1, keepdims=True)
             beyond = np.maximum(1.0 - g.radius / np.maximum(dist, 1e-9), 0.0)
-            out.append(np.sqrt(self.weight * g.weight) * d * beyond)
+            out.append(np.sqrt(self.weight * g.weight * g.pull(ctx.frame)) * d * beyond)
         return np.concatenate(out, axis=1)
 
     def forget(self, frame):
         """Drop targets whose window has passed."""
         self.targets = [g for g in self.targets if g.last >= frame]
+
+
+class KeepPose(object):
+    """The rest of the body as the sample itself makes it (its decode at its own latent, from the same
+    GRU state): each joint's offset from there, but for the limbs a live target moves. A prior in pose
+    space: it lets a target move a leg without bending the body the target says nothing about."""
+    name = "keep"
+    needs_raw_world = False
+
+    def __init__(self, weight=1.0):
+        self.weight = weight
+
+    def size(self, ctx):
+        return 3 * int(ctx.keep.sum())
+
+    def residuals(self, ctx):
+        d = ctx.positions[:, ctx.keep] - ctx.ref_positions[ctx.keep]
+        return np.sqrt(self.weight) * d.reshape(len(d), -1)
+
+
+FOOT_OF = {int(a): f for f, a in enumerate(ANKLES)} | {int(t): f for f, t in enumerate(TOES)}
+# The joints a target on each joint may move: its limb from the hip or shoulder down.
+LIMB_OF = {}
+for _side in "lr":
+    for _limb in (("hip", "knee", "ankle", "toe"), ("shoulder", "elbow", "wrist")):
+        _chain = [JOINT[f"{_side}_{k}"] for k in _limb]
+        for _j in _chain:
+            LIMB_OF[_j] = _chain
 
 
 class Refiner:
@@ -142,27 +180,33 @@ class Refiner:
     out)` is the pipeline's FK of decoder rows against the live frame's inputs (CompiledFrame's C
     call or NumpyFrame's numpy), into out = (local, world, pos) [R,...]."""
 
-    def __init__(self, decoder_session, manifest, forward, steps=2, eps=0.5, prior=0.001, continuity=0.001,
-                 damping=1e-3, max_step=3.0, release_s=0.5, fps=60.0, terms=None):
+    def __init__(self, decoder_session, manifest, forward, steps=2, eps=0.5, prior=3e-4, continuity=3e-4,
+                 damping=1e-3, max_step=3.0, release_s=0.5, fps=60.0, terms=None, weights=None, ik_pull=0.5):
         from edge.inference import Decoder
         L, H, F = manifest["latent"], manifest["hidden"], manifest["features"]
-        self.L, self.steps, self.eps = L, steps, eps
+        self.L, self.steps, self.eps, self.ik_pull = L, steps, eps, ik_pull
         self.prior, self.continuity, self.damping, self.max_step = prior, continuity, damping, max_step
         # With no term live the latent eases back to the sample's own, by this fraction a frame (a time
         # constant of release_s), so a constraint that ends lets go smoothly (as a foot lock does).
         self.release = 1.0 - np.exp(-1.0 / (fps * release_s))
-        self.batch = Decoder(decoder_session, L + 1, L, H, F, recurrent=False)    # the latent and L steps
+        # The latent, L steps along its axes, and the sample's own latent (KeepPose's reference).
+        self.batch = Decoder(decoder_session, L + 2, L, H, F, recurrent=False)
         self.final = Decoder(decoder_session, 1, L, H, F, recurrent=False)        # the refined latent's decode
         self.forward = forward
-        R = L + 1
+        R = L + 2
         self._local = np.zeros((R, NUM_JOINTS, 3, 3))
         self._world = np.zeros((R, NUM_JOINTS, 3, 3))
         self._raw_world = np.zeros((R, NUM_JOINTS, 3, 3))
         self._pos = np.zeros((R, NUM_JOINTS, 3))
         self._raw_pos = np.zeros((R, NUM_JOINTS, 3))
         self._steps = np.eye(L, dtype=np.float32) * np.float32(eps)
-        self.terms = list(terms) if terms is not None else [ImuOrientation(), FloorContact(), TargetReach()]
+        known = {"imus": ImuOrientation, "floor": FloorContact, "targets": TargetReach, "keep": KeepPose}
+        terms = ("imus", "floor", "targets", "keep") if terms is None else terms
+        self.terms = [known[t]() if isinstance(t, str) else t for t in terms]   # names or term objects
+        for name, w in (weights or {}).items():         # {term name: weight}
+            self.term(name).weight = w
         self.ctx = RefineContext()
+        self.ctx.keep = np.ones(NUM_JOINTS, bool)
         self.refused = {"non_finite": 0, "unknown_joint": 0, "out_of_reach": 0}
         self.applied = 0            # frames refined
         self.last_cost = (0.0, 0.0)     # the constraints' cost before and after the last frame's steps
@@ -200,6 +244,21 @@ class Refiner:
         unplugged IMU's, a target outside its window)."""
         return [t for t in self.terms if t.weight > 0 and t.size(ctx) > 0]
 
+    def foot_pull(self, frame, joint, goal, weight):
+        """The live targets on a foot (ankle or toe) as leg IK goals: for each foot, into joint [2],
+        goal [2,3] and weight [2] (0: none), the target's joint, point and pull (its term weight times the
+        window's ramp, at most `ik_pull`). IK closes what the latent could not. True when any pulls."""
+        weight[:] = 0.0
+        reach = self.term("targets")
+        if reach is None or not self.ik_pull:
+            return False
+        for g in reach.live(frame):
+            f = FOOT_OF.get(g.joint)
+            if f is not None:
+                joint[f], goal[f] = g.joint, g.position
+                weight[f] = self.ik_pull * g.pull(frame)
+        return bool(weight.any())
+
     # ---- one frame
     def refine(self, frame, latent, prior_latent, hidden, features, seg_m, seg_flag, lock_pos, lock_weight):
         """Refine `latent` [L] float32 (in place) for this frame: K steps from it against the live terms,
@@ -208,8 +267,12 @@ class Refiner:
         row's decode (rot6d [D], contacts [2], GRU state out [H]), or None when no term is live."""
         ctx = self.ctx
         ctx.frame, ctx.seg_m, ctx.seg_flag, ctx.lock_pos, ctx.lock_weight = frame, seg_m, seg_flag, lock_pos, lock_weight
+        reach = self.term("targets")
+        ctx.keep[:] = True
+        for g in (reach.live(frame) if reach is not None else ()):
+            ctx.keep[LIMB_OF.get(g.joint, [g.joint])] = False
         terms = self.live_terms(ctx)
-        if not terms:
+        if not terms or (len(terms) == 1 and terms[0].name == "keep"):
             return self._let_go(latent, prior_latent, hidden, features)
         raw = any(t.needs_raw_world for t in terms)
         b = self.batch
@@ -220,9 +283,11 @@ class Refiner:
         zp = prior_latent.astype(np.float64)
         cost0 = None
         for _ in range(self.steps):
-            b.latent[:] = z.astype(np.float32)
-            b.latent[1:] += self._steps
-            r = self._residuals(terms, raw)                       # [L+1, m]
+            L = self.L
+            b.latent[:L + 1] = z.astype(np.float32)
+            b.latent[1:L + 1] += self._steps
+            b.latent[L + 1] = prior_latent
+            r = self._residuals(terms, raw)[:L + 1]               # [L+1, m]
             if cost0 is None:
                 cost0 = float(r[0] @ r[0])
             J = (r[1:] - r[0]) / self.eps                        # [L, m]: d r / d z_k
@@ -263,7 +328,7 @@ class Refiner:
         b.step()
         R = b.rows
         self.forward(b.rot6d, R, True, (self._local[:R], self._world[:R], self._pos[:R]))
-        ctx.positions = self._pos[:R]
+        ctx.positions, ctx.ref_positions = self._pos[:R], self._pos[R - 1]
         if raw:
             self.forward(b.rot6d, R, False, (self._local[:R], self._raw_world[:R], self._raw_pos[:R]))
             ctx.raw_world = self._raw_world[:R]

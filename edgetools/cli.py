@@ -7,6 +7,12 @@ from edge.inference import DEFAULT_PRECISION
 from edge.modelfiles import ModelError
 
 
+def add_refine_flags(p, what="refine the shown sample's latent against the live constraints (edge.refine)"):
+    p.add_argument("--refine", action="store_true", help=what)
+    p.add_argument("--refine-steps", type=int, default=2, help="Gauss-Newton steps a frame (K)")
+    p.add_argument("--refine-terms", default=None, help="comma-separated terms (default all: imus,floor,targets,keep)")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(prog="edge", description="edgepose: full-body pose from a headset, controllers and IMU trackers")
     sub = ap.add_subparsers(dest="cmd", required=True)
@@ -30,6 +36,7 @@ def main(argv=None):
     ev.add_argument("--no-segments", action="store_true",
                     help="leave the worn IMUs' segments to the decoder (by default each takes its IMU's rotation)")
     ev.add_argument("--lookahead", type=int, default=None, help="SSI look-ahead tau in frames (default 10 for N>1, 0 for N=1)")
+    add_refine_flags(ev)
     ev.add_argument("--report", help="also draw the report (PNGs, GIF, index.html) into this folder (needs the [viz] extra; "
                                      "dumps into REPORT/dump unless --dump is given)")
 
@@ -51,6 +58,7 @@ def main(argv=None):
     st.add_argument("--max-clips", type=int, default=None)
     st.add_argument("--models")
     st.add_argument("--json", required=True)
+    add_refine_flags(st, "kicks: the targets also go to the refiner (edge.refine), as a headset's would")
 
     run = sub.add_parser("run", help="the board service: sources in, poses out, live status")
     run.add_argument("--config", required=True, help="TOML or JSON config (see firmware_bridge/config.py)")

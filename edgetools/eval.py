@@ -78,7 +78,7 @@ def take_signals(take, trackers, faults=None, seed=0, index=0, imu_noise=None):
 
 def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECISION, max_frames=None, dump=None,
              models=None, seed=0, lookahead=None, ik=True, log=print, trackers=(), faults=None, segments=True,
-             selection=None, max_clips=None, imu_noise=None):
+             selection=None, max_clips=None, imu_noise=None, refine=None):
     files = find_clips(paths, split)
     if max_clips and len(files) > max_clips:        # an even spread over the list (a quick subset)
         files = [files[i] for i in np.linspace(0, len(files) - 1, max_clips).round().astype(int)]
@@ -87,7 +87,7 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECI
     if faults not in (None, "disconnect"):
         raise ValueError(f"--faults {faults!r}: edge eval knows 'disconnect' (DragPoser's protocol on the extra trackers)")
     pipe = Pipeline(models, samples=samples, seed=seed, precision=precision, ssi=not no_ssi, lookahead=lookahead,
-                    foot_ik=ik, arm_ik=ik, segments=segments, selection=selection)
+                    foot_ik=ik, arm_ik=ik, segments=segments, selection=selection, refine=refine)
     if trackers and not pipe.imus:
         raise ValueError(f"--trackers {','.join(trackers)}: the model in {models or 'models/'} reads no extra IMUs "
                          f"(its decoder takes {pipe.n_features} features)")
@@ -171,12 +171,23 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECI
     return result
 
 
+def refine_settings(args):
+    """--refine [--refine-steps K] [--refine-terms a,b]: the Pipeline's refine= (None: off)."""
+    if not getattr(args, "refine", False):
+        return None
+    out = {"steps": args.refine_steps}
+    if args.refine_terms:
+        out["terms"] = [t.strip() for t in args.refine_terms.split(",") if t.strip()]
+    return out
+
+
 def main(args):
     try:
         from edge.imus import parse_set
         result = evaluate(args.data, args.split, args.samples, args.no_ssi, args.precision, args.max_frames,
                           args.dump, args.models, args.seed, args.lookahead, not args.no_ik,
-                          trackers=parse_set(args.trackers), faults=args.faults, segments=not args.no_segments)
+                          trackers=parse_set(args.trackers), faults=args.faults, segments=not args.no_segments,
+                          refine=refine_settings(args))
     except (FileNotFoundError, ValueError) as e:
         print(f"edge eval: {e}", file=sys.stderr)
         return 2

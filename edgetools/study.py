@@ -23,6 +23,7 @@ from edgetools.takes import find_clips, load_take
 
 KICK_HEIGHTS = {"high-kick": (0.9, 3.0), "low-kick": (0.35, 0.9)}   # toe height at the apex, metres
 LEAD_FRAMES = 20
+TARGET_RADIUS_M = 0.02      # with --refine: how close counts as reached
 LEFT_LEG = ("l_knee", "l_ankle", "l_toe")
 
 
@@ -50,7 +51,7 @@ def obstacle_for(take):
 
 
 def run_study(paths, task, samples_list, runs, split=None, models=None, max_clips=None, log=print,
-              precision=DEFAULT_PRECISION):
+              precision=DEFAULT_PRECISION, refine=None):
     takes = []
     for f in find_clips(paths, split):
         try:
@@ -67,30 +68,34 @@ def run_study(paths, task, samples_list, runs, split=None, models=None, max_clip
     results = []
     with Progress(len(samples_list) * runs * len(takes), f"ssi-study {task}") as bar:
         for n in samples_list:
-            values, gt_values = [], []
+            values, gt_values, mpjpe = [], [], []
             for r in range(runs):
                 for take in takes:
-                    value, gt_value = _one(take, task, n, r, models, precision)
+                    value, gt_value, m = _one(take, task, n, r, models, precision, refine)
                     values += value
                     gt_values += gt_value
+                    mpjpe.append(m)
                     bar.update()
             v = np.array(values)
             results.append({"samples": n, "mean": float(v.mean()), "std": float(v.std()), "runs": runs,
+                            "mpjpe_cm": 100 * float(np.mean(mpjpe)),
                             "events": len(v) // runs, **({"ground_truth_rate": float(np.mean(gt_values))}
                                                          if task == "avoid" else {})})
-            log(f"N={n}: mean {v.mean():.4f} std {v.std():.4f} over {len(v)} measurements")
+            log(f"N={n}: mean {v.mean():.4f} std {v.std():.4f} over {len(v)} measurements; "
+                f"takes' mpjpe {100 * np.mean(mpjpe):.2f} cm")
     unit = "collision rate (fraction of frames)" if task == "avoid" else "distance to target (m)"
     return {"task": task, "unit": unit, "clips": [t.name for t in takes], "results": results}
 
 
-def _one(take, task, n, seed, models, precision=DEFAULT_PRECISION):
-    pipe = Pipeline(models, samples=n, seed=seed, precision=precision)    # the default criteria, plus the task's
+def _one(take, task, n, seed, models, precision=DEFAULT_PRECISION, refine=None):
+    pipe = Pipeline(models, samples=n, seed=seed, precision=precision, refine=refine)   # the default criteria, plus the task's
     if task == "avoid":
         center, radius = obstacle_for(take)
         crit = CollisionAvoid([center], [radius], joints=LEFT_LEG, weight=10.0)
         pipe.criteria.criteria.append(crit)
         pred = run_take(pipe, take).pred
-        return [float(np.mean(crit.penetration(pred) > 0))], [float(np.mean(crit.penetration(take.gt_pos) > 0))]
+        return ([float(np.mean(crit.penetration(pred) > 0))], [float(np.mean(crit.penetration(take.gt_pos) > 0))],
+                take_mpjpe(pred, take))
     events = kick_apexes(take.gt_pos, task)
     active = {}
     for t, j in events:
@@ -99,13 +104,24 @@ def _one(take, task, n, seed, models, precision=DEFAULT_PRECISION):
     for joint in {j for _, j in events}:
         pipe.criteria.criteria.append(TargetHit(joint, lambda f, joint=joint: active[f][1] if f in active and active[f][0] == joint else None,
                                                 weight=10.0))
+    if pipe.refiner is not None:        # the refiner reaches for each target over its window (TARGET_RADIUS_M)
+        for t, j in events:
+            pipe.refiner.add_target(int(j), take.gt_pos[t, j], radius=TARGET_RADIUS_M, first=t - LEAD_FRAMES, last=t)
     pred = run_take(pipe, take).pred
-    return [float(np.linalg.norm(pred[t, j] - take.gt_pos[t, j])) for t, j in events], []
+    return [float(np.linalg.norm(pred[t, j] - take.gt_pos[t, j])) for t, j in events], [], take_mpjpe(pred, take)
+
+
+def take_mpjpe(pred, take):
+    """The take's mean joint error (m), after the first second (warm-up, as `edge eval` skips it)."""
+    s = int(round(take.fps))
+    return float(np.linalg.norm(pred[s:] - take.gt_pos[s:], axis=-1).mean())
 
 
 def main(args):
     samples = [int(x) for x in args.samples.split(",")]
-    result = run_study(args.data, args.task, samples, args.runs, args.split, args.models, args.max_clips)
+    from edgetools.eval import refine_settings
+    result = run_study(args.data, args.task, samples, args.runs, args.split, args.models, args.max_clips,
+                       refine=refine_settings(args))
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
     print(f"wrote {args.json}", file=sys.stderr)

@@ -129,7 +129,8 @@ class CoreContext(ctypes.Structure):
                    ("hidden", _I), ("out_contacts", _P), ("n_features", _I), ("imus", _I), ("floor_lift", _P),
                    ("ring_seg_m", _P), ("ring_seg_flag", _P), ("imu_joints", _P), ("segments", _I),
                    ("good_in", _P), ("frame_len", _I), ("position_limit", _D), ("dec_latent", _P), ("latents", _P),
-                   ("latent_dim", _I)])
+                   ("latent_dim", _I), ("target_row", _I), ("target_joint", _P), ("target_goal", _P),
+                   ("target_weight", _P)])
 
 
 _SIGNATURES = {

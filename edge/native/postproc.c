@@ -649,6 +649,12 @@ typedef struct {
     float *dec_latent;
     const float *latents;
     int latent_dim;
+    /* a live target on a foot of row target_row (-1: none; edge.refine): for each foot f with
+     * target_weight[f] > 0, its leg goal moves that far towards where the ankle must be for joint
+     * target_joint[f] (the ankle or the toe) to be at target_goal[f] [2,3] */
+    int target_row;
+    const int64_t *target_joint;
+    const double *target_goal, *target_weight;
 } core_context;
 
 /* The layout of the structs above, for the loader to hold the ctypes mirrors against (edge.native.load):
@@ -660,7 +666,8 @@ typedef struct {
     X(ring_goal) X(ring_weight) X(ring_lock_weight) X(out_local) X(out_world) X(out_pos) X(ae_in) X(ae_local) \
     X(ae_root_local) X(frame_in) X(frame_offsets) X(prev) X(fps) X(ring_features) X(dec_features) X(dec_rows) \
     X(ring_hidden) X(hidden) X(out_contacts) X(n_features) X(imus) X(floor_lift) X(ring_seg_m) X(ring_seg_flag) \
-    X(imu_joints) X(segments) X(good_in) X(frame_len) X(position_limit) X(dec_latent) X(latents) X(latent_dim)
+    X(imu_joints) X(segments) X(good_in) X(frame_len) X(position_limit) X(dec_latent) X(latents) X(latent_dim) \
+    X(target_row) X(target_joint) X(target_goal) X(target_weight)
 int ep_layout(int64_t *out, int n) {
     int64_t v[128];
     int k = 0;
@@ -731,6 +738,14 @@ int ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n, 
                     double drop = k.W[a][3][l] * o[0] + k.W[a][4][l] * o[1] + k.W[a][5][l] * o[2];
                     foot_lock(i, x->contacts[i], ankle, &drop, &x->locks, x->goals);
                     x->weights[i] = 1.0;
+                    double tw = r0 + l == x->target_row ? x->target_weight[f] : 0.0;
+                    if (tw > 0.0) {             /* NumpyFrame.foot_goals: the target's pull on the leg goal */
+                        int tj = (int)x->target_joint[f];
+                        for (int c3 = 0; c3 < 3; c3++) {
+                            double want = x->target_goal[f * 3 + c3] - (k.P[tj][c3][l] - k.P[a][c3][l]);
+                            x->goals[i * 3 + c3] += tw * (want - x->goals[i * 3 + c3]);
+                        }
+                    }
                 }
             if (R > N && r0 + nl > N)
                 for (int f = 0; f < 2; f++) {
