@@ -42,17 +42,24 @@ def main():
     ap.add_argument("--samples", type=int, default=1)
     ap.add_argument("--out", default="out/sensor_sets")
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--refine", action="store_true", help="with latent refinement (edge.refine) at its defaults")
+    ap.add_argument("--refine-terms", default=None, help="comma-separated refinement terms (default all)")
+    ap.add_argument("--refine-steps", type=int, default=2)
+    ap.add_argument("--max-clips", type=int, default=None, help="an even spread of this many val clips (a quick look)")
+    ap.add_argument("--no-disconnect", action="store_true", help="skip the faulty-sensor runs")
     a = ap.parse_args()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    common = {"data": a.data, "samples": a.samples, "precision": a.precision}
+    common = {"data": a.data, "samples": a.samples, "precision": a.precision, "max_clips": a.max_clips}
+    if a.refine:
+        common["refine"] = {"steps": a.refine_steps, **({"terms": a.refine_terms.split(",")} if a.refine_terms else {})}
     jobs = []
     if a.baseline:
         jobs.append(("baseline none", out / "baseline_none.json", {**common, "models": a.baseline}))
     for name, spec in SETS.items():
         slug = name.replace(" ", "_").replace("+", "_")
         jobs.append((name, out / f"{slug}.json", {**common, "models": a.models, "trackers": parse_set(spec)}))
-        if spec != "none":
+        if spec != "none" and not a.no_disconnect:
             jobs.append((name + " disconnect", out / f"{slug}_disconnect.json",
                          {**common, "models": a.models, "trackers": parse_set(spec), "faults": "disconnect"}))
     with ProcessPoolExecutor(a.jobs) as ex:

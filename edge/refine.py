@@ -200,7 +200,8 @@ class Refiner:
         self._pos = np.zeros((R, NUM_JOINTS, 3))
         self._raw_pos = np.zeros((R, NUM_JOINTS, 3))
         self._steps = np.eye(L, dtype=np.float32) * np.float32(eps)
-        known = {"imus": ImuOrientation, "floor": FloorContact, "targets": TargetReach, "keep": KeepPose}
+        known = {"imus": ImuOrientation, "imus-tilt": lambda: ImuOrientation(tilt_only=True), "floor": FloorContact,
+                 "targets": TargetReach, "keep": KeepPose}
         terms = ("imus", "floor", "targets", "keep") if terms is None else terms
         self.terms = [known[t]() if isinstance(t, str) else t for t in terms]   # names or term objects
         for name, w in (weights or {}).items():         # {term name: weight}
