@@ -29,6 +29,10 @@ import numpy as np
 from edge.imus import IMU_JOINTS
 from edge.skeleton import ANKLES, JOINT, NUM_JOINTS, TOES
 
+# On by default: targets, guarded by KeepPose and FloorContact (guards join when a target moves the
+# latent and never move it alone). ImuOrientation is there to turn on: measured on val it did not pay
+# (models/MODEL_CARD.md: it raised thighs+shins' mpjpe).
+DEFAULT_TERMS = ("targets", "keep", "floor")
 MAX_REACH_M = 1.5           # a target farther than this from the pelvis is no reach of the user's
 FLOOR_TOE, FLOOR_ANKLE = 0.0, 0.07      # the lowest a toe and an ankle joint may go (as the IK's floor)
 
@@ -74,6 +78,7 @@ class ImuOrientation:
     heading is not trusted)."""
     name = "imus"
     needs_raw_world = True
+    guard = False
 
     def __init__(self, weight=1.0, tilt_only=False):
         self.weight, self.tilt_only = weight, tilt_only
@@ -101,6 +106,7 @@ class FloorContact:
     planted foot places the pelvis)."""
     name = "floor"
     needs_raw_world = False
+    guard = True                # it joins when another term moves the latent, and never moves it alone
 
     def __init__(self, weight=1.0, planted=1.0):
         self.weight, self.planted = weight, planted
@@ -120,6 +126,7 @@ class TargetReach:
     radius (3 residuals a target, along the offset)."""
     name = "targets"
     needs_raw_world = False
+    guard = False
 
     def __init__(self, weight=1.0):
         self.weight = weight
@@ -151,6 +158,7 @@ class KeepPose(object):
     space: it lets a target move a leg without bending the body the target says nothing about."""
     name = "keep"
     needs_raw_world = False
+    guard = True
 
     def __init__(self, weight=1.0):
         self.weight = weight
@@ -181,7 +189,7 @@ class Refiner:
     call or NumpyFrame's numpy), into out = (local, world, pos) [R,...]."""
 
     def __init__(self, decoder_session, manifest, forward, steps=2, eps=0.5, prior=3e-4, continuity=3e-4,
-                 damping=1e-3, max_step=3.0, release_s=0.5, fps=60.0, terms=None, weights=None, ik_pull=0.5):
+                 damping=1e-3, max_step=3.0, release_s=0.1, fps=60.0, terms=None, weights=None, ik_pull=0.5):
         from edge.inference import Decoder
         L, H, F = manifest["latent"], manifest["hidden"], manifest["features"]
         self.L, self.steps, self.eps, self.ik_pull = L, steps, eps, ik_pull
@@ -202,7 +210,7 @@ class Refiner:
         self._steps = np.eye(L, dtype=np.float32) * np.float32(eps)
         known = {"imus": ImuOrientation, "imus-tilt": lambda: ImuOrientation(tilt_only=True), "floor": FloorContact,
                  "targets": TargetReach, "keep": KeepPose}
-        terms = ("imus", "floor", "targets", "keep") if terms is None else terms
+        terms = DEFAULT_TERMS if terms is None else terms
         self.terms = [known[t]() if isinstance(t, str) else t for t in terms]   # names or term objects
         for name, w in (weights or {}).items():         # {term name: weight}
             self.term(name).weight = w
@@ -273,28 +281,24 @@ class Refiner:
         for g in (reach.live(frame) if reach is not None else ()):
             ctx.keep[LIMB_OF.get(g.joint, [g.joint])] = False
         terms = self.live_terms(ctx)
-        if not terms or (len(terms) == 1 and terms[0].name == "keep"):
+        if all(t.guard for t in terms):         # nothing to reach for: the guards alone would only hold
             return self._let_go(latent, prior_latent, hidden, features)
-        raw = any(t.needs_raw_world for t in terms)
+        self._terms, self._raw = terms, any(t.needs_raw_world for t in terms)
         b = self.batch
         b.features[:] = features
         b.hidden[0][:] = hidden
         z_prev = latent.astype(np.float64)
         z = z_prev.copy()
         zp = prior_latent.astype(np.float64)
+        self._prior_latent = prior_latent
         cost0 = None
         for _ in range(self.steps):
-            L = self.L
-            b.latent[:L + 1] = z.astype(np.float32)
-            b.latent[1:L + 1] += self._steps
-            b.latent[L + 1] = prior_latent
-            r = self._residuals(terms, raw)[:L + 1]               # [L+1, m]
+            r, J = self.jacobian(z)
             if cost0 is None:
-                cost0 = float(r[0] @ r[0])
-            J = (r[1:] - r[0]) / self.eps                        # [L, m]: d r / d z_k
+                cost0 = float(r @ r)
             A = J @ J.T
             A[np.diag_indices_from(A)] += self.prior + self.continuity + self.damping
-            g = J @ r[0] + self.prior * (z - zp) + self.continuity * (z - z_prev)
+            g = J @ r + self.prior * (z - zp) + self.continuity * (z - z_prev)   # the gradient of half the cost
             dz = -np.linalg.solve(A, g)
             n = np.linalg.norm(dz)
             if n > self.max_step:
@@ -303,8 +307,28 @@ class Refiner:
         latent[:] = z.astype(np.float32)
         out = self._decode(latent, hidden, features)
         self.applied += 1
-        self.last_cost = (cost0, self._cost_of(self.final.rot6d, terms, raw))
+        self.last_cost = (cost0, self._cost_of(self.final.rot6d, terms, self._raw))
         return out
+
+    def jacobian(self, z, eps=None):
+        """The live terms' residuals at latent z [L] (r [m]) and their Jacobian J [L,m] (d r / d z_k), by
+        forward differences of step eps (default self.eps) from one batched decode of z, z + eps e_k and
+        the sample's own latent (KeepPose's reference). The batch's features and GRU state, the live
+        terms and the context are this frame's (set by refine)."""
+        eps = self.eps if eps is None else eps
+        b, L = self.batch, self.L
+        b.latent[:L + 1] = z.astype(np.float32)
+        b.latent[1:L + 1] += self._steps if eps == self.eps else np.eye(L, dtype=np.float32) * np.float32(eps)
+        b.latent[L + 1] = self._prior_latent
+        r = self._residuals(self._terms, self._raw)[:L + 1]      # [L+1, m]
+        return r[0], (r[1:] - r[0]) / eps
+
+    def residuals_at(self, z):
+        """The live terms' residuals [m] at latent z (every batch row decoded at z): for checking jacobian."""
+        b, L = self.batch, self.L
+        b.latent[:L + 1] = z.astype(np.float32)
+        b.latent[L + 1] = self._prior_latent
+        return self._residuals(self._terms, self._raw)[0]
 
     def _let_go(self, latent, prior_latent, hidden, features):
         """No term live: ease the latent back towards the sample's own; None once it is there."""

@@ -10,7 +10,8 @@ from edge.modelfiles import ModelError
 def add_refine_flags(p, what="refine the shown sample's latent against the live constraints (edge.refine)"):
     p.add_argument("--refine", action="store_true", help=what)
     p.add_argument("--refine-steps", type=int, default=2, help="Gauss-Newton steps a frame (K)")
-    p.add_argument("--refine-terms", default=None, help="comma-separated terms (default all: imus,floor,targets,keep)")
+    p.add_argument("--refine-terms", default=None,
+                   help="comma-separated terms (default targets,keep,floor; also imus, imus-tilt)")
 
 
 def main(argv=None):
