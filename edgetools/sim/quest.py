@@ -188,3 +188,41 @@ class EmulatedQuest:
             self.browser.close()
             self._playwright.stop()
             self.browser = None
+
+
+class QuestHeadset:
+    """The replay harness's live headset (edgetools.sim.replay's `headset=`): the board's webxr:// source on
+    loopback, and an EmulatedQuest that pairs with it and plays the take from the session's time 0."""
+
+    def __init__(self, take, state_dir, hz=72.0, screenshot=None):
+        self.url = f"webxr://127.0.0.1:0?state={state_dir}"
+        self.quest = EmulatedQuest(take, hz)
+        self.source, self.screenshot = None, screenshot
+        self.state = self.log = None
+
+    def prepare(self, service, timeout=10.0):
+        """Open the page, type the code, and wait until the board has the page's clock."""
+        import time
+        self.source = service.headset.source
+        self.quest.open(self.source.page_urls()[0])
+        self.quest.pair(self.source.code)
+        self.quest.wait("window.edgepose.paired", timeout)
+        give_up = time.monotonic() + timeout
+        while self.source.clock_offset_ms is None and time.monotonic() < give_up:
+            time.sleep(0.01)
+        time.sleep(0.3)                   # a few more pings for the minimum-delay filter
+
+    def start(self, clock):
+        """The take's frame 0 at the session clock's 0 (clock.t0 on time.monotonic, the source's clock)."""
+        self.quest.play(clock.t0 * 1000.0 - self.source.clock_offset_ms)
+        self.quest.enter("immersive-vr")
+
+    def finish(self):
+        """The page's counters, the scripted poses it sent, and (with `screenshot`) a picture of its view."""
+        self.state, self.log = self.quest.state(), self.quest.log()
+        self.state["emulated_frames"] = self.quest.page.evaluate("window.__quest.frames")
+        if self.screenshot:
+            self.quest.page.screenshot(path=str(self.screenshot))
+
+    def close(self):
+        self.quest.close()

@@ -20,7 +20,7 @@ let socket = null, code = null, retry = 0, retryTimer = null;
 const poseBuffer = new DataView(new ArrayBuffer(XR_POSE_SIZE));
 const pongBuffer = new DataView(new ArrayBuffer(CLOCK_PONG_SIZE));
 const body = newBody();
-let mirror = null, seq = 0;
+let mirror = null, seq = 0, lastStatus = -Infinity;
 const arrivals = new Float64Array(64), latencies = new Float64Array(64);
 let arrivalCount = 0;
 
@@ -140,8 +140,8 @@ async function enter(mode) {
       else if (source.handedness === "right") right = grip.transform;
     }
     send(time, pose.transform, left, right);
-    if (!mirror.plane && mirror.hasBody) mirror.placeInFront(pose.transform);
-    mirror.setStatus(statusLines());
+    if (mirror.hasBody) mirror.follow(pose.transform);
+    if (time - lastStatus > 250) { lastStatus = time; mirror.setStatus(statusLines()); }
     if (mirror.draw(pose, session.renderState.baseLayer)) state.drawn++;
   };
   session.requestAnimationFrame(onFrame);

@@ -64,6 +64,20 @@ export class Mirror {
     this.setStatus(["connecting...", ""]);
   }
 
+  // Keep the mirror in front: placed when the first body arrives, and again when the user has walked up
+  // to it (or past it), away from it, or turned more than ~50 degrees from it. Between, it stays put,
+  // as a real mirror does, so the body can be seen walking towards and away from it.
+  follow(head) {
+    if (this.plane) {
+      const o = head.orientation, p = head.position, { point, normal } = this.plane;
+      const fx = -2 * (o.x * o.z + o.w * o.y), fz = -(1 - 2 * (o.x * o.x + o.y * o.y));
+      const facing = (fx * normal[0] + fz * normal[2]) / (Math.hypot(fx, fz) || 1);
+      const ahead = (point[0] - p.x) * normal[0] + (point[2] - p.z) * normal[2];
+      if (ahead > 0.4 && ahead < 2.5 && facing > 0.64) return;
+    }
+    this.placeInFront(head);
+  }
+
   // Place the mirror MIRROR_DISTANCE in front of where the head looks now (level, whatever the pitch).
   placeInFront(head) {
     const o = head.orientation, p = head.position;
