@@ -400,11 +400,12 @@ class WebXRSource(Source):
         from websockets.datastructures import Headers
         from websockets.http11 import Response
         path = request.path.split("?", 1)[0]
-        if request.headers.get("Upgrade", "").lower() == "websocket":
-            host = request.headers.get("Host", "")
-            if path != SOCKET_PATH or request.headers.get("Origin") != f"{self.scheme}://{host}":
+        one = lambda name: (lambda values: values[0] if len(values) == 1 else None)(request.headers.get_all(name))
+        if any(value.lower() == "websocket" for value in request.headers.get_all("Upgrade")):
+            host, origin = one("Host"), one("Origin")        # a repeated header is as bad as a missing one
+            if path != SOCKET_PATH or host is None or origin != f"{self.scheme}://{host}":
                 self.stats["refused_origin"] += 1
-                self.last_close = f"refused a socket from origin {request.headers.get('Origin')!r} for {host!r}"
+                self.last_close = f"refused a socket from origin {origin!r} for {host!r}"
                 return connection.respond(403, "This socket serves the board's own page only.\n")
             return None
         if path not in PAGE_FILES:
