@@ -102,7 +102,7 @@ vsync();
 class EmulatedQuest:
     def __init__(self, take=None, hz=72.0, viewport=(640, 400)):
         self.take, self.hz, self.viewport = take, hz, viewport
-        self._playwright = self.browser = self.page = None
+        self._playwright = self.browser = self.page = self.context = None
         self.console_errors = []
 
     @staticmethod
@@ -127,7 +127,7 @@ class EmulatedQuest:
         return json.dumps({"fps": self.take.fps, "frames": int(s.frames), "head_pos": r(s.head_pos), "head_rot": r(s.head_rot),
                            "hand_pos": r(s.hand_pos), "hand_rot": r(s.hand_rot)})
 
-    def open(self, url, context=None):
+    def open(self, url):
         """Load the board's page in a new browser (or a new context of this one: a second headset)."""
         from playwright.sync_api import sync_playwright
         if self.browser is None:
@@ -183,11 +183,21 @@ class EmulatedQuest:
     def page_now_ms(self):
         return self.page.evaluate("performance.now()")
 
+    def another(self):
+        """A second headset in the same browser (its own context: its own storage, its own pairing)."""
+        other = EmulatedQuest(self.take, self.hz, self.viewport)
+        other._playwright, other.browser, other._shared = self._playwright, self.browser, True
+        return other
+
     def close(self):
-        if self.browser is not None:
+        if getattr(self, "_shared", False):
+            if self.context is not None:
+                self.context.close()
+                self.context = None
+        elif self.browser is not None:
             self.browser.close()
             self._playwright.stop()
-            self.browser = None
+        self.browser = None
 
 
 class QuestHeadset:
