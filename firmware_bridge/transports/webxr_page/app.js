@@ -14,6 +14,7 @@ const state = window.edgepose = {
   connected: false, paired: false, board: "", closeReason: "", reconnects: 0,
   sent: 0, skipped: 0, xrFrames: 0, bodies: 0, drawn: 0, lastSent: null, lastBody: null,
   rate: 0, latencyMs: null, samples: null, session: null,
+  roundTrips: new Float64Array(4096), roundTripCount: 0,     // every body's round trip (ms), a ring
 };
 
 let socket = null, code = null, retry = 0, retryTimer = null;
@@ -80,6 +81,7 @@ function onMessage(ws, data) {
     const now = performance.now();
     arrivals[arrivalCount % 64] = now;
     latencies[arrivalCount % 64] = now - body.inputMs;
+    state.roundTrips[state.roundTripCount++ % 4096] = now - body.inputMs;
     arrivalCount++;
     state.bodies++;
     state.samples = body.samples;

@@ -135,8 +135,9 @@ export class Mirror {
   _buildPanel() {
     const { point, normal } = this.plane;
     const rx = -normal[2], rz = normal[0];          // to the user's right when facing the mirror
-    const w = 0.3, h = 0.075, y = point[1] - 0.55;
-    const cx = point[0] - 0.02 * normal[0], cz = point[2] - 0.02 * normal[2];
+    // closer than the mirror, low and to the right, so it is easy to read and never covers the body
+    const w = 0.2, h = 0.05, y = point[1] - 0.35, side = 0.4, near = 0.4;
+    const cx = point[0] - near * normal[0] + side * rx, cz = point[2] - near * normal[2] + side * rz;
     const c = [[cx - w * rx, y + h, cz - w * rz, 0, 0], [cx - w * rx, y - h, cz - w * rz, 0, 1],
                [cx + w * rx, y - h, cz + w * rz, 1, 1], [cx - w * rx, y + h, cz - w * rz, 0, 0],
                [cx + w * rx, y - h, cz + w * rz, 1, 1], [cx + w * rx, y + h, cz + w * rz, 1, 0]];
