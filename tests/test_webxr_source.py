@@ -297,3 +297,9 @@ def test_the_status_line_shows_the_pairing_code(tmp_path):
         assert svc.summary()["headset_link"]["pairing_code"] == code
     finally:
         svc.close()
+
+
+def test_the_example_config_loads():
+    from tests.conftest import ROOT
+    cfg = config_mod.load(ROOT / "examples" / "headset_webxr.toml")
+    assert cfg.headset.startswith("webxr://") and cfg.pose_stream == "headset"
