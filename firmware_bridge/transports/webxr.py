@@ -273,8 +273,9 @@ class WebXRSource(Source):
         self._wrong_codes = deque()
         self._locked_until = -float("inf")
         self._seq = 0
-        self._record = np.zeros((), POSE_RECORD)
+        # One XR_BODY buffer, its POSE_FRAME payload a numpy view into it: a pose is written in place.
         self._body = bytearray(wire.XR_BODY_SIZE)
+        self._record = np.frombuffer(self._body, POSE_RECORD, count=1, offset=wire.XR_BODY_HEADER.size).reshape(())
         self.last_close = ""                  # why the last refused or closed socket was closed
         self._loop = None
         self._stop = None
@@ -353,7 +354,7 @@ class WebXRSource(Source):
         if h is None or loop is None:
             return False
         pose_record(frame, self._record)
-        wire.encode_xr_body_into(self._body, self._seq, h.newest_page_ms, self._record.tobytes())
+        wire.XR_BODY_HEADER.pack_into(self._body, 0, wire.XR_BODY, 0, self._seq, h.newest_page_ms)
         self._seq = (self._seq + 1) & 0xFFFF
         loop.call_soon_threadsafe(self._send_body, h, bytes(self._body))
         return True
@@ -439,9 +440,15 @@ class WebXRSource(Source):
         pinger = asyncio.ensure_future(self._ping(headset))
         try:
             async for message in ws:
-                self._on_message(headset, message)
-        except Exception:                  # a protocol error or a dropped connection: it just ends
-            pass
+                try:
+                    self._on_message(headset, message)
+                except Exception as e:     # a bug of ours must not end the link: count it, go on
+                    self.stats["errors"] += 1
+                    self.last_error = f"{type(e).__name__}: {e}"
+        except Exception as e:             # a WebSocket protocol error or a dropped connection: it just ends
+            if getattr(getattr(e, "sent", None), "code", None) == 1009:
+                self.stats["oversize"] += 1      # a message beyond MAX_MESSAGE: websockets closed the link
+                self.last_close = "1009 a message beyond 64 KiB"
         finally:
             pinger.cancel()
             if self._headset is headset:

@@ -52,7 +52,10 @@ function connect() {
   const url = `${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/socket`;
   const ws = socket = new WebSocket(url);
   ws.binaryType = "arraybuffer";
+  // A connection still not open after 3 s (a Wi-Fi handover, a half-open TCP link) is given up and retried.
+  const opening = setTimeout(() => { if (ws.readyState === WebSocket.CONNECTING) ws.close(); }, 3000);
   ws.onopen = () => {
+    clearTimeout(opening);
     state.connected = true;
     ws.send(JSON.stringify(token ? { token } : { code }));
   };
@@ -125,6 +128,7 @@ async function enter(mode) {
   session.updateRenderState({ baseLayer: layer });
   const space = await session.requestReferenceSpace("local-floor");
   mirror = new Mirror(gl);
+  mirror.passthrough = session.environmentBlendMode !== undefined && session.environmentBlendMode !== "opaque";
   state.session = mode;
   updateButtons();
   session.addEventListener("end", () => { state.session = null; mirror = null; updateButtons(); });

@@ -5,6 +5,7 @@ import { forwardKinematics, NUM_JOINTS, PARENTS } from "./skeleton.js";
 const BONE_WIDTH = 0.035;          // metres
 const MIRROR_DISTANCE = 1.0;       // the mirror plane this far in front of the head: the body shows at twice that
 const LEFT = [0.15, 0.55, 1.0], RIGHT = [1.0, 0.55, 0.1], CENTRE = [0.95, 0.95, 0.95];
+const CORNER_END = [0, 0, 1, 0, 1, 1], CORNER_SIDE = [-1, 1, 1, -1, 1, -1];
 const BONES = [];
 for (let j = 1; j < NUM_JOINTS; j++) BONES.push(j);
 
@@ -60,6 +61,7 @@ export class Mirror {
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
     this.plane = null;             // {point, normal}: set from the head when the first body arrives
     this.hasBody = false;
+    this.passthrough = false;
     this.statusLines = ["", ""];
     this.setStatus(["connecting...", ""]);
   }
@@ -125,10 +127,14 @@ export class Mirror {
       let sx = dy * ez - dz * ey, sy = dz * ex - dx * ez, sz = dx * ey - dy * ex;
       const s = (Math.hypot(sx, sy, sz) || 1) / (BONE_WIDTH / 2);
       sx /= s; sy /= s; sz /= s;
-      const name = j >= 13 ? (j < 17 ? LEFT : RIGHT) : (j >= 5 && j < 9 ? LEFT : j >= 9 ? RIGHT : CENTRE);
-      const corners = [[ax - sx, ay - sy, az - sz], [ax + sx, ay + sy, az + sz], [bx + sx, by + sy, bz + sz],
-                       [ax - sx, ay - sy, az - sz], [bx + sx, by + sy, bz + sz], [bx - sx, by - sy, bz - sz]];
-      for (const c of corners) { v.set(c, at); v.set(name, at + 3); at += 6; }
+      const colour = j >= 13 ? (j < 17 ? LEFT : RIGHT) : (j >= 5 && j < 9 ? LEFT : j >= 9 ? RIGHT : CENTRE);
+      // two triangles: a-, a+, b+ and a-, b+, b-
+      for (let k = 0; k < 6; k++) {
+        const end = CORNER_END[k], side = CORNER_SIDE[k];
+        v[at] = (end ? bx : ax) + side * sx; v[at + 1] = (end ? by : ay) + side * sy; v[at + 2] = (end ? bz : az) + side * sz;
+        v[at + 3] = colour[0]; v[at + 4] = colour[1]; v[at + 5] = colour[2];
+        at += 6;
+      }
     }
   }
 
@@ -148,7 +154,8 @@ export class Mirror {
   draw(pose, layer) {
     const gl = this.gl;
     gl.bindFramebuffer(gl.FRAMEBUFFER, layer.framebuffer);
-    gl.clearColor(0.04, 0.05, 0.07, 1.0);
+    if (this.passthrough) gl.clearColor(0, 0, 0, 0);      // AR: the room shows through
+    else gl.clearColor(0.04, 0.05, 0.07, 1.0);
     gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
     if (!this.plane) return false;
     gl.enable(gl.DEPTH_TEST);
