@@ -25,7 +25,7 @@ from websockets.sync.client import connect  # noqa: E402
 from firmware_bridge import commands  # noqa: E402
 from firmware_bridge import config as config_mod  # noqa: E402
 from firmware_bridge.service import Service  # noqa: E402
-from firmware_bridge.transports import TransportError, open_source  # noqa: E402
+from firmware_bridge.transports import open_source  # noqa: E402
 from firmware_bridge.wire import webxr as wire  # noqa: E402
 from tests.test_webxr_wire import doc_vectors, headset_payload  # noqa: E402
 
@@ -159,7 +159,7 @@ def test_pairing_wrong_codes_lock_out_and_tokens_survive_a_restart(board, tmp_pa
     for _ in range(4):                                     # five wrong codes within the minute
         assert closed_with(hello(socket_to(board), code=wrong), wire_close("WRONG_CODE"))
     assert closed_with(hello(socket_to(board), code=board.code), wire_close("LOCKED"))
-    assert f"pairing locked" in board.status_text()
+    assert "pairing locked" in board.status_text()
     assert isinstance(hello(socket_to(board), token=token), dict)   # a paired headset still connects
     board.test_clock.shift += 61.0                         # a minute later pairing works again
     time.sleep(0.05)
@@ -339,3 +339,11 @@ def test_the_example_config_loads():
     from tests.conftest import ROOT
     cfg = config_mod.load(ROOT / "examples" / "headset_webxr.toml")
     assert cfg.headset.startswith("webxr://") and cfg.pose_stream == "headset"
+
+
+def test_edge_run_with_a_webxr_headset_prints_the_page_code_and_status(tmp_path, capsys):
+    code, err = run_with(tmp_path, f"webxr://127.0.0.1:0?state={tmp_path}", capsys)
+    assert code == 0, err
+    assert "headset page: open https://127.0.0.1:" in err and "SHA-256 fingerprint" in err
+    pairing = err.split("pairing code ", 1)[1][:6]
+    assert pairing.isdigit() and "edge run | in 0 out 0" in err and f"webxr: waiting for a headset | code {pairing}" in err

@@ -174,7 +174,7 @@ console.log(JSON.stringify(Array.from(new Uint8Array(v.buffer))));
 """)
     _, _, sample = wire.decode_xr_pose(bytes(got))
     turned = quat.mul(xr, np.array([0.0, 0.0, 1.0, 0.0]))
-    for decoded, expected in zip([sample.head_rot, *sample.hand_rot], turned):
+    for decoded, expected in zip([sample.head_rot, *sample.hand_rot], turned, strict=True):
         sign = np.sign(np.dot(decoded, expected))
         np.testing.assert_allclose(sign * decoded, expected, atol=1e-4)
     np.testing.assert_allclose(np.vstack([sample.head_pos, sample.hand_pos]), pos, atol=1e-6)
