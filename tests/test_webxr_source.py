@@ -297,16 +297,16 @@ def test_the_service_survives_anything_on_the_socket(service, messages):
 
 # --- start-up ----------------------------------------------------------------------------------------
 
-def run_with(tmp_path, url, capsys):
+def run_with(tmp_path, url, capfd):
     path = tmp_path / "board.toml"
     path.write_text(f'[headset]\nurl = "{url}"\n[runtime]\nsamples = 1\n')
-    code = commands.run(Namespace(config=str(path), seconds=0.1, json=None))
-    return code, capsys.readouterr().err
+    code = commands.run(Namespace(config=str(path), seconds=0.6, json=None))
+    return code, capfd.readouterr().err
 
 
-def test_edge_run_says_how_to_install_what_is_missing(tmp_path, capsys, monkeypatch):
+def test_edge_run_says_how_to_install_what_is_missing(tmp_path, capfd, monkeypatch):
     monkeypatch.setitem(sys.modules, "websockets", None)       # as if the [headset] extra were not installed
-    code, err = run_with(tmp_path, f"webxr://127.0.0.1:0?state={tmp_path}", capsys)
+    code, err = run_with(tmp_path, f"webxr://127.0.0.1:0?state={tmp_path}", capfd)
     assert code == 2 and "pip install 'edgepose[headset]'" in err
 
 
@@ -316,8 +316,8 @@ def test_edge_run_says_how_to_install_what_is_missing(tmp_path, capsys, monkeypa
     ("webxr://0.0.0.0", "expected webxr://HOST:PORT"),
     ("webxr://127.0.0.1:0?state=/proc/edgepose", "give a writable folder"),
 ])
-def test_a_bad_url_fails_at_start_up_with_the_fix(tmp_path, capsys, url, says):
-    code, err = run_with(tmp_path, url, capsys)
+def test_a_bad_url_fails_at_start_up_with_the_fix(tmp_path, capfd, url, says):
+    code, err = run_with(tmp_path, url, capfd)
     assert code == 2 and says in err, err
 
 
@@ -341,9 +341,16 @@ def test_the_example_config_loads():
     assert cfg.headset.startswith("webxr://") and cfg.pose_stream == "headset"
 
 
-def test_edge_run_with_a_webxr_headset_prints_the_page_code_and_status(tmp_path, capsys):
-    code, err = run_with(tmp_path, f"webxr://127.0.0.1:0?state={tmp_path}", capsys)
-    assert code == 0, err
+def test_edge_run_with_a_webxr_headset_prints_the_page_code_and_status(tmp_path):
+    """`edge run --config` as a person runs it (a subprocess, the status line going to a log, not a tty)."""
+    import subprocess
+    path = tmp_path / "board.toml"
+    path.write_text(f'[headset]\nurl = "webxr://127.0.0.1:0?state={tmp_path}"\n[runtime]\nsamples = 1\n')
+    run = subprocess.run([sys.executable, "-m", "edgetools.cli", "run", "--config", str(path), "--seconds", "1"],
+                         capture_output=True, text=True, timeout=60)
+    err = run.stderr
+    assert run.returncode == 0, err
     assert "headset page: open https://127.0.0.1:" in err and "SHA-256 fingerprint" in err
     pairing = err.split("pairing code ", 1)[1][:6]
-    assert pairing.isdigit() and "edge run | in 0 out 0" in err and f"webxr: waiting for a headset | code {pairing}" in err
+    assert pairing.isdigit() and "edge run | in 0 out 0" in err
+    assert f"webxr: waiting for a headset | code {pairing}" in err

@@ -87,8 +87,9 @@ def tracker_names(parsed):
     return []
 
 
-def open(url, parsed, clock=time.monotonic, announce=sys.stderr, **_):
-    """Source for 'webxr://HOST:PORT?state=DIR&tls=0|1'; fails at start-up with the fix."""
+def open(url, parsed, clock=time.monotonic, announce="stderr", **_):
+    """Source for 'webxr://HOST:PORT?state=DIR&tls=0|1'; fails at start-up with the fix. `announce`: where
+    the page's address, the fingerprint and the pairing code are printed (None: nowhere)."""
     try:
         import cryptography  # noqa: F401
         import websockets  # noqa: F401
@@ -247,7 +248,7 @@ class Headset:
 class WebXRSource(Source):
     """HeadsetSamples from the board's own page in a headset's browser, and the body back to it."""
 
-    def __init__(self, host, port, state_dir, tls=True, clock=time.monotonic, url="", announce=sys.stderr):
+    def __init__(self, host, port, state_dir, tls=True, clock=time.monotonic, url="", announce="stderr"):
         super().__init__(clock)
         self.url = url or f"webxr://{host}:{port}"
         self.stats.update({"missed": 0, "sent": 0, "send_dropped": 0, "connections": 0, "paired": 0,
@@ -291,7 +292,7 @@ class WebXRSource(Source):
                                  f"program using the port, or the address not this board's?")
         self.port = self.address[1]
         if announce is not None:
-            self.announce(announce)
+            self.announce(sys.stderr if announce == "stderr" else announce)
 
     # ---- what a person reads at start-up and on the status line -------------------------------------
     def page_urls(self):
