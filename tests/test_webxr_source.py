@@ -17,17 +17,17 @@ import numpy as np
 import pytest
 
 pytest.importorskip("websockets", reason="needs the [headset] extra (pip install -e '.[headset]')")
-from hypothesis import HealthCheck, given, settings  # noqa: E402
-from hypothesis import strategies as st  # noqa: E402
-from websockets.exceptions import ConnectionClosed, InvalidStatus  # noqa: E402
-from websockets.sync.client import connect  # noqa: E402
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from websockets.exceptions import ConnectionClosed, InvalidStatus
+from websockets.sync.client import connect
 
-from firmware_bridge import commands  # noqa: E402
-from firmware_bridge import config as config_mod  # noqa: E402
-from firmware_bridge.service import Service  # noqa: E402
-from firmware_bridge.transports import open_source  # noqa: E402
-from firmware_bridge.wire import webxr as wire  # noqa: E402
-from tests.test_webxr_wire import doc_vectors, headset_payload  # noqa: E402
+from firmware_bridge import commands
+from firmware_bridge import config as config_mod
+from firmware_bridge.service import Service
+from firmware_bridge.transports import open_source
+from firmware_bridge.wire import webxr as wire
+from tests.test_webxr_wire import doc_vectors, headset_payload
 
 # websockets 15+ prefers `with connect(...)`; these tests close their sockets themselves.
 pytestmark = pytest.mark.filterwarnings("ignore:connect\\(\\) must be used as a context manager")

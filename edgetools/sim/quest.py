@@ -17,6 +17,7 @@ logged against the sequence number the page sent it with, so a test can hold the
 
 Chromium is Debian's (/usr/bin/chromium); Playwright's own browser downloads are not used.
 """
+import importlib
 import json
 import os
 import shutil
@@ -109,7 +110,7 @@ class EmulatedQuest:
     def missing():
         """Why the emulator cannot run on this machine (None: it can)."""
         try:
-            import playwright.sync_api  # noqa: F401
+            importlib.import_module("playwright.sync_api")
         except ImportError:
             return "needs Playwright for Python (pip install -e '.[test]')"
         if not (Path(CHROMIUM).exists() or shutil.which(CHROMIUM)):

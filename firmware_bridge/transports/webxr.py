@@ -26,6 +26,7 @@ Source.recv (a queue), so nothing here ever waits on the tick or the tick on a s
 import asyncio
 import hashlib
 import hmac
+import importlib
 import ipaddress
 import json
 import os
@@ -91,10 +92,10 @@ def open(url, parsed, clock=time.monotonic, announce="stderr", **_):
     """Source for 'webxr://HOST:PORT?state=DIR&tls=0|1'; fails at start-up with the fix. `announce`: where
     the page's address, the fingerprint and the pairing code are printed (None: nowhere)."""
     try:
-        import cryptography  # noqa: F401
-        import websockets  # noqa: F401
+        for name in ("websockets", "cryptography"):       # only this scheme needs them: imported when opened
+            importlib.import_module(name)
     except ImportError as e:
-        raise TransportError(f"{url!r} needs the [headset] extra ({e.name} is missing): "
+        raise TransportError(f"{url!r} needs the [headset] extra ({e.name or name} is missing): "
                              f"pip install 'edgepose[headset]' (on a board: /opt/edgepose/venv/bin/pip install "
                              f"'edgepose[headset]'; from a checkout: .venv/bin/pip install -e '.[headset]')") from None
     _, netloc, path, query = parsed
