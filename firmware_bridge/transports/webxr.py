@@ -255,7 +255,7 @@ class WebXRSource(Source):
         self.stats.update({"missed": 0, "sent": 0, "send_dropped": 0, "connections": 0, "paired": 0,
                            "wrong_code": 0, "refused_locked": 0, "refused_busy": 0, "refused_origin": 0,
                            "unknown_token": 0, "no_hello": 0, "too_many": 0, "flood": 0, "unsynced": 0,
-                           "replaced": 0, "oversize": 0})
+                           "replaced": 0, "oversize": 0, "queue_full": 0})
         self.code = f"{secrets.randbelow(10 ** wire.CODE_DIGITS):0{wire.CODE_DIGITS}d}"
         self.tls, self.scheme = tls, "https" if tls else "http"
         try:
@@ -308,7 +308,8 @@ class WebXRSource(Source):
         print(f"edge run: pairing code {self.code}", file=out, flush=True)
 
     def status_text(self):
-        """' headset 72/s rtt 1 ms | code 123456' for `edge run`'s status line."""
+        """'webxr: 72/s rtt 1 ms | code 123456' (the headset's rate, the socket's round trip, how to pair) for
+        `edge run`'s status line."""
         h, now = self._headset, self.clock()
         if now < self._locked_until:
             pairing = f"pairing locked {self._locked_until - now:.0f} s"
@@ -593,8 +594,8 @@ class WebXRSource(Source):
         h.newest_page_ms = max(h.newest_page_ms, page_ms)
         sample.t = (page_ms + offset) / 1000.0
         sample.received = now
-        if self._samples.qsize() >= MAX_QUEUE:
-            self.stats["errors"] += 1
+        if self._samples.qsize() >= MAX_QUEUE:         # the tick has stopped taking them: keep memory bounded
+            self.stats["queue_full"] += 1
             return
         self.stats["frames"] += 1
         self._samples.put(sample)
