@@ -74,6 +74,13 @@ RUN = {
 BOARD = "examples/board.toml names the board's UART (/dev/ttyAMA0), I2C bus 1 and can0"
 TRAIN = "trains for about 100 minutes and overwrites the shipped models/ (tests/test_train_ddp.py trains briefly)"
 NOT_RUNNABLE = {
+    "/opt/edgepose/venv/bin/pip install edgepose[headset]": "the board's install under /opt; the test extra "
+                                                             "pulls the [headset] extra in (./scripts/test)",
+    ".venv/bin/pip install -e .[headset]": "the test extra already installs the [headset] extra (./scripts/test)",
+    "sudo apt-get install adb": "installs a system package on the board (root)",
+    "adb devices": "needs a headset on USB with developer mode; tests/test_webxr_browser.py uses an emulated one",
+    "adb reverse tcp:8080 tcp:8080": "needs a headset on USB with developer mode; the tls=0 loopback link it "
+                                     "serves is what tests/test_webxr_source.py talks to",
     "./scripts/test": "the test suite itself (.ci/run calls it)",
     "edge calibrate --config examples/board.toml --out calibration.json":
         f"{BOARD}; tests/test_cli.py runs edge calibrate on simulated devices",

@@ -30,13 +30,15 @@ from edgetools.sim.session import CAN_NODES, HUB_IDS, placement
 from edgetools.sim.stream_metrics import StreamMetrics, score, write_dump
 from firmware_bridge import config as config_mod
 from firmware_bridge.service import Service
+from firmware_bridge.wire.messages import encode_pose_frame
 
 
 def board_config(session, devices, can_channel, samples, lookahead, bvh, adaptive=False, precision=DEFAULT_PRECISION,
-                 bench="replay", outputs=None, calibration=""):
+                 bench="replay", outputs=None, calibration="", headset_url=None):
     """The board's config for a session: real ptys and CAN, and sim:// sources on the bench devices
     `{bench}-waist` (the BNO055 fake) and `{bench}-slimevr`; `outputs`: more [output] keys (vmc, vrchat,
-    vmc_mode, vrchat_trackers); `calibration`: a calibration file (edge calibrate's)."""
+    vmc_mode, vrchat_trackers); `calibration`: a calibration file (edge calibrate's); `headset_url`: the
+    headset link instead of the session's serial headset (webxr://...)."""
     place = session.meta.get("placement") or placement(session.transports)
     pairs = lambda ids, names: ",".join(f"{k}:{v}" for k, v in ids.items() if v in names)
     trackers = []
@@ -50,7 +52,7 @@ def board_config(session, devices, can_channel, samples, lookahead, bvh, adaptiv
         macs = session.meta.get("slimevr_trackers", {})
         trackers.append({"url": f"sim://slimevr/{bench}-slimevr?trackers=" + ",".join(f"{m}/0:{n}" for m, n in macs.items())})
     return config_mod.from_dict({
-        "headset": {"url": f"serial://{devices['headset'].path}?role=headset"},
+        "headset": {"url": headset_url or f"serial://{devices['headset'].path}?role=headset"},
         "trackers": trackers,
         "output": {"pose_stream": "headset", **({"bvh": bvh} if bvh else {}), **(outputs or {})},
         "runtime": {"samples": samples, "lookahead": lookahead, "adaptive": adaptive, "precision": precision,
@@ -58,10 +60,35 @@ def board_config(session, devices, can_channel, samples, lookahead, bvh, adaptiv
     }, "replay")
 
 
+def tap_pose_stream(service):
+    """The poses the board sends a live headset, also written as the serial pose stream to a pipe (its
+    read end returned) for the host's metrics: the socket's far end is a browser, not a pty to read."""
+    read_fd, write_fd = os.pipe()
+    os.set_blocking(write_fd, False)
+    source, counter = service.headset.source, [0]
+    send = source.send_pose
+
+    def send_and_tap(frame):
+        sent = send(frame)
+        try:
+            os.write(write_fd, encode_pose_frame(frame, counter[0]))
+        except BlockingIOError:             # the host reader fell 64 KB behind: it counts the gap
+            pass
+        counter[0] = (counter[0] + 1) & 0xFFFF
+        return sent
+    source.send_pose = send_and_tap
+    return read_fd, write_fd
+
+
 def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=None, bvh=None, status=None,
            models=None, adaptive=False, precision=DEFAULT_PRECISION, pose_log=None, threaded=None, outputs=None,
-           calibration="", dump=None):
+           calibration="", dump=None, headset=None):
     """Returns the report dict; `pose_log` (a binary file) receives the pose stream's raw bytes.
+    headset: a live headset instead of the session's serial one (edgetools.sim.quest.QuestHeadset: the
+    board's webxr:// page in an emulated Quest playing the same take), with `url`, `prepare(service)`
+    (pair it before the session clock starts), `start(clock)` (play from session time 0) and `finish()`
+    (read what it shows before the board stops); the poses the board sends it are scored as the serial
+    stream's are.
     threaded: reader threads in the service (default: in real time, not at --speed max). outputs:
     [output] keys such as {"vmc": "127.0.0.1:39539", "vrchat": "192.168.1.20:9000"}; calibration: a file.
     dump: a folder for the decoded poses beside the ground truth (edge eval --dump's format)."""
@@ -72,7 +99,7 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
     clock = SimClock(realtime=(speed == "realtime"))
     folder = tempfile.mkdtemp(prefix="edgepose-sim-")
     settle = speed != "realtime"
-    devices = {"headset": SerialDevice("headset", session.headset, folder, settle)}
+    devices = {} if headset is not None else {"headset": SerialDevice("headset", session.headset, folder, settle)}
     if session.hub.frames:
         devices["hub"] = SerialDevice("hub", session.hub, folder, settle)
     can_channel = f"edgepose-{os.getpid()}-{id(session)}"
@@ -95,7 +122,7 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
     scheme.BENCH[f"{bench}-slimevr"] = scheme.BenchDevice(None, clock, clock.sleep, slimevr_opened)
     try:
         cfg = board_config(session, devices, can_channel, samples, lookahead, bvh, adaptive, precision, bench, outputs,
-                           calibration)
+                           calibration, None if headset is None else headset.url)
         if models:
             cfg.models = models
         # Real time: a reader thread per source, as on the board. Max speed: the tick reads the sources
@@ -108,7 +135,18 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
             scheme.BENCH.pop(key, None)
         raise
     opened = [link.url for link in service.links]
-    ear = Listener(fd=devices["headset"].master, record=pose_log)
+    if headset is None:
+        ear = Listener(fd=devices["headset"].master, record=pose_log)
+    else:
+        try:
+            tap = tap_pose_stream(service)
+            ear = Listener(fd=tap[0], record=pose_log)
+            headset.prepare(service)
+        except BaseException:
+            service.close()
+            raise
+        clock.t0 = time.monotonic()        # the session starts now that the headset is ready
+        headset.start(clock)
     hz, duration = cfg.hz, session.duration if seconds is None else min(seconds, session.duration)
     ticks = int(duration * hz)
     metrics = StreamMetrics(ticks, hz, session.gt_pos, service.pipeline.lookahead)
@@ -187,10 +225,12 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
                 rss.append(rss_mb())
         time.sleep(0.05)
         give_up = time.monotonic() + 1.0               # the host reads what the board sent last
-        while plugged.is_set() and pending_bytes(devices["headset"].master) and time.monotonic() < give_up:
+        while plugged.is_set() and pending_bytes(ear.fd) and time.monotonic() < give_up:
             time.sleep(0.005)
         time.sleep(0.01)
         score(inbox, metrics, ticks_by_us, replug)
+        if headset is not None:
+            headset.finish()               # what the headset shows and counted, while the board still runs
     finally:
         done.set()
         for f in flooding:
@@ -198,6 +238,9 @@ def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=
         reader.join(1.0)
         summary = service.summary()
         service.close()
+        if headset is not None:
+            os.close(tap[0])
+            os.close(tap[1])
         if can_dev:
             can_dev.close()
         for dev in list(devices.values()) + slimevr_devices:

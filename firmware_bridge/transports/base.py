@@ -92,7 +92,8 @@ def register_scheme(scheme, module):
     SCHEMES[scheme] = module
 
 
-for _scheme, _module in {"serial": "serial_port", "i2c": "i2c", "can": "can_bus", "slimevr": "slimevr"}.items():
+for _scheme, _module in {"serial": "serial_port", "i2c": "i2c", "can": "can_bus", "slimevr": "slimevr",
+                        "webxr": "webxr"}.items():
     register_scheme(_scheme, f"firmware_bridge.transports.{_module}")
 
 

@@ -254,8 +254,9 @@ def decode_headset_pose(payload, t=0.0):
 # decode to NaN; the root in millimetres saturates at +-32.767 m, far beyond any play space.
 
 
-def encode_pose_frame(frame, seq):
-    """PoseFrame -> one POSE_FRAME frame. Raises ValueError on NaN or out-of-range counters."""
+def pose_record(frame, record=None):
+    """PoseFrame -> its POSE_FRAME payload as a POSE_RECORD, filled into `record` when one is given (a
+    sender that reuses one allocates nothing per frame). Raises ValueError on NaN or out-of-range counters."""
     rotations = np.asarray(frame.rotations)
     if rotations.shape != (NUM_JOINTS, 4):
         raise ValueError(f"rotations must be [{NUM_JOINTS},4] quaternions, not {rotations.shape}")
@@ -263,14 +264,19 @@ def encode_pose_frame(frame, seq):
     contacts = np.asarray(frame.contacts, dtype=np.float64)
     if not (np.all(np.isfinite(root)) and np.all(np.isfinite(contacts))):
         raise ValueError("cannot encode a pose frame with a NaN or infinite root or contact")
-    record = np.zeros((), POSE_RECORD)
+    record = np.zeros((), POSE_RECORD) if record is None else record
     record["root_pos_mm"] = np.clip(np.round(root * 1000.0), -INT16_MAX, INT16_MAX)
     record["rotations_q14"] = q14.to_q14(rotations)
     record["contacts_u8"] = np.round(np.clip(contacts, 0.0, 1.0) * 255.0)
     record["num_samples"] = check_range(frame.num_samples, "num_samples")
     record["ssi_flags"] = check_range(frame.ssi_flags, "ssi_flags")
     record["trackers_lost"] = check_range(frame.trackers_lost, "trackers_lost", 0xFFFF)
-    return encode_frame(POSE_FRAME, seq, seconds_to_us(frame.t), record.tobytes())
+    return record
+
+
+def encode_pose_frame(frame, seq):
+    """PoseFrame -> one POSE_FRAME frame. Raises ValueError on NaN or out-of-range counters."""
+    return encode_frame(POSE_FRAME, seq, seconds_to_us(frame.t), pose_record(frame).tobytes())
 
 
 def decode_pose_frame(payload, t=0.0):

@@ -1,0 +1,129 @@
+"""The headset page in a real browser: headless Chromium with iwer emulating a Meta Quest 3 whose head and
+controllers play the bundled take, into the webxr:// source of the real Service (edgetools.sim.quest).
+
+- A 10 s take through the page, scored by the replay harness as the serial replay of the same take is:
+  the board receives >= 95 % of the 72 Hz frames, decodes the scripted head pose within 1e-4, its MPJPE
+  is within 1.05x the serial path's, and the page has drawn the body it got back (its own counters and
+  the bone colours in a screenshot of its view).
+- In the page: a wrong code refused, a second headset refused as busy, the socket killed mid-take and
+  the page back with poses flowing within 2 s, the service alive throughout.
+
+Skips, saying why, without Chromium, node's iwer or Playwright; `.ci/run` installs them.
+"""
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from edgetools.sim.quest import EmulatedQuest, QuestHeadset
+from tests.conftest import ROOT, SAMPLE
+
+MISSING = EmulatedQuest.missing()
+pytestmark = pytest.mark.skipif(MISSING is not None, reason=MISSING or "")
+SESSION = ROOT / "samples" / "cmu_09_12_walk.session.npz"
+LEFT, RIGHT = (38, 140, 255), (255, 140, 25)          # mirror.js's bone colours, as 8-bit RGB
+
+
+def bone_pixels(png):
+    from PIL import Image
+    rgb = np.asarray(Image.open(png).convert("RGB")).astype(int)
+    return sum(int((np.abs(rgb - np.array(colour)).sum(axis=-1) < 60).sum()) for colour in (LEFT, RIGHT))
+
+
+@pytest.fixture(scope="module")
+def take():
+    from edgetools.takes import from_sample
+    return from_sample(SAMPLE)
+
+
+def test_a_take_through_the_page_matches_the_serial_replay(take, tmp_path, monkeypatch):
+    from edgetools.sim.replay import replay
+    from edgetools.sim.session import Session
+    from firmware_bridge.transports import webxr
+    decoded = []
+    real_decode = webxr.wire.decode_xr_pose
+
+    def recording(data):                  # what the board decoded, by the page's sequence number
+        seq, page_ms, sample = real_decode(data)
+        decoded.append((seq, page_ms, sample.head_pos.copy(), sample.head_rot.copy()))
+        return seq, page_ms, sample
+    monkeypatch.setattr(webxr.wire, "decode_xr_pose", recording)
+    session = Session.load(SESSION)
+    headset = QuestHeadset(take, tmp_path / "state", screenshot=tmp_path / "mirror.png")
+    try:
+        web = replay(session, speed="realtime", seconds=10, samples=8, headset=headset)
+    finally:
+        headset.close()
+    serial = replay(session, speed="max", seconds=10, samples=8)
+    page = headset.state
+
+    scripted = {entry["seq"]: entry for entry in headset.log}     # every frame the page sent, until finish()
+    received = [d for d in decoded if d[0] in scripted]
+    span_ms = received[-1][1] - received[0][1]
+    at_72hz = span_ms / (1000 / 72) + 1
+    pos_error = max(np.abs(np.array(scripted[s]["head_pos"]) - p).max() for s, _, p, _ in received)
+    rot_error = max(np.abs(np.sign(np.dot(scripted[s]["head_rot"], q)) * q - scripted[s]["head_rot"]).max()
+                    for s, _, _, q in received)
+    ratio = web["mpjpe_cm"] / serial["mpjpe_cm"]
+    print(f"\nwebxr: board received {len(received)} of the {len(scripted)} XR frames the page sent "
+          f"({len(received) / len(scripted):.1%}); {len(received) / at_72hz:.1%} of 72 Hz over {span_ms / 1000:.2f} s; "
+          f"head error {pos_error:.2e} m, {rot_error:.2e} (quaternion); mpjpe {web['mpjpe_cm']:.3f} cm vs serial "
+          f"{serial['mpjpe_cm']:.3f} cm (x{ratio:.3f}); page drew {page['drawn']} frames from {page['bodies']} bodies, "
+          f"round trip p50 {page['latencyMs']} ms; deadline misses {web['deadline_misses']}")
+    assert span_ms > 9000 and len(received) >= 0.95 * at_72hz and len(received) >= 0.95 * len(scripted)
+    assert pos_error <= 1e-4 and rot_error <= 1e-4
+    assert ratio <= 1.05
+    assert web["poses_decoded"] > 500 and page["bodies"] >= 0.9 * web["poses_decoded"]
+    assert page["drawn"] > 0.9 * page["xrFrames"] - 72 and page["samples"] == 8 and page["latencyMs"] > 0
+    assert bone_pixels(tmp_path / "mirror.png") > 100        # the mirrored body is on screen
+    assert not headset.quest.console_errors
+
+
+def test_pairing_busy_and_reconnect_in_the_page(take, tmp_path):
+    from firmware_bridge import config as config_mod
+    from firmware_bridge.service import Service
+    cfg = config_mod.from_dict({"headset": {"url": f"webxr://127.0.0.1:0?state={tmp_path}"},
+                                "runtime": {"samples": 1, "adaptive": False}}, "browser")
+    service = Service(cfg, status=None)
+    source = service.headset.source
+    stop = threading.Event()
+    runner = threading.Thread(target=service.run, kwargs={"stop": stop.is_set}, daemon=True)
+    runner.start()
+    first = EmulatedQuest(take)
+    try:
+        first.open(source.page_urls()[0])
+        second = first.another()
+        first.pair(f"{(int(source.code) + 1) % 10 ** 6:06d}")        # a wrong code: refused, asked again
+        first.wait("window.edgepose.closeReason.startsWith('4001')")
+        assert first.page.is_visible("#code") and "Wrong code" in first.page.inner_text("#pair-error")
+        assert source.stats["wrong_code"] == 1
+        first.pair(source.code)
+        first.wait("window.edgepose.paired")
+        first.play(first.page_now_ms())
+        first.enter()
+        first.wait("window.edgepose.bodies > 30")
+
+        second.open(source.page_urls()[0])                           # a second headset: busy
+        second.pair(source.code)
+        second.wait("window.edgepose.closeReason.startsWith('4009')")
+        assert not second.state()["paired"] and source.stats["refused_busy"] >= 1
+        assert "busy" in second.page.inner_text("#status")
+        second.close()
+
+        before = first.state()
+        killed = time.monotonic()
+        source._loop.call_soon_threadsafe(lambda: source._headset.ws.transport.abort())   # the socket dies
+        first.wait(f"window.edgepose.reconnects > {before['reconnects']} && window.edgepose.paired && "
+                   f"window.edgepose.bodies > {before['bodies'] + 5}", timeout=5)
+        back = time.monotonic() - killed
+        print(f"\nwebxr: socket killed, page paired again and poses flowing after {back:.2f} s")
+        assert back < 2.0
+        ticks = service.stats["ticks"]
+        time.sleep(0.2)
+        assert service.stats["ticks"] > ticks and runner.is_alive()     # the service never stopped
+        assert not first.console_errors
+    finally:
+        first.close()
+        stop.set()
+        runner.join(5)
