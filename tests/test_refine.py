@@ -1,0 +1,134 @@
+"""Latent refinement (edge.refine): its Jacobian, reaching a target, refusing a bad one, dropping a
+lost tracker's term, and changing nothing when no constraint is live."""
+import numpy as np
+import pytest
+
+from edge.imus import IMU_JOINTS
+from edge.pipeline import Pipeline
+from edge.refine import ImuOrientation, RefineContext, TargetReach
+from edge.skeleton import JOINT, NUM_JOINTS
+from edgetools.eval import run_take
+from edgetools.takes import from_sample
+from tests.conftest import SAMPLE
+
+L_TOE = JOINT["l_toe"]
+
+
+@pytest.fixture(scope="module")
+def take():
+    return from_sample(SAMPLE)
+
+
+def run_to(pipe, take, frame):
+    pipe.reset()
+    for t in range(frame + 1):
+        pipe.step(take.signals.slice(t, t + 1))
+
+
+def lifted_toe_target(take, frame, up=0.35, forward=0.25):
+    """A point well above and ahead of where the plain model puts the left toe at `frame` (a kick it
+    does not make by itself), and that distance."""
+    base = run_take(Pipeline(samples=1, precision="fp32"), take, max_frames=frame + 1).pred[frame, L_TOE]
+    return base + np.array([0.0, up, forward]), np.hypot(up, forward)
+
+
+def test_the_jacobian_matches_central_differences(take):
+    """refine's forward-difference Jacobian of the live terms (one batched decode) agrees with central
+    differences of the residuals taken one latent at a time (fp32, where both are exact to rounding)."""
+    pipe = Pipeline(samples=1, precision="fp32", refine={"steps": 1, "ik_pull": 0.0})
+    goal, _ = lifted_toe_target(take, 60)
+    pipe.refiner.add_target(L_TOE, goal, radius=0.0, first=50, last=60, pelvis=None)
+    run_to(pipe, take, 55)                       # refine ran this frame: the batch holds its inputs
+    r = pipe.refiner
+    z = pipe.decoder.latent[0].astype(np.float64)
+    h = 1e-3
+    r0, J = r.jacobian(z, eps=h)
+    central = np.stack([(r.residuals_at(z + h * e) - r.residuals_at(z - h * e)) / (2 * h) for e in np.eye(r.L)])
+    assert np.abs(r0 - r.residuals_at(z)).max() < 1e-6
+    scale = np.abs(central).max()
+    assert scale > 1e-3, "the target term must depend on the latent"
+    assert np.abs(J - central).max() < 0.05 * scale
+
+
+@pytest.mark.parametrize("ik_pull", [0.0, 1.0])
+def test_a_target_the_model_misses_is_reached(take, ik_pull):
+    """A point 43 cm above and ahead of where the plain model puts the left toe mid-walk: refining the
+    latent alone (ik_pull 0) takes the toe at least 30 % of the way by the end of the window (the
+    model's latent space reaches so far in a walk); with the leg IK's full pull, within 5 cm."""
+    frame = 100
+    goal, far = lifted_toe_target(take, frame)
+    plain = run_take(Pipeline(samples=1), take, max_frames=frame + 1).pred[frame, L_TOE]
+    pipe = Pipeline(samples=1, refine={"ik_pull": ik_pull})
+    assert pipe.refiner.add_target("l_toe", goal, radius=0.02, first=frame - 20, last=frame) is not None
+    got = run_take(pipe, take, max_frames=frame + 1).pred[frame, L_TOE]
+    assert np.linalg.norm(plain - goal) > 0.9 * far
+    assert np.linalg.norm(got - goal) < (0.7 * far if ik_pull == 0 else 0.05)
+
+
+@pytest.mark.parametrize("position, joint, why", [
+    ([np.nan, 1.0, 0.0], "l_toe", "non_finite"),
+    ([0.0, np.inf, 0.0], "l_toe", "non_finite"),
+    ([0.0, 1.0, 0.0], "l_tail", "unknown_joint"),
+    ([0.0, 1.0, 0.0], 99, "unknown_joint"),
+    ([0.0, 1.0, 2.0], "l_toe", "out_of_reach"),
+])
+def test_a_bad_target_is_refused_counted_and_never_applied(take, position, joint, why):
+    pipe = Pipeline(samples=1, refine=True)
+    assert pipe.refiner.add_target(joint, position, pelvis=np.array([0.0, 1.0, 0.0]), first=0, last=200) is None
+    assert pipe.refiner.refused[why] == 1 and sum(pipe.refiner.refused.values()) == 1
+    assert pipe.refiner.term("targets").targets == []
+    got = run_take(pipe, take, max_frames=120).pred
+    want = run_take(Pipeline(samples=1), take, max_frames=120).pred
+    assert np.array_equal(got, want)
+
+
+def test_an_imu_term_drops_when_its_tracker_is_lost():
+    """ImuOrientation has 9 residuals per worn IMU, weighted by its flag; an IMU whose flag is 0
+    (unplugged, or faded out) has none, and with none worn the term is not live."""
+    ctx = RefineContext()
+    ctx.seg_m = np.tile(np.eye(3), (NUM_JOINTS, 1, 1))
+    ctx.seg_flag = np.zeros(NUM_JOINTS)
+    ctx.raw_world = np.tile(np.eye(3), (4, NUM_JOINTS, 1, 1))
+    ctx.raw_world[:, :, 0, 1] = 0.1
+    term = ImuOrientation()
+    ctx.seg_flag[IMU_JOINTS[[1, 3]]] = 1.0
+    assert term.size(ctx) == 18 and term.residuals(ctx).shape == (4, 18)
+    ctx.seg_flag[IMU_JOINTS[3]] = 0.0              # lost on this frame
+    assert term.size(ctx) == 9 and np.abs(term.residuals(ctx)).max() > 0
+    ctx.seg_flag[IMU_JOINTS[1]] = 0.0
+    assert term.size(ctx) == 0
+
+
+def test_a_target_term_is_live_only_in_its_window():
+    reach = TargetReach()
+    ctx = RefineContext()
+    reach.targets.append(__import__("edge.refine").refine.Target(L_TOE, np.zeros(3), first=10, last=20))
+    for frame, live in ((9, 0), (10, 3), (20, 3), (21, 0)):
+        ctx.frame = frame
+        assert reach.size(ctx) == live
+
+
+@pytest.mark.parametrize("samples", [1, 8])
+def test_without_a_live_constraint_the_refiner_changes_nothing(take, samples):
+    """4-point input and no target: every output pose is bit for bit the unrefined pipeline's (the
+    guards never move the latent alone)."""
+    got = run_take(Pipeline(samples=samples, refine=True), take, max_frames=240).pred
+    want = run_take(Pipeline(samples=samples), take, max_frames=240).pred
+    assert np.array_equal(got, want)
+
+
+def test_the_latent_lets_go_after_the_window_and_the_pose_returns(take):
+    """After a target's window the refined latent eases back to the sample's own (0.1 s time
+    constant) and the latent is the sample's again; the GRU state forgets the refined frames more
+    slowly (and a foot lock taken meanwhile holds where it was taken): 2 s on, the pose is the
+    unrefined one to 3 mm on average and 2 cm at most."""
+    frame = 100
+    goal, _ = lifted_toe_target(take, frame)
+    pipe = Pipeline(samples=1, refine=True)
+    pipe.refiner.add_target("l_toe", goal, first=frame - 20, last=frame)
+    got = run_take(pipe, take, max_frames=frame + 150).pred
+    want = run_take(Pipeline(samples=1), take, max_frames=frame + 150).pred
+    assert np.abs(got[frame] - want[frame]).max() > 0.1
+    late = np.linalg.norm(got[frame + 120:] - want[frame + 120:], axis=-1)
+    assert late.mean() < 3e-3 and late.max() < 0.02
+    assert np.array_equal(pipe.decoder.latent[0], pipe.latents[0])
