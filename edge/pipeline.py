@@ -340,6 +340,11 @@ class Pipeline:
     def _refine(self, s, N, c):
         """edge.refine on the shown sample's row of this frame: its latent moves (and stays moved for
         the next frame), and its decode (6D, contacts, the GRU state it wrote) replaces the row's."""
+        if not self.refiner.busy():
+            if self._target_row[0] >= 0:
+                self._target_row[0] = -1
+                self.path.set_target_row(-1)
+            return
         dec, f = self.decoder, self.feet
         self._slot_now = s
         out = self.refiner.refine(self.t, dec.latent[c], self.latents[c], dec.hidden[dec.last_read][c], dec.features[0],

@@ -47,6 +47,7 @@ class Target:
     last: int = 1 << 62
     weight: float = 1.0
     ramp: bool = True           # the pull grows over the window, full at `last`
+    key: object = None          # who set it (the headset's target id): the same key replaces it
 
     def pull(self, frame):
         """How hard the target pulls at `frame` (0..1): with `ramp`, growing over the window (smoothstep)
@@ -218,13 +219,31 @@ class Refiner:
         self.ctx.keep = np.ones(NUM_JOINTS, bool)
         self.refused = {"non_finite": 0, "unknown_joint": 0, "out_of_reach": 0}
         self.applied = 0            # frames refined
+        self._displaced = False     # the latent is not yet back at the sample's own
         self.last_cost = (0.0, 0.0)     # the constraints' cost before and after the last frame's steps
 
     # ---- the terms
     def term(self, name):
         return next((t for t in self.terms if t.name == name), None)
 
-    def add_target(self, joint, position, radius=0.05, first=0, last=1 << 62, pelvis=None, weight=1.0):
+    def busy(self):
+        """Whether refine has anything to do: a target waiting or live, a latent still let go, or a term
+        that reads the sensors every frame. When not, the pipeline skips the stage (and pays nothing)."""
+        reach = self.term("targets")
+        return bool(reach is not None and reach.targets) or self._displaced or any(
+            not t.guard and t.name != "targets" and t.weight > 0 for t in self.terms)
+
+    def remove_target(self, key):
+        """Drop the targets added with `key` (the headset's target id); True if there were any."""
+        reach = self.term("targets")
+        if reach is None:
+            return False
+        kept = [g for g in reach.targets if g.key != key]
+        gone = len(kept) != len(reach.targets)
+        reach.targets = kept
+        return gone
+
+    def add_target(self, joint, position, radius=0.05, first=0, last=1 << 62, pelvis=None, weight=1.0, key=None):
         """Add a target (joint name or index, world position [3] in metres) unless it is unsafe: a
         non-finite value, an unknown joint, or farther than MAX_REACH_M from `pelvis` [3] (when given).
         Returns the Target, or None (counted in `refused` by reason)."""
@@ -244,7 +263,9 @@ class Refiner:
         reach = self.term("targets")
         if reach is None:
             return None
-        g = Target(int(joint), position.copy(), float(radius), int(first), int(last), float(weight))
+        if key is not None:             # a target sent again under its id replaces the last one
+            self.remove_target(key)
+        g = Target(int(joint), position.copy(), float(radius), int(first), int(last), float(weight), key=key)
         reach.targets.append(g)
         return g
 
@@ -277,6 +298,8 @@ class Refiner:
         ctx = self.ctx
         ctx.frame, ctx.seg_m, ctx.seg_flag, ctx.lock_pos, ctx.lock_weight = frame, seg_m, seg_flag, lock_pos, lock_weight
         reach = self.term("targets")
+        if reach is not None and any(g.last < frame for g in reach.targets):
+            reach.forget(frame)
         ctx.keep[:] = True
         for g in (reach.live(frame) if reach is not None else ()):
             ctx.keep[LIMB_OF.get(g.joint, [g.joint])] = False
@@ -307,6 +330,7 @@ class Refiner:
         latent[:] = z.astype(np.float32)
         out = self._decode(latent, hidden, features)
         self.applied += 1
+        self._displaced = True
         self.last_cost = (cost0, self._cost_of(self.final.rot6d, terms, self._raw))
         return out
 
@@ -335,6 +359,7 @@ class Refiner:
         gap = prior_latent - latent
         if not np.abs(gap).max() > 1e-3:
             latent[:] = prior_latent
+            self._displaced = False
             return None
         latent += np.float32(self.release) * gap
         return self._decode(latent, hidden, features)

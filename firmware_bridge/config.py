@@ -26,6 +26,11 @@
     calibration = "calibration.json"  # optional, from `edge calibrate`
     models = "models"                 # optional, default: the shipped models
 
+    [refine]                          # latent refinement of the shown sample (edge.refine)
+    enabled = true                    # the headset's TARGET messages need it; without a live target it does nothing
+    steps = 2                         # Gauss-Newton steps a frame (K)
+    terms = ["targets", "keep", "floor"]   # also "imus" or "imus-tilt"
+
 Every mistake is reported at start-up with the file, the key and what to write instead.
 """
 import json
@@ -47,7 +52,9 @@ SECTIONS = {
     "output": {"pose_stream", "vmc", "vmc_mode", "vrchat", "vrchat_trackers", "bvh"},
     "runtime": {"samples", "adaptive", "precision", "lookahead", "hz", "lost_after_ms", "sync_latency_ms",
                 "calibration", "models"},
+    "refine": {"enabled", "steps", "terms"},
 }
+REFINE_TERMS = ("targets", "keep", "floor", "imus", "imus-tilt")
 
 
 @dataclass
@@ -71,6 +78,7 @@ class Config:
     models: str = ""
     path: str = ""
     tracker_names: list = field(default_factory=list)
+    refine: dict = None             # Pipeline's refine= (None: off)
 
 
 from edge.imus import TRACKER_NAMES  # noqa: E402  (the body locations a tracker may be named for)
@@ -178,4 +186,19 @@ def from_dict(raw, where="config"):
         raise ConfigError(f"{where}: [runtime] precision must be \"fp32\" or \"int8\", got {cfg.precision!r}")
     cfg.calibration = rt.get("calibration", "")
     cfg.models = rt.get("models", "")
+    cfg.refine = refine_section(raw.get("refine", {}), where)
     return cfg
+
+
+def refine_section(ref, where):
+    """[refine] -> the Pipeline's refine= settings, or None when disabled (on by default)."""
+    enabled = ref.get("enabled", True)
+    if not isinstance(enabled, bool):
+        raise ConfigError(f"{where}: [refine] enabled must be true or false, got {enabled!r}")
+    steps = ref.get("steps", 2)
+    if not isinstance(steps, int) or isinstance(steps, bool) or not 1 <= steps <= 8:
+        raise ConfigError(f"{where}: [refine] steps must be a whole number 1..8, got {steps!r}")
+    terms = ref.get("terms", ["targets", "keep", "floor"])
+    if not isinstance(terms, list) or not terms or any(t not in REFINE_TERMS for t in terms):
+        raise ConfigError(f"{where}: [refine] terms is a list of {', '.join(REFINE_TERMS)}; got {terms!r}")
+    return {"steps": steps, "terms": list(terms)} if enabled else None

@@ -28,3 +28,19 @@ class HeadsetSample:
     hand_rot: np.ndarray             # [2,4]
     hand_valid: np.ndarray = field(default_factory=lambda: np.ones(2, bool))  # controller tracked?
     received: float = 0.0
+
+
+@dataclass
+class TargetSample:
+    """A point the headset asks a joint to reach (edge.refine): within `radius` metres, over a window of
+    `duration` seconds starting `start` seconds after the board receives it; `clear` removes target
+    `target_id` instead. Values are as sent: the board checks them before any is applied."""
+    t: float                         # headset timestamp, seconds, headset clock
+    target_id: int
+    joint: int                       # edge.skeleton joint index (protocol.md section 5's order)
+    position: np.ndarray             # [3] world (the headset's tracking space), metres
+    radius: float
+    start: float
+    duration: float
+    clear: bool = False
+    received: float = 0.0

@@ -10,14 +10,15 @@ from hypothesis import strategies as st
 
 from edge.skeleton import JOINT, NUM_JOINTS
 from firmware_bridge.wire.framing import (
-    HEADER, HEADSET_POSE, MAX_ENCODED_FRAME, MESSAGE_TYPES, POSE_FRAME, TRACKER_SAMPLES, ProtocolError,
+    HEADER, HEADSET_POSE, MAX_ENCODED_FRAME, MESSAGE_TYPES, POSE_FRAME, TARGET, TRACKER_SAMPLES, ProtocolError,
     TimestampUnwrapper, cobs_decode, cobs_encode, crc16, decode_frame, encode_frame, sequence_gap,
 )
 from firmware_bridge.wire.messages import (
-    FrameReader, PoseFrame, decode_messages, encode_headset_pose, encode_pose_frame, encode_tracker_samples,
+    FrameReader, PoseFrame, decode_messages, encode_headset_pose, encode_pose_frame, encode_target,
+    encode_tracker_samples,
 )
 from firmware_bridge.wire.q14 import to_q14 as quat_to_q14
-from firmware_bridge.samples import HeadsetSample, TrackerSample
+from firmware_bridge.samples import HeadsetSample, TargetSample, TrackerSample
 
 DOC = Path(__file__).resolve().parent.parent / "firmware_bridge" / "wire" / "protocol.md"
 # database=None: no .hypothesis/ folder in the working tree.
@@ -50,15 +51,22 @@ def example_pose_frame():
                      contacts=np.array([1.0, 0.0]), num_samples=10, ssi_flags=0x03, trackers_lost=0x0004)
 
 
+def example_target():
+    return TargetSample(t=12.37, target_id=3, joint=JOINT["l_toe"], position=np.array([0.25, 1.5, 0.75]), radius=0.05,
+                        start=0.25, duration=0.5)
+
+
 EXAMPLES = {
     "TRACKER_SAMPLES": lambda: encode_tracker_samples(example_tracker_samples(), seq=7),
     "HEADSET_POSE": lambda: encode_headset_pose(example_headset_pose(), seq=300),
     "POSE_FRAME": lambda: encode_pose_frame(example_pose_frame(), seq=1000),
+    "TARGET": lambda: encode_target(example_target(), seq=42),
 }
 EXAMPLE_VALUES = {
     "TRACKER_SAMPLES": example_tracker_samples,
     "HEADSET_POSE": lambda: [example_headset_pose()],
     "POSE_FRAME": lambda: [example_pose_frame()],
+    "TARGET": lambda: [example_target()],
 }
 
 
@@ -138,6 +146,11 @@ def assert_same_message(got, want):
         for hand in np.flatnonzero(want.hand_valid):
             np.testing.assert_array_equal(got.hand_pos[hand], np.float32(want.hand_pos[hand]))
             np.testing.assert_allclose(got.hand_rot[hand], want.hand_rot[hand], atol=Q14_ATOL)
+    elif isinstance(want, TargetSample):
+        assert (got.target_id, got.joint, got.clear) == (want.target_id, want.joint, want.clear)
+        np.testing.assert_array_equal(got.position, np.float32(want.position))
+        assert got.radius == np.float32(want.radius)
+        assert (got.start, got.duration) == (want.start, want.duration)
     else:
         np.testing.assert_allclose(got.root_pos, want.root_pos, atol=0.0005 + 1e-9)
         np.testing.assert_allclose(got.rotations, want.rotations, atol=Q14_ATOL)
@@ -154,6 +167,10 @@ def assert_well_formed(message):
     elif isinstance(message, HeadsetSample):
         quats = [message.head_rot, *message.hand_rot]
         assert np.all(np.isfinite(message.head_pos)) and np.all(np.isfinite(message.hand_pos))
+    elif isinstance(message, TargetSample):      # a request, decoded as sent: the refiner judges its values
+        assert 0 <= message.joint <= 255 and 0 <= message.target_id <= 255 and message.position.shape == (3,)
+        assert 0 <= message.start <= 65.535 and 0 <= message.duration <= 65.535
+        return
     else:
         quats = list(message.rotations)
         assert np.all(np.isfinite(message.root_pos))
@@ -526,10 +543,10 @@ def test_fuzz_flipped_bits_on_the_wire_never_yield_a_frame_whose_crc_fails(wire,
 
 
 PAYLOAD_SIZES = {TRACKER_SAMPLES: st.integers(0, 600), HEADSET_POSE: st.sampled_from([0, 61, 62, 63]),
-                 POSE_FRAME: st.sampled_from([0, 179, 180, 181])}
+                 POSE_FRAME: st.sampled_from([0, 179, 180, 181]), TARGET: st.sampled_from([0, 23, 24, 25])}
 
 
-@pytest.mark.parametrize("msg_type", [TRACKER_SAMPLES, HEADSET_POSE, POSE_FRAME], ids=MESSAGE_TYPES.values())
+@pytest.mark.parametrize("msg_type", [TRACKER_SAMPLES, HEADSET_POSE, POSE_FRAME, TARGET], ids=MESSAGE_TYPES.values())
 @FUZZ
 @given(data=st.data())
 def test_fuzz_payload_decoders_never_raise_and_only_yield_sane_values(msg_type, data):
@@ -567,3 +584,16 @@ def test_a_headset_position_beyond_any_tracked_space_is_dropped_and_counted_by_k
 def HEADSET_RECORD_FOR_TEST(sample):
     """The HEADSET_POSE payload of a sample (the encoder's record, without its framing)."""
     return cobs_decode(encode_headset_pose(sample, 0)[:-1])[HEADER.size:-2]
+
+
+def test_a_target_is_decoded_as_sent_so_the_board_can_say_why_it_refuses_it():
+    """TARGET's floats are a request: a NaN position reaches the service (which refuses it with the
+    reason non_finite, tests/test_service.py) instead of vanishing as a corrupt frame."""
+    bad = example_target()
+    bad.position = np.array([np.nan, 1.0, 0.0])
+    [got] = FrameReader().feed(encode_target(bad, seq=1))
+    assert isinstance(got, TargetSample) and np.isnan(got.position[0])
+    cleared = example_target()
+    cleared.clear = True
+    [got] = FrameReader().feed(encode_target(cleared, seq=2))
+    assert got.clear and got.target_id == 3

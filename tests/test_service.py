@@ -101,6 +101,9 @@ def test_run_streams_poses_that_listen_decodes(tmp_path):
     ({"headset": {"url": "serial:///dev/null"}, "trackers": [{"url": "serial:///dev/x?trackers=waist"}]}, "ID:NAME"),
     ({"headset": {"url": "serial:///dev/null"}, "trackers": [{"url": "can://virtual/x?nodes=1:l_knee"}]},
      "unknown tracker name 'l_knee'; the model reads waist, chest, l_thigh, r_thigh, l_shin, r_shin, l_foot, r_foot"),
+    ({"headset": {"url": "serial:///dev/null"}, "refine": {"steps": 0}}, r"\[refine\] steps must be a whole number 1..8"),
+    ({"headset": {"url": "serial:///dev/null"}, "refine": {"terms": ["kicks"]}}, r"\[refine\] terms is a list of targets"),
+    ({"headset": {"url": "serial:///dev/null"}, "refine": {"enabled": "on"}}, r"\[refine\] enabled must be true or false"),
 ])
 def test_bad_config_fails_at_start_with_what_to_fix(raw, message):
     with pytest.raises(config_mod.ConfigError, match=message):
@@ -267,3 +270,54 @@ def test_a_pose_stream_port_plugged_in_after_start_is_opened_and_gets_the_poses(
         os.close(fd)
     assert len(frames) > 45 and ear.stats["corrupt"] == 0
     assert "pose stream: waiting for" in status.getvalue()
+
+
+def test_a_headsets_targets_reach_the_refiner_and_bad_ones_are_refused_with_a_reason():
+    """TARGET messages on the real headset pty (protocol.md 4.1): a good one is live in the refiner and
+    refines frames; NaN, an unknown joint and a point 3 m from the body are refused, counted by reason,
+    shown on the status line, and never applied; the service keeps streaming."""
+    from firmware_bridge.samples import TargetSample
+    status = io.StringIO()
+
+    def prepare(service):
+        service.status = status
+        hm_fd = prepare.fd
+
+        def send_targets():
+            time.sleep(0.6)                    # the body has been output: the pelvis is known
+            head = service.pipeline.out.positions[0]
+            for k, (joint, where) in enumerate([(16, head + [0.1, 0.1, 0.3]), (16, [np.nan, 1.0, 0.0]),
+                                                (40, head), (19, head + [3.0, 0.0, 0.0])]):
+                t = TargetSample(t=1.0, target_id=k, joint=joint, position=np.asarray(where, float), radius=0.02,
+                                 start=0.0, duration=2.0)
+                os.write(hm_fd, messages.encode_target(t, k))
+        threading.Thread(target=send_targets, daemon=True).start()
+
+    take = from_sample(SAMPLE)
+    hm, hs, hpath = pty_pair()
+    tm, ts, tpath = pty_pair()
+    prepare.fd = hm
+    cfg = config_mod.from_dict({"headset": {"url": f"serial://{hpath}?role=headset"},
+                                "trackers": [{"url": f"serial://{tpath}?role=hub"}],
+                                "output": {"pose_stream": "headset"}, "runtime": {"samples": 1, "adaptive": False}})
+    service = Service(cfg, status=None)
+    prepare(service)
+    stop = threading.Event()
+    threading.Thread(target=feed, args=(take, hm, tm, stop), daemon=True).start()
+    runner = threading.Thread(target=lambda: service.run(stop=stop.is_set), daemon=True)
+    runner.start()
+    ear = Listener(fd=hm)
+    deadline = time.monotonic() + 1.6
+    while time.monotonic() < deadline:
+        ear.poll(0.05)
+    s = service.summary()
+    service.show_status(final=True)
+    stop.set()
+    runner.join(5)
+    for fd in (hm, hs, tm, ts):
+        os.close(fd)
+    assert s["targets_in"] == 4 and s["targets_refused"] == 3
+    assert s["targets_refused_by_reason"] == {"non_finite": 1, "unknown_joint": 1, "out_of_reach": 1}
+    assert s["targets_live"] == 1 and s["refined_frames"] > 10
+    assert "targets 1 live, 3 refused" in status.getvalue()
+    assert s["frames_out"] > 50

@@ -15,14 +15,14 @@ import time
 import serial
 
 from firmware_bridge.transports.base import DeviceUnavailable, Source, TransportError, id_names
-from firmware_bridge.wire.messages import (DEFAULT_TRACKER_NAMES, HEADSET_POSE, TRACKER_SAMPLES, FrameReader,
+from firmware_bridge.wire.messages import (DEFAULT_TRACKER_NAMES, HEADSET_POSE, TARGET, TRACKER_SAMPLES, FrameReader,
                                            encode_pose_frame)
 
 DEFAULT_BAUD = 460800
 ROLES = {
     "hub": (TRACKER_SAMPLES,),
-    "headset": (HEADSET_POSE,),
-    "both": (TRACKER_SAMPLES, HEADSET_POSE),
+    "headset": (HEADSET_POSE, TARGET),
+    "both": (TRACKER_SAMPLES, HEADSET_POSE, TARGET),
 }
 # A write that cannot drain within this time means the far end stopped reading: drop the frame
 # rather than stall the pose loop.

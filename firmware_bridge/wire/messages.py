@@ -2,6 +2,7 @@
 
     tracker hub -> board    TRACKER_SAMPLES   IMU readings (one or more trackers per frame)
     headset     -> board    HEADSET_POSE      head and controller 6-DoF poses
+    headset     -> board    TARGET            a point a joint should reach, with a radius and a time window
     board       -> headset  POSE_FRAME        the full-body pose the board computed
 
 Each payload is one packed little-endian numpy record (read them beside the byte tables in
@@ -15,10 +16,10 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from edge.skeleton import NUM_JOINTS
-from firmware_bridge.samples import HeadsetSample, TrackerSample
+from firmware_bridge.samples import HeadsetSample, TargetSample, TrackerSample
 from firmware_bridge.wire import q14
 from firmware_bridge.wire.framing import (DELIMITER, HEADSET_POSE, MAX_ENCODED_FRAME, MESSAGE_TYPES, POSE_FRAME,
-                                          TRACKER_SAMPLES, ProtocolError, TimestampUnwrapper, decode_frame,
+                                          TARGET, TRACKER_SAMPLES, ProtocolError, TimestampUnwrapper, decode_frame,
                                           encode_frame, seconds_to_us, sequence_gap)
 
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
@@ -63,6 +64,18 @@ HEADSET_RECORD = np.dtype([
     ("head_quat_q14", "<i2", 4),
     ("controllers", CONTROLLER_RECORD, 2),   # left, right
 ])
+
+TARGET_RECORD = np.dtype([
+    ("target_id", "u1"),
+    ("joint", "u1"),
+    ("flags", "u1"),                         # bit 0: clear target_id
+    ("reserved", "u1"),
+    ("position_m", "<f4", 3),
+    ("radius_m", "<f4"),
+    ("start_ms", "<u2"),
+    ("duration_ms", "<u2"),
+])
+TARGET_CLEAR = 0x01
 
 POSE_RECORD = np.dtype([
     ("root_pos_mm", "<i2", 3),           # pelvis world position, millimetres
@@ -293,6 +306,34 @@ def decode_pose_frame(payload, t=0.0):
 
 
 # ---------------------------------------------------------------------------------------------
+# TARGET (headset -> board): one TARGET_RECORD. Its values are a request, decoded as sent: the board
+# refuses an unsafe one (non-finite, unknown joint, out of reach) with a reason (edge.refine).
+
+
+def encode_target(target, seq):
+    """TargetSample -> one TARGET frame."""
+    record = np.zeros((), TARGET_RECORD)
+    record["target_id"] = check_range(target.target_id, "target_id")
+    record["joint"] = check_range(target.joint, "joint")
+    record["flags"] = TARGET_CLEAR if target.clear else 0
+    record["position_m"] = np.asarray(target.position, np.float32)
+    record["radius_m"] = np.float32(target.radius)
+    record["start_ms"] = check_range(round(target.start * 1000), "start_ms", 0xFFFF)
+    record["duration_ms"] = check_range(round(target.duration * 1000), "duration_ms", 0xFFFF)
+    return encode_frame(TARGET, seq, seconds_to_us(target.t), record.tobytes())
+
+
+def decode_target(payload, t=0.0):
+    """TARGET payload -> TargetSample; `t` is the frame's time in seconds."""
+    check_payload_size(payload, TARGET_RECORD.itemsize, "TARGET")
+    record = np.frombuffer(payload, TARGET_RECORD)[0]
+    return TargetSample(t=t, target_id=int(record["target_id"]), joint=int(record["joint"]),
+                        position=record["position_m"].astype(np.float64), radius=float(record["radius_m"]),
+                        start=int(record["start_ms"]) / 1000.0, duration=int(record["duration_ms"]) / 1000.0,
+                        clear=bool(record["flags"] & TARGET_CLEAR))
+
+
+# ---------------------------------------------------------------------------------------------
 # Whole messages and the stream.
 
 
@@ -304,6 +345,8 @@ def decode_messages(frame, t=None, tracker_names=None):
         return decode_tracker_samples(frame.payload, t, tracker_names)
     if frame.msg_type == HEADSET_POSE:
         return [decode_headset_pose(frame.payload, t)]
+    if frame.msg_type == TARGET:
+        return [decode_target(frame.payload, t)]
     return [decode_pose_frame(frame.payload, t)]
 
 
