@@ -4,6 +4,7 @@
     python bench/pipeline.py --compare [--samples 1,10,32,100] [--frames 600] [--blocks 10] [--json OUT]
     python bench/pipeline.py --trackers [--samples 100] [--frames 3000] [--blocks 30] [--json OUT]
     python bench/pipeline.py --against REV [--samples 1,32,100] [--frames 600] [--blocks 10] [--precision int8]
+    python bench/pipeline.py --refine [--samples 1,32] [--frames 600] [--blocks 10] [--precision int8]
 
 Plain run: the pipeline with --precision models, then its bare decoder call; medians and p99 in
 microseconds and the pipeline / decoder ratio.
@@ -31,6 +32,12 @@ temporary folder, and each tree runs in a worker process of its own (its own cod
 pinned to the same core and taking turns block by block in alternating order, so only one runs at a
 time and machine noise hits both alike. Printed per N: each side's pipeline and decoder p50 / p99,
 pipeline / decoder, and this tree / REV with the range of the per-block ratios.
+
+--refine times latent refinement (edge.refine) against what it is built from, interleaved: one
+refinement step (the batched decode of the latent and its 30 steps, FK of the batch, the terms'
+residuals and the 30x30 solve) against one bare decoder call on N=31 rows; and, per N, the whole frame
+with a live target at K=1, 2, 3 steps against the frame without one, with p99. Prints DragPoser's
+published per-iteration cost (desktop i7, PyTorch, section 5) beside ours.
 
 Pins itself to one core (like the board's budget). A benchmark, not a test: it prints figures and,
 besides that agreement check, asserts nothing.
@@ -211,6 +218,54 @@ def trackers(a, frames, ns):
     return {"machine": machine(), "blocks": a.blocks, "calls_per_block": per_block, "results": rows}
 
 
+def refine_bench(a, frames, ns):
+    """One refinement step against one N=31 decoder batch, and the frame with K steps against without."""
+    from edge.skeleton import JOINT
+    per_block = a.frames // a.blocks
+    rows = []
+
+    def targeted(n, steps):
+        pipe = Pipeline(samples=n, precision=a.precision, refine={"steps": steps})
+        warm(pipe, frames)
+        # a target on the left toe that never ends, 40 cm above where the body is: refinement every frame
+        pipe.refiner.add_target("l_toe", pipe.out.positions[JOINT["l_toe"]] + [0.0, 0.4, 0.2], radius=0.0,
+                                first=0, last=1 << 40)
+        for t in range(30):
+            pipe.step(frames[(WARMUP + t) % len(frames)])
+        return pipe
+
+    one = targeted(1, 1)
+    r, m = one.refiner, one.manifest
+    z = one.decoder.latent[0].astype(np.float64)
+    zp = one.latents[0].astype(np.float64)
+    dec31 = Decoder(one.decoder.session, 31, m["latent"], m["hidden"], m["features"], recurrent=False)
+    calls = {"refine_step": lambda t: r.step(z.copy(), z, zp), "decoder_n31": lambda t: dec31.step()}
+    times = interleaved(calls, a.blocks, per_block)
+    step = {"us": {k: summary(v) for k, v in times.items()}, "ratio": ratio(times, "refine_step", "decoder_n31")}
+    q = step["ratio"]
+    print(f"one refinement step {step['us']['refine_step']['p50']:.0f} us (p99 {step['us']['refine_step']['p99']:.0f}); "
+          f"one N=31 decoder call {step['us']['decoder_n31']['p50']:.0f} us: ratio {q['p50']:.2f} "
+          f"[{q['blocks_min']:.2f}, {q['blocks_max']:.2f}]   ({a.precision}, one core)")
+    print("DragPoser (section 5, desktop i7, PyTorch, per iteration): decoder 630 us + losses 4,590 us + "
+          "backprop 6,910 us = 12,130 us")
+    print(f"\n{'N':>4} {'no target p50':>14} {'p99':>7} " + " ".join(f"{'K=' + str(k) + ' p50':>10} {'p99':>7}"
+                                                              for k in (1, 2, 3)) + "   (frame, microseconds)")
+    for n in ns:
+        pipes = {"none": Pipeline(samples=n, precision=a.precision, refine=True)}
+        warm(pipes["none"], frames)
+        pipes.update({f"K={k}": targeted(n, k) for k in (1, 2, 3)})
+        calls = {k: (lambda t, p=p: p.step(frames[t % len(frames)])) for k, p in pipes.items()}
+        times = interleaved(calls, a.blocks, per_block)
+        row = {"samples": n, "us": {k: summary(v) for k, v in times.items()}}
+        rows.append(row)
+        u = row["us"]
+        print(f"{n:>4} {u['none']['p50']:>14.0f} {u['none']['p99']:>7.0f} "
+              + " ".join(f"{u[f'K={k}']['p50']:>10.0f} {u[f'K={k}']['p99']:>7.0f}" for k in (1, 2, 3)))
+    return {"machine": machine(), "precision": a.precision, "blocks": a.blocks, "calls_per_block": per_block,
+            "refine_step": step, "frames": rows,
+            "dragposer_per_iteration_us": {"decoder": 630, "losses": 4590, "backprop": 6910, "total": 12130}}
+
+
 def against(a, ns):
     """This tree's pipeline against revision a.against's, each in its own worker, interleaved."""
     import subprocess
@@ -275,9 +330,10 @@ def main():
     ap.add_argument("--trackers", action="store_true", help="all seven extra IMUs against none, interleaved")
     ap.add_argument("--blocks", type=int, default=10, help="--compare/--trackers: blocks the timed calls are split into")
     ap.add_argument("--against", metavar="REV", help="another git revision's pipeline, interleaved with this tree's")
+    ap.add_argument("--refine", action="store_true", help="a refinement step against an N=31 decoder call; the frame at K")
     ap.add_argument("--json")
     a = ap.parse_args()
-    if (a.compare or a.trackers or a.against) and not 1 <= a.blocks <= a.frames:
+    if (a.compare or a.trackers or a.against or a.refine) and not 1 <= a.blocks <= a.frames:
         ap.error("--blocks must be 1..--frames")
     try:
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
@@ -289,7 +345,7 @@ def main():
     else:
         take = from_sample(SAMPLE)
         frames = [take.signals.slice(t, t + 1) for t in range(take.frames)]
-        report = (compare if a.compare else trackers if a.trackers else plain)(a, frames, ns)
+        report = (compare if a.compare else trackers if a.trackers else refine_bench if a.refine else plain)(a, frames, ns)
     if a.json:
         Path(a.json).write_text(json.dumps(report, indent=2) + "\n")
 

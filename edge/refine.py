@@ -316,23 +316,29 @@ class Refiner:
         self._prior_latent = prior_latent
         cost0 = None
         for _ in range(self.steps):
-            r, J = self.jacobian(z)
-            if cost0 is None:
-                cost0 = float(r @ r)
-            A = J @ J.T
-            A[np.diag_indices_from(A)] += self.prior + self.continuity + self.damping
-            g = J @ r + self.prior * (z - zp) + self.continuity * (z - z_prev)   # the gradient of half the cost
-            dz = -np.linalg.solve(A, g)
-            n = np.linalg.norm(dz)
-            if n > self.max_step:
-                dz *= self.max_step / n
-            z += dz
+            cost = self.step(z, z_prev, zp)
+            cost0 = cost if cost0 is None else cost0
         latent[:] = z.astype(np.float32)
         out = self._decode(latent, hidden, features)
         self.applied += 1
         self._displaced = True
         self.last_cost = (cost0, self._cost_of(self.final.rot6d, terms, self._raw))
         return out
+
+    def step(self, z, z_prev, zp):
+        """One Levenberg-Marquardt step on z [L] float64 in place, from the Jacobian at z; z_prev is the
+        latent the frame started from (continuity), zp the sample's own (prior). Returns the constraints'
+        cost at z."""
+        r, J = self.jacobian(z)
+        A = J @ J.T
+        A[np.diag_indices_from(A)] += self.prior + self.continuity + self.damping
+        g = J @ r + self.prior * (z - zp) + self.continuity * (z - z_prev)   # the gradient of half the cost
+        dz = -np.linalg.solve(A, g)
+        n = np.linalg.norm(dz)
+        if n > self.max_step:
+            dz *= self.max_step / n
+        z += dz
+        return float(r @ r)
 
     def jacobian(self, z, eps=None):
         """The live terms' residuals at latent z [L] (r [m]) and their Jacobian J [L,m] (d r / d z_k), by
