@@ -319,7 +319,8 @@ class Pipeline:
 
         # Judge frame t, the newest, and decide (3.2.4: detection at t + tau relative to the output). A new
         # switch waits until the last transition has been sent, so transitions never overlap.
-        ask = self._pending is None and self.ssi and N > 1 and sw.free(t)
+        ask = (self._pending is None and self.ssi and N > 1 and sw.free(t)
+               and not (self.refiner is not None and self.refiner.holds(t)))     # refinement owns the shown sample
         n = -1
         if N > 1:
             c = sw.current if ask else -1

@@ -233,6 +233,13 @@ class Refiner:
         return bool(reach is not None and reach.targets) or self._displaced or any(
             not t.guard and t.name != "targets" and t.weight > 0 for t in self.terms)
 
+    def holds(self, frame):
+        """Whether the refined sample should stay shown: a target is live, or the latent is still being
+        let go. SSI does not switch then (a switch would hand the output to a sample that was not
+        refined, through a transition made from the samples' own latents)."""
+        reach = self.term("targets")
+        return self._displaced or bool(reach is not None and reach.live(frame))
+
     def remove_target(self, key):
         """Drop the targets added with `key` (the headset's target id); True if there were any."""
         reach = self.term("targets")
