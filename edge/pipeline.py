@@ -222,7 +222,9 @@ class Pipeline:
         self.refiner = None
         if refine:
             from edge.refine import Refiner
-            self.refiner = Refiner(dec_session, m, self._forward_rows, **(refine if isinstance(refine, dict) else {}))
+            compiled = (self.native, self.path.core, lambda: self._slot_now) if self.native else None
+            self.refiner = Refiner(dec_session, m, self._forward_rows, compiled=compiled,
+                                   **(refine if isinstance(refine, dict) else {}))
         self.reset()
 
 

@@ -190,7 +190,8 @@ class Refiner:
     call or NumpyFrame's numpy), into out = (local, world, pos) [R,...]."""
 
     def __init__(self, decoder_session, manifest, forward, steps=2, eps=0.5, prior=3e-4, continuity=3e-4,
-                 damping=1e-3, max_step=3.0, release_s=0.1, fps=60.0, terms=None, weights=None, ik_pull=0.5):
+                 damping=1e-3, max_step=3.0, release_s=0.1, fps=60.0, terms=None, weights=None, ik_pull=0.5,
+                 compiled=None):
         from edge.inference import Decoder
         L, H, F = manifest["latent"], manifest["hidden"], manifest["features"]
         self.L, self.steps, self.eps, self.ik_pull = L, steps, eps, ik_pull
@@ -217,10 +218,17 @@ class Refiner:
             self.term(name).weight = w
         self.ctx = RefineContext()
         self.ctx.keep = np.ones(NUM_JOINTS, bool)
+        # The compiled step (ep_refine_step): compiled = (the C library, the pipeline's core context, a
+        # function giving this frame's ring slot). It takes TargetReach, KeepPose and FloorContact;
+        # a frame with the IMU term live takes the numpy step.
+        self._c = None
+        if compiled is not None:
+            self._c = compiled
+            self._init_compiled(L, R)
         self.refused = {"non_finite": 0, "unknown_joint": 0, "out_of_reach": 0}
         self.applied = 0            # frames refined
         self._displaced = False     # the latent is not yet back at the sample's own
-        self.last_cost = (0.0, 0.0)     # the constraints' cost before and after the last frame's steps
+        self.last_cost = (0.0, 0.0)     # the constraints' cost at the last frame's first and last step
 
     # ---- the terms
     def term(self, name):
@@ -314,6 +322,7 @@ class Refiner:
         if all(t.guard for t in terms):         # nothing to reach for: the guards alone would only hold
             return self._let_go(latent, prior_latent, hidden, features)
         self._terms, self._raw = terms, any(t.needs_raw_world for t in terms)
+        self._c_on = self._prepare_compiled(terms)
         b = self.batch
         b.features[:] = features
         b.hidden[0][:] = hidden
@@ -321,21 +330,73 @@ class Refiner:
         z = z_prev.copy()
         zp = prior_latent.astype(np.float64)
         self._prior_latent = prior_latent
-        cost0 = None
-        for _ in range(self.steps):
-            cost = self.step(z, z_prev, zp)
-            cost0 = cost if cost0 is None else cost0
+        costs = [self.step(z, z_prev, zp) for _ in range(self.steps)]
         latent[:] = z.astype(np.float32)
         out = self._decode(latent, hidden, features)
         self.applied += 1
         self._displaced = True
-        self.last_cost = (cost0, self._cost_of(self.final.rot6d, terms, self._raw))
+        self.last_cost = (costs[0], costs[-1])
         return out
+
+    def _init_compiled(self, L, R):
+        from edge import native
+        MAX_TARGETS = 8
+        self._c_max_m = 3 * MAX_TARGETS + 3 * NUM_JOINTS + 10
+        self._c_buf = {"pos": np.zeros((R, NUM_JOINTS, 3)), "r": np.zeros((R, self._c_max_m)), "A": np.zeros((L, L)),
+                       "jt": np.zeros((self._c_max_m, L)),
+                       "g": np.zeros(L), "joint": np.zeros(MAX_TARGETS, np.int64), "tpos": np.zeros((MAX_TARGETS, 3)),
+                       "radius": np.zeros(MAX_TARGETS), "w": np.zeros(MAX_TARGETS), "keep": np.ones(NUM_JOINTS, np.uint8)}
+        c = self._c_buf
+        self._c_args = native.RefineArgs(
+            rot6d=native.addr(self.batch.rot6d), rot6d_stride=self.batch.rot6d.shape[1], L=L, eps=self.eps,
+            pos=native.addr(c["pos"]), r=native.addr(c["r"]), A=native.addr(c["A"]), g=native.addr(c["g"]),
+            jt=native.addr(c["jt"]),
+            max_m=self._c_max_m, target_joint=native.addr(c["joint"]), target_pos=native.addr(c["tpos"]),
+            target_radius=native.addr(c["radius"]), target_w=native.addr(c["w"]), keep=native.addr(c["keep"]),
+            prior=self.prior, continuity=self.continuity, damping=self.damping, max_step=self.max_step)
+        self._c_max_targets = MAX_TARGETS
+        self._c_on = False          # this frame's terms are all the compiled step's
+
+    def _prepare_compiled(self, terms):
+        """This frame's live terms into the compiled step's arguments; False if it cannot take them."""
+        if self._c is None or any(t.name not in ("targets", "keep", "floor") for t in terms):
+            return False
+        a, c, ctx = self._c_args, self._c_buf, self.ctx
+        a.n_targets, a.keep_on, a.floor_on = 0, 0, 0
+        a.prior, a.continuity, a.damping, a.max_step, a.eps = self.prior, self.continuity, self.damping, self.max_step, self.eps
+        for t in terms:
+            if t.name == "targets":
+                live = t.live(ctx.frame)
+                if len(live) > self._c_max_targets:
+                    return False
+                for i, g in enumerate(live):
+                    c["joint"][i], c["tpos"][i], c["radius"][i] = g.joint, g.position, g.radius
+                    c["w"][i] = np.sqrt(t.weight * g.weight * g.pull(ctx.frame))
+                a.n_targets = len(live)
+            elif t.name == "keep":
+                c["keep"][:] = ctx.keep
+                a.keep_on, a.keep_w = 1, float(np.sqrt(t.weight))
+            else:
+                from edge import native
+                a.floor_on, a.floor_w, a.planted_w = 1, float(np.sqrt(t.weight)), float(np.sqrt(t.planted))
+                a.lock_pos, a.lock_weight = native.addr(ctx.lock_pos), native.addr(ctx.lock_weight)
+        return True
 
     def step(self, z, z_prev, zp):
         """One Levenberg-Marquardt step on z [L] float64 in place, from the Jacobian at z; z_prev is the
         latent the frame started from (continuity), zp the sample's own (prior). Returns the constraints'
-        cost at z."""
+        cost at z. The compiled step when this frame's terms allow (ep_refine_step), else numpy."""
+        if self._c_on:
+            from edge import native
+            b, L = self.batch, self.L
+            b.latent[:L + 1] = z.astype(np.float32)
+            b.latent[1:L + 1] += self._steps
+            b.latent[L + 1] = self._prior_latent
+            b.step()
+            lib, core, slot = self._c
+            cost = lib.ep_refine_step(core, self._c_args, slot(), native.addr(z), native.addr(z_prev), native.addr(zp))
+            if cost >= 0:
+                return cost
         r, J = self.jacobian(z)
         A = J @ J.T
         A[np.diag_indices_from(A)] += self.prior + self.continuity + self.damping
@@ -396,14 +457,3 @@ class Refiner:
             self.forward(b.rot6d, R, False, (self._local[:R], self._raw_world[:R], self._raw_pos[:R]))
             ctx.raw_world = self._raw_world[:R]
         return np.concatenate([t.residuals(ctx) for t in terms], axis=1)
-
-    def _cost_of(self, rot6d, terms, raw):
-        """The constraints' cost of one decoded row (what the last step reached)."""
-        ctx = self.ctx
-        self.forward(rot6d, 1, True, (self._local[:1], self._world[:1], self._pos[:1]))
-        ctx.positions = self._pos[:1]
-        if raw:
-            self.forward(rot6d, 1, False, (self._local[:1], self._raw_world[:1], self._raw_pos[:1]))
-            ctx.raw_world = self._raw_world[:1]
-        r = np.concatenate([t.residuals(ctx) for t in terms], axis=1)[0]
-        return float(r @ r)

@@ -109,6 +109,12 @@ FootLocks = _struct("FootLocks", "postproc.c's foot_locks: edge.ik.FootLock's se
 PhysicalParams = _struct("PhysicalParams", "postproc.c's physical_params (edge.criteria.PhysicalPlausibility).",
                          [("segs", _P), ("feet", _P)] + [(k, _D) for k in ("gap", "float_m", "toe_h", "ankle_h",
                                                                            "w_floor", "w_legs", "w_support")])
+RefineArgs = _struct("RefineArgs", "postproc.c's refine_args: what ep_refine_step reads besides the core context.",
+                     [("rot6d", _P), ("rot6d_stride", _I), ("L", _I), ("eps", _D), ("pos", _P), ("r", _P), ("A", _P),
+                      ("g", _P), ("jt", _P), ("max_m", _I), ("n_targets", _I), ("target_joint", _P), ("target_pos", _P),
+                      ("target_radius", _P), ("target_w", _P), ("keep_on", _I), ("keep", _P), ("keep_w", _D),
+                      ("floor_on", _I), ("floor_w", _D), ("planted_w", _D), ("lock_pos", _P), ("lock_weight", _P),
+                      ("prior", _D), ("continuity", _D), ("damping", _D), ("max_step", _D)])
 Selection = _struct("Selection", "postproc.c's selection: what ep_frame_costs reads besides the core context.",
                     [("ae_out", _P), ("ae_rot_dim", _I), ("leg_rows", _P), ("legs", _P), ("leg_err", _P),
                      ("physical", _P), ("physical_cost", _P), ("pos", _P), ("ring_cost", _P), ("cost_stride", _I)])
@@ -147,6 +153,7 @@ _SIGNATURES = {
     "ep_all_finite_f32": [_P, _I],
     "ep_frame_poses": [ctypes.POINTER(CoreContext), _I, _I, _I, _I, _I, _D, _P, _P, _P, _P, _I],
     "ep_frame_costs": [ctypes.POINTER(CoreContext), ctypes.POINTER(Selection), _I, _I, _D, _D, _I, _D],
+    "ep_refine_step": [ctypes.POINTER(CoreContext), ctypes.POINTER(RefineArgs), _I, _P, _P, _P],
     "ep_emit": [ctypes.POINTER(CoreContext), _I, _I],
     "ep_frame_inputs": [ctypes.POINTER(CoreContext), _I, _I, _I, _I, _I, _D, _P],
     "ep_max_joints": [],
@@ -154,7 +161,8 @@ _SIGNATURES = {
 }
 _RETURNS_INT = {"ep_switch_to", "ep_max_joints", "ep_frame_sane", "ep_all_finite_f32", "ep_layout", "ep_frame_poses",
                 "ep_frame_costs", "ep_frame_inputs"}
-_MIRRORS = (Skeleton, PoseRows, ForwardInputs, LimbGoals, FootLocks, PhysicalParams, Selection)
+_RETURNS_DOUBLE = {"ep_refine_step"}
+_MIRRORS = (Skeleton, PoseRows, ForwardInputs, LimbGoals, FootLocks, PhysicalParams, Selection, RefineArgs)
 
 
 def layout_mismatch(lib):
@@ -188,7 +196,7 @@ def load():
         return None
     for name, args in _SIGNATURES.items():
         fn = getattr(lib, name)
-        fn.argtypes, fn.restype = args, (_I if name in _RETURNS_INT else None)
+        fn.argtypes, fn.restype = args, (_I if name in _RETURNS_INT else _D if name in _RETURNS_DOUBLE else None)
     from edge.skeleton import NUM_JOINTS
     mismatch = layout_mismatch(lib)
     if mismatch:        # a struct edited on one side only: calling in would corrupt memory

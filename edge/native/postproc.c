@@ -229,6 +229,30 @@ typedef struct {
     double gap, float_m, toe_h, ankle_h, w_floor, w_legs, w_support;
 } physical_params;
 
+/* edge.refine.Refiner.step's inputs besides the core context (ep_refine_step): the batch's decode
+ * rot6d [R, rot6d_stride] float of R = L + 2 rows (the latent, its L steps of eps, the sample's own);
+ * scratch pos [R,J,3], r [R, max_m], A [L,L], g [L], jt [max_m, L]; the live terms: n_targets targets (joint, point
+ * [3], radius, sqrt weight incl. the window's pull), KeepPose (keep [J] 0/1 and its sqrt weight, when
+ * keep_on), FloorContact (sqrt weights of the floor and the planted feet; the shown sample's locks
+ * lock_pos [2,3] and lock_weight [2], when floor_on); and the step's prior, continuity, damping and
+ * largest step. */
+typedef struct {
+    const float *rot6d;
+    int rot6d_stride, L;
+    double eps;
+    double *pos, *r, *A, *g, *jt;
+    int max_m, n_targets;
+    const int64_t *target_joint;
+    const double *target_pos, *target_radius, *target_w;
+    int keep_on;
+    const uint8_t *keep;
+    double keep_w;
+    int floor_on;
+    double floor_w, planted_w;
+    const double *lock_pos, *lock_weight;
+    double prior, continuity, damping, max_step;
+} refine_args;
+
 /* What SSI's default selection cost reads besides the core context (ep_frame_costs): the autoencoder's
  * output [N, ae_rot_dim] float, the leg rows and leg joints of ep_leg_error, its result [N] (out), the
  * physical criterion's settings (NULL: none) and result [N] (out), the rows' world positions after IK
@@ -658,8 +682,8 @@ typedef struct {
 } core_context;
 
 /* The layout of the structs above, for the loader to hold the ctypes mirrors against (edge.native.load):
- * out[0..7) the sizes of skeleton, pose_rows, forward_inputs, limb_goals, foot_locks, physical_params,
- * selection; out[7] sizeof(core_context), then the offset of each of its fields in order. Returns how many it wrote. */
+ * out[0..8) the sizes of skeleton, pose_rows, forward_inputs, limb_goals, foot_locks, physical_params,
+ * selection, refine_args; out[8] sizeof(core_context), then the offset of each of its fields in order. Returns how many it wrote. */
 #include <stddef.h>
 #define CORE_FIELDS(X) X(sk) X(locks) X(foot_ik) X(arm_ik) X(rot6d_stride) X(rot6d) X(contacts) X(goals) X(weights) \
     X(ring_rows) X(ring_waist) X(ring_anchor) X(ring_wrists) X(ring_hand) X(ring_head) X(ring_rot6d) X(ring_contacts) \
@@ -673,7 +697,7 @@ int ep_layout(int64_t *out, int n) {
     int k = 0;
     v[k++] = sizeof(skeleton); v[k++] = sizeof(pose_rows); v[k++] = sizeof(forward_inputs);
     v[k++] = sizeof(limb_goals); v[k++] = sizeof(foot_locks); v[k++] = sizeof(physical_params);
-    v[k++] = sizeof(selection); v[k++] = sizeof(core_context);
+    v[k++] = sizeof(selection); v[k++] = sizeof(refine_args); v[k++] = sizeof(core_context);
 #define OFFSET(f) v[k++] = offsetof(core_context, f);
     CORE_FIELDS(OFFSET)
 #undef OFFSET
@@ -1076,4 +1100,117 @@ int ep_frame_inputs(const core_context *x, int slot, int first, int N, int c, in
     copy_f32(x->ring_features + slot * F, feat, F);
     for (int r = 0; r < x->dec_rows; r++) copy_f32(x->dec_features + (int64_t)r * F, feat, F);
     return 1;
+}
+
+
+/* One row's residuals of the live terms (edge.refine's TargetReach, KeepPose, FloorContact, in that
+ * order) from its positions P [J,3] and the reference row's ref [J,3], into r; returns how many. */
+static int refine_residuals(const core_context *x, const refine_args *a, const double *P, const double *ref, double *r) {
+    const skeleton *sk = &x->sk;
+    int m = 0;
+    for (int i = 0; i < a->n_targets; i++) {
+        const double *p = P + a->target_joint[i] * 3, *t = a->target_pos + i * 3;
+        double d[3] = {p[0] - t[0], p[1] - t[1], p[2] - t[2]};
+        double dist = sqrt(vec3_dot(d, d));
+        double beyond = 1.0 - a->target_radius[i] / (dist > 1e-9 ? dist : 1e-9);
+        beyond = beyond > 0.0 ? beyond : 0.0;
+        for (int c = 0; c < 3; c++) r[m++] = a->target_w[i] * d[c] * beyond;
+    }
+    if (a->keep_on)
+        for (int j = 0; j < sk->J; j++)
+            if (a->keep[j])
+                for (int c = 0; c < 3; c++) r[m++] = a->keep_w * (P[j * 3 + c] - ref[j * 3 + c]);
+    if (a->floor_on) {
+        for (int f = 0; f < 4; f++) {           /* toes at FLOOR_TOE, ankles at FLOOR_ANKLE */
+            int j = f < 2 ? (int)sk->ankles[f] + 1 : (int)sk->ankles[f - 2];
+            if (f < 2) while (j < sk->J && sk->parents[j] != sk->ankles[f]) j++;
+            double under = P[j * 3 + 1] - (f < 2 ? FLOOR_TOE : FLOOR_ANKLE);
+            r[m++] = a->floor_w * (under < 0.0 ? under : 0.0);
+        }
+        for (int f = 0; f < 2; f++) {
+            int j = (int)sk->ankles[f];
+            for (int c = 0; c < 3; c++)
+                r[m++] = (P[j * 3 + c] - a->lock_pos[f * 3 + c]) * (a->planted_w * a->lock_weight[f]);
+        }
+    }
+    return m;
+}
+
+/* edge.refine.Refiner.step after the batch's decode: FK of the R = L + 2 rows against ring slot
+ * `slot`'s inputs (with the worn IMUs' segments), the live terms' residuals of each, the forward-
+ * difference Jacobian J [L,m] = (r_k - r_0) / eps, and one Levenberg-Marquardt step on z [L] in place:
+ * (J J^T + (prior + continuity + damping) I) dz = -(J r_0 + prior (z - zp) + continuity (z - z_prev)),
+ * dz scaled to at most max_step, by Cholesky. Returns the constraints' cost r_0 . r_0, or -1 when the
+ * residuals would not fit max_m (nothing changed). */
+double ep_refine_step(const core_context *x, const refine_args *a, int slot, double *z, const double *z_prev,
+                      const double *zp) {
+    const skeleton *sk = &x->sk;
+    const int J = sk->J, L = a->L, R = L + 2;
+    int m = a->n_targets * 3 + (a->floor_on ? 10 : 0);
+    if (a->keep_on)
+        for (int j = 0; j < J; j++) m += a->keep[j] ? 3 : 0;
+    if (m > a->max_m || L > 64)
+        return -1.0;
+    const forward_inputs fin = {a->rot6d, a->rot6d_stride, x->ring_waist + slot * 9, 0, x->ring_anchor + slot * 3, 0,
+                                x->ring_seg_m + (int64_t)slot * J * 9, x->ring_seg_flag + (int64_t)slot * J};
+    block k;
+    for (int r0 = 0; r0 < R; r0 += LANES) {
+        int nl = R - r0 < LANES ? R - r0 : LANES;
+        block_forward(&k, r0, nl, sk, &fin);
+        block_store(&k, r0, nl, J, 0, 0, a->pos);
+    }
+    const double *ref = a->pos + (int64_t)(R - 1) * J * 3;
+    for (int row = 0; row <= L; row++)
+        refine_residuals(x, a, a->pos + (int64_t)row * J * 3, ref, a->r + (int64_t)row * a->max_m);
+    double *r0 = a->r, cost = 0.0;
+    for (int i = 0; i < m; i++) cost += r0[i] * r0[i];
+    /* the Jacobian residual by residual, jt[i][p] = (r_{p+1}[i] - r_0[i]) / eps, so that A = J J^T and
+     * g accumulate one residual at a time over contiguous rows (independent sums: SIMD) */
+    double *jt = a->jt;
+    for (int p = 0; p < L; p++) {
+        const double *rp = a->r + (int64_t)(p + 1) * a->max_m;
+        for (int i = 0; i < m; i++) jt[i * L + p] = (rp[i] - r0[i]) / a->eps;
+    }
+    const double lambda = a->prior + a->continuity + a->damping;
+    double *A = a->A, *g = a->g;
+    for (int p = 0; p < L; p++) {
+        g[p] = 0.0;
+        for (int q = 0; q < L; q++) A[p * L + q] = 0.0;
+    }
+    for (int i = 0; i < m; i++) {
+        const double *ji = jt + i * L;
+        for (int p = 0; p < L; p++) {
+            const double jp = ji[p];
+            g[p] += jp * r0[i];
+            for (int q = 0; q < L; q++) A[p * L + q] += jp * ji[q];
+        }
+    }
+    for (int p = 0; p < L; p++) {
+        A[p * L + p] += lambda;
+        g[p] += a->prior * (z[p] - zp[p]) + a->continuity * (z[p] - z_prev[p]);
+    }
+    /* Cholesky A = C C^T (lower, in A), then C y = -g, C^T dz = y */
+    double y[64], dz[64];
+    for (int p = 0; p < L; p++) {
+        for (int q = 0; q <= p; q++) {
+            double s = A[p * L + q];
+            for (int t = 0; t < q; t++) s -= A[p * L + t] * A[q * L + t];
+            A[p * L + q] = p == q ? sqrt(s > 1e-300 ? s : 1e-300) : s / A[q * L + q];
+        }
+    }
+    for (int p = 0; p < L; p++) {
+        double s = -g[p];
+        for (int t = 0; t < p; t++) s -= A[p * L + t] * y[t];
+        y[p] = s / A[p * L + p];
+    }
+    for (int p = L - 1; p >= 0; p--) {
+        double s = y[p];
+        for (int t = p + 1; t < L; t++) s -= A[t * L + p] * dz[t];
+        dz[p] = s / A[p * L + p];
+    }
+    double n2 = 0.0;
+    for (int p = 0; p < L; p++) n2 += dz[p] * dz[p];
+    double scale = sqrt(n2) > a->max_step ? a->max_step / sqrt(n2) : 1.0;
+    for (int p = 0; p < L; p++) z[p] += dz[p] * scale;
+    return cost;
 }
