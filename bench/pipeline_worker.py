@@ -6,27 +6,17 @@ on request, so two revisions' code can be timed in turns from one parent process
 Builds Pipeline(samples=N, precision=PRECISION) fed SAMPLE's frames, warms it with WARMUP frames and
 prints {"rows": ...}; then each stdin line 'pipeline K' or 'decoder K' times K pipeline steps (the
 frames going on where the last block stopped) or K bare decoder calls, and answers with their
-durations in microseconds as one JSON line. Imports only what both old and new trees have.
+durations in microseconds as one JSON line. Imports only what both old and new trees have (back to
+e598c25).
 """
 import json
 import sys
-import time
-
-import numpy as np
-
-
-def time_calls(fn, n):
-    out = np.empty(n)
-    for i in range(n):
-        t0 = time.perf_counter_ns()
-        fn(i)
-        out[i] = time.perf_counter_ns() - t0
-    return out / 1000.0
 
 
 def main():
     n, precision, sample, warmup = int(sys.argv[1]), sys.argv[2], sys.argv[3], int(sys.argv[4])
     from edge.pipeline import Pipeline
+    from edge.timing import time_calls      # in every revision since the compiled core (e598c25)
     try:
         from edgetools.takes import from_sample
     except ImportError:             # revisions before the tools moved out of edge/

@@ -40,9 +40,10 @@ def feed(take, headset_fd, hub_fd, stop, hz=60.0):
         time.sleep(max(0.0, t0 + k / hz - time.monotonic()))
 
 
-def run_board(seconds, runtime, output=None, prepare=None):
+def run_board(seconds, runtime, output=None, prepare=None, headset=None):
     """A service on two ptys (headset, tracker hub) fed the sample take for `seconds`, and `edge listen`
-    on the headset side. Returns (service, decoded frames, listener)."""
+    on the headset side; `headset(service, fd)`, when given, runs in a thread of its own and may write
+    more to the headset side of the link. Returns (service, decoded frames, listener)."""
     take = from_sample(SAMPLE)
     hm, hs, hpath = pty_pair()
     tm, ts, tpath = pty_pair()
@@ -60,6 +61,8 @@ def run_board(seconds, runtime, output=None, prepare=None):
     runner = threading.Thread(target=lambda: service.run(stop=stop.is_set), daemon=True)
     feeder.start()
     runner.start()
+    if headset:
+        threading.Thread(target=headset, args=(service, hm), daemon=True).start()
     frames = []
     ear = Listener(fd=hm)
     deadline = time.monotonic() + seconds
@@ -279,45 +282,20 @@ def test_a_headsets_targets_reach_the_refiner_and_bad_ones_are_refused_with_a_re
     from firmware_bridge.samples import TargetSample
     status = io.StringIO()
 
-    def prepare(service):
-        service.status = status
-        hm_fd = prepare.fd
+    def send_targets(service, fd):
+        time.sleep(0.6)                         # the body has been output: the pelvis is known
+        pelvis = service.pipeline.out.positions[0]
+        for k, (joint, where) in enumerate([(16, pelvis + [0.1, 0.1, 0.3]), (16, [np.nan, 1.0, 0.0]),
+                                            (40, pelvis), (19, pelvis + [3.0, 0.0, 0.0])]):
+            t = TargetSample(t=1.0, target_id=k, joint=joint, position=np.asarray(where, float), radius=0.02,
+                             start=0.0, duration=2.0)
+            os.write(fd, messages.encode_target(t, k))
 
-        def send_targets():
-            time.sleep(0.6)                    # the body has been output: the pelvis is known
-            head = service.pipeline.out.positions[0]
-            for k, (joint, where) in enumerate([(16, head + [0.1, 0.1, 0.3]), (16, [np.nan, 1.0, 0.0]),
-                                                (40, head), (19, head + [3.0, 0.0, 0.0])]):
-                t = TargetSample(t=1.0, target_id=k, joint=joint, position=np.asarray(where, float), radius=0.02,
-                                 start=0.0, duration=2.0)
-                os.write(hm_fd, messages.encode_target(t, k))
-        threading.Thread(target=send_targets, daemon=True).start()
-
-    take = from_sample(SAMPLE)
-    hm, hs, hpath = pty_pair()
-    tm, ts, tpath = pty_pair()
-    prepare.fd = hm
-    cfg = config_mod.from_dict({"headset": {"url": f"serial://{hpath}?role=headset"},
-                                "trackers": [{"url": f"serial://{tpath}?role=hub"}],
-                                "output": {"pose_stream": "headset"}, "runtime": {"samples": 1, "adaptive": False}})
-    service = Service(cfg, status=None)
-    prepare(service)
-    stop = threading.Event()
-    threading.Thread(target=feed, args=(take, hm, tm, stop), daemon=True).start()
-    runner = threading.Thread(target=lambda: service.run(stop=stop.is_set), daemon=True)
-    runner.start()
-    ear = Listener(fd=hm)
-    deadline = time.monotonic() + 1.6
-    while time.monotonic() < deadline:
-        ear.poll(0.05)
+    service, frames, _ = run_board(1.6, {"samples": 1, "adaptive": False},
+                                   prepare=lambda s: setattr(s, "status", status), headset=send_targets)
     s = service.summary()
-    service.show_status(final=True)
-    stop.set()
-    runner.join(5)
-    for fd in (hm, hs, tm, ts):
-        os.close(fd)
     assert s["targets_in"] == 4 and s["targets_refused"] == 3
     assert s["targets_refused_by_reason"] == {"non_finite": 1, "unknown_joint": 1, "out_of_reach": 1}
     assert s["targets_live"] == 1 and s["refined_frames"] > 10
     assert "targets 1 live, 3 refused" in status.getvalue()
-    assert s["frames_out"] > 50
+    assert len(frames) > 50
