@@ -45,6 +45,8 @@ def main():
     ap.add_argument("--refine", action="store_true", help="with latent refinement (edge.refine) at its defaults")
     ap.add_argument("--refine-terms", default=None, help="comma-separated refinement terms (default all)")
     ap.add_argument("--refine-steps", type=int, default=2)
+    ap.add_argument("--heading", action="store_true", help="with the extra IMUs' heading observer (edge.heading)")
+    ap.add_argument("--heading-settings", default=None, help="its settings as JSON (a choosing run), e.g. '{\"measurement_std_deg\": 5}'")
     ap.add_argument("--max-clips", type=int, default=None, help="an even spread of this many val clips (a quick look)")
     ap.add_argument("--no-disconnect", action="store_true", help="skip the faulty-sensor runs")
     a = ap.parse_args()
@@ -53,6 +55,8 @@ def main():
     common = {"data": a.data, "samples": a.samples, "precision": a.precision, "max_clips": a.max_clips}
     if a.refine:
         common["refine"] = {"steps": a.refine_steps, **({"terms": a.refine_terms.split(",")} if a.refine_terms else {})}
+    if a.heading:
+        common["heading"] = json.loads(a.heading_settings) if a.heading_settings else True
     jobs = []
     if a.baseline:
         jobs.append(("baseline none", out / "baseline_none.json", {**common, "models": a.baseline}))
