@@ -37,28 +37,56 @@ def wrap(angle):
     return (angle + np.pi) % (2.0 * np.pi) - np.pi
 
 
+# The segment's heading relative to the pelvis's, in degrees: its mean and its spread of clip means
+# over 150 train clips (clean signals; edge.imus order: chest, thighs, shins, feet). A standing or
+# walking body's legs and chest face roughly where the pelvis faces; the feet turn out a little.
+PELVIS_RELATIVE_MEAN_DEG = np.array([0.0, -0.1, 1.7, -0.2, 0.3, 3.1, -7.0])
+PELVIS_RELATIVE_SPREAD_DEG = np.array([3.8, 6.4, 6.9, 3.2, 3.5, 7.5, 6.3])
+# The shown sample's own segment headings against the truth, spread of clip means over 40 val clips
+# with all seven IMUs worn (N=1 int8): the decoder knows the legs' headings worse than the pelvis does.
+DECODER_SPREAD_DEG = np.array([5.2, 9.0, 5.4, 10.3, 15.7, 23.4, 18.3])
+
+
 class HeadingObserver:
     """Online heading offset and drift of each of the seven extra IMUs (edge.imus order).
 
     correct(t, imu_rot, imu_flag) every frame, in place, before the pipeline uses them; observe(t,
-    segment_rot, imu_flag) at any frame with the decoder's own world orientations of the segments
-    [7,4] (it updates every `every` frames and ignores the rest); observe_pipeline does the latter from
-    a Pipeline's ring buffer. reset() at the start of a take."""
+    reference_rot, imu_flag) with the reference's world orientations [7,4] of the IMUs' segments (it
+    updates every `every` frames and ignores the rest). The reference is the waist puck ("pelvis": each
+    segment is taken to face where the pelvis faces, up to a mean and a per-take bias) or the decoder
+    ("decoder": the shown sample's own segments, FK without the IMU override); observe_pipeline takes
+    either from a Pipeline. reset() at the start of a take.
 
-    def __init__(self, fps=60.0, rate_hz=10.0, offset_std_deg=3.0, drift_std_deg_s=0.5, measurement_std_deg=10.0,
-                 drift_walk_deg_s2=0.02, max_turn_deg_s=120.0, gate_sigmas=3.0):
-        self.fps = float(fps)
+    State per IMU: the IMU's heading offset o, the reference's bias b over the take (how far this
+    body's segment faces off the reference on average), the drift rate r; the measurement is
+    o + b + noise, so the filter splits what it sees between o and b by their priors, and the rate
+    comes from how the measurement moves over seconds."""
+
+    def __init__(self, fps=60.0, rate_hz=10.0, reference="pelvis", offset_std_deg=3.0, drift_std_deg_s=0.5,
+                 bias_std_deg=None, measurement_std_deg=6.0, bias_walk_deg_s=0.5, drift_walk_deg_s2=0.02,
+                 max_turn_deg_s=120.0, gate_sigmas=3.0):
+        if reference not in ("pelvis", "decoder"):
+            raise ValueError(f"reference must be 'pelvis' or 'decoder', got {reference!r}")
+        self.fps, self.reference = float(fps), reference
         self.every = max(1, int(round(fps / rate_hz)))
-        # The prior is ImuNoise's: what a calibrated IMU starts with (LoBSTR's sensor noise, sec. 4.2).
-        self.p0 = np.diag([np.radians(offset_std_deg) ** 2, np.radians(drift_std_deg_s) ** 2])
+        K = NUM_IMUS
+        if bias_std_deg is None:
+            bias_std_deg = PELVIS_RELATIVE_SPREAD_DEG if reference == "pelvis" else DECODER_SPREAD_DEG
+        self.mean = np.radians(PELVIS_RELATIVE_MEAN_DEG) if reference == "pelvis" else np.zeros(K)
+        # The prior of o and r is ImuNoise's, what a calibrated IMU starts with (LoBSTR's sensor noise).
+        self.p0 = np.zeros((K, 3, 3))
+        self.p0[:, 0, 0] = np.radians(offset_std_deg) ** 2
+        self.p0[:, 1, 1] = np.radians(np.broadcast_to(bias_std_deg, (K,))) ** 2
+        self.p0[:, 2, 2] = np.radians(drift_std_deg_s) ** 2
         self.r = np.radians(measurement_std_deg) ** 2
+        self.q_bias = np.radians(bias_walk_deg_s) ** 2        # the bias wanders as the activity changes, per second
         self.q_rate = np.radians(drift_walk_deg_s2) ** 2      # the drift rate's random walk, per second
         self.max_turn = np.radians(max_turn_deg_s)
         self.gate = gate_sigmas
-        K = NUM_IMUS
-        self.offset, self.rate = np.zeros(K), np.zeros(K)    # the state at frame t_state (per IMU)
+        self.x = np.zeros((K, 3))                           # (o, b, r) at frame t_state, per IMU
+        self.offset, self.rate = self.x[:, 0], self.x[:, 2]
         self.t_state = np.zeros(K)
-        self.P = np.zeros((K, 2, 2))
+        self.P = np.zeros((K, 3, 3))
         self.raw = np.zeros((K, 4))                         # this frame's IMU orientations as they came
         self._prev_raw = np.zeros((K, 4))                   # at the last update (the turn gate)
         self._estimate = np.zeros(K)                        # the heading error at this frame, radians
@@ -70,8 +98,7 @@ class HeadingObserver:
         self.reset()
 
     def reset(self):
-        self.offset[:] = 0.0
-        self.rate[:] = 0.0
+        self.x[:] = 0.0
         self.P[:] = self.p0
         self.t_state[:] = 0.0
         self.t_prev = -1
@@ -114,48 +141,50 @@ class HeadingObserver:
         np.subtract(q[0], q[1], out=imu_rot[:, 3])
 
     # ---- at the reduced rate
-    def observe(self, t, segment_rot, imu_flag):
-        """One measurement per worn, confident IMU at frame t: segment_rot [7,4] the decoder's own world
-        orientations of the IMUs' segments (before any IMU override), against self.raw (correct's
-        input at frame t). Frames between updates are ignored. Returns True when it updated."""
+    def observe(self, t, reference_rot, imu_flag):
+        """One measurement per worn, confident IMU at frame t: reference_rot [7,4] (or [4], one for all)
+        the reference's world orientations of the IMUs' segments, against self.raw (correct's input at
+        frame t). Frames between updates are ignored. Returns True when it updated."""
         if t % self.every:
             return False
         # A fading or lost IMU (flag < 1) is left as it is: no prediction, no measurement; its time
         # catches up when it is back (the drift went on while it was away).
         present = imu_flag >= 1.0
         dt = (t - self.t_state) / self.fps * present
-        # Predict: offset += rate * dt, P = F P F' + Q (the rate walks slowly).
-        self.offset += self.rate * dt
-        P = self.P
-        P[:, 0, 0] += dt * (2 * P[:, 0, 1] + dt * P[:, 1, 1])
-        P[:, 0, 1] += dt * P[:, 1, 1]
-        P[:, 1, 0] = P[:, 0, 1]
-        P[:, 1, 1] += self.q_rate * dt
+        # Predict: o += r dt; P = F P F' + Q with F = [[1, 0, dt], [0, 1, 0], [0, 0, 1]].
+        x, P = self.x, self.P
+        x[:, 0] += x[:, 2] * dt
+        P[:, 0, :] += dt[:, None] * P[:, 2, :]
+        P[:, :, 0] += dt[:, None] * P[:, :, 2]
+        P[:, 1, 1] += self.q_bias * dt
+        P[:, 2, 2] += self.q_rate * dt
         self.t_state[present] = t
-        # Gates: fully present, and turning slowly since the last update (the decoder lags a fast turn).
+        # Gates: fully present, and turning slowly since the last update (the reference lags a fast turn).
         ok = present.copy()
         if self.t_prev >= 0:
             turn = quat.angle(quat.mul(self.raw, quat.inv(self._prev_raw)))
             ok &= turn <= self.max_turn * (t - self.t_prev) / self.fps
         np.copyto(self._prev_raw, self.raw)
         self.t_prev = t
-        z = heading_of(quat.mul(self.raw, quat.inv(segment_rot)))
-        innovation = wrap(z - self.offset)
-        s = P[:, 0, 0] + self.r
+        z = heading_of(quat.mul(self.raw, quat.inv(reference_rot))) - self.mean
+        innovation = wrap(z - x[:, 0] - x[:, 1])            # H = [1, 1, 0]
+        ph = P[:, :, 0] + P[:, :, 1]                        # P H'
+        s = ph[:, 0] + ph[:, 1] + self.r
         ok &= innovation * innovation <= self.gate * self.gate * s
-        for k in np.flatnonzero(ok):                # H = [1, 0]
-            gain = P[k, :, 0] / s[k]
-            self.offset[k] += gain[0] * innovation[k]
-            self.rate[k] += gain[1] * innovation[k]
-            P[k] -= np.outer(gain, P[k, 0])
+        for k in np.flatnonzero(ok):
+            gain = ph[k] / s[k]
+            x[k] += gain * innovation[k]
+            P[k] -= np.outer(gain, ph[k])
             self.updates[k] += 1
         return True
 
     def observe_pipeline(self, pipe, s, row):
-        """observe() with the decoder row `row` of ring slot s (the frame just stepped) as its estimate:
-        FK from the waist without the IMU override (the path's forward_rows)."""
+        """observe() on the frame a Pipeline just stepped: against its waist puck, or against decoder row
+        `row` of ring slot s (FK from the waist without the IMU override, the path's forward_rows)."""
         if pipe.t % self.every:
             return False
+        if self.reference == "pelvis":
+            return self.observe(pipe.t, pipe._in["waist_rot"], pipe._in["imu_flag"])
         out = self._fk
         pipe.path.forward_rows(s, pipe.buffer.rot6d[s, row:row + 1], 1, False, out)
         return self.observe(pipe.t, quat.from_matrix(out[1][0, IMU_JOINTS]), pipe._in["imu_flag"])
