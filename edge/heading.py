@@ -37,14 +37,28 @@ def wrap(angle):
     return (angle + np.pi) % (2.0 * np.pi) - np.pi
 
 
-# The segment's heading relative to the pelvis's, in degrees: its mean and its spread of clip means
-# over 150 train clips (clean signals; edge.imus order: chest, thighs, shins, feet). A standing or
-# walking body's legs and chest face roughly where the pelvis faces; the feet turn out a little.
+def body_references(waist_rot, head_rot, out=None):
+    """The trusted reference orientation [7,4] for each extra IMU's heading: the waist puck for the
+    legs, and for the chest the waist turned halfway to the headset's heading."""
+    out = np.empty((NUM_IMUS, 4)) if out is None else out
+    out[:] = waist_rot
+    out[0] = quat.mul(quat.from_yaw(0.5 * wrap(heading_of(quat.mul(head_rot, quat.inv(waist_rot))))), waist_rot)
+    return out
+
+
+# The segment's heading relative to its body reference, in degrees: its mean and its spread of clip
+# means over 150 train clips (clean signals; edge.imus order: chest, thighs, shins, feet). A standing
+# or walking body's legs face roughly where the pelvis faces (the feet turn out a little); the chest
+# faces halfway between the pelvis and the headset (as torso_segments in edge.pipeline builds the
+# spine), spread 1.9 deg where the pelvis alone gives 3.8.
 PELVIS_RELATIVE_MEAN_DEG = np.array([0.0, -0.1, 1.7, -0.2, 0.3, 3.1, -7.0])
-PELVIS_RELATIVE_SPREAD_DEG = np.array([3.8, 6.4, 6.9, 3.2, 3.5, 7.5, 6.3])
+PELVIS_RELATIVE_SPREAD_DEG = np.array([1.9, 6.4, 6.9, 3.2, 3.5, 7.5, 6.3])
 # The shown sample's own segment headings against the truth, spread of clip means over 40 val clips
 # with all seven IMUs worn (N=1 int8): the decoder knows the legs' headings worse than the pelvis does.
 DECODER_SPREAD_DEG = np.array([5.2, 9.0, 5.4, 10.3, 15.7, 23.4, 18.3])
+# How far one 10 Hz measurement strays, degrees: the feet wander most about their take's mean (chosen
+# on the corrected headings' rms over 120 train clips: 6 for all gave the feet more error than none).
+MEASUREMENT_STD_DEG = np.array([6.0, 6.0, 6.0, 6.0, 6.0, 12.0, 12.0])
 
 
 class HeadingObserver:
@@ -52,8 +66,9 @@ class HeadingObserver:
 
     correct(t, imu_rot, imu_flag) every frame, in place, before the pipeline uses them; observe(t,
     reference_rot, imu_flag) with the reference's world orientations [7,4] of the IMUs' segments (it
-    updates every `every` frames and ignores the rest). The reference is the waist puck ("pelvis": each
-    segment is taken to face where the pelvis faces, up to a mean and a per-take bias) or the decoder
+    updates every `every` frames and ignores the rest). The reference is the body ("pelvis": each leg
+    segment is taken to face where the waist puck faces, the chest halfway between the puck and the
+    headset, up to a mean and a per-take bias; body_references) or the decoder
     ("decoder": the shown sample's own segments, FK without the IMU override); observe_pipeline takes
     either from a Pipeline. reset() at the start of a take.
 
@@ -63,7 +78,7 @@ class HeadingObserver:
     comes from how the measurement moves over seconds."""
 
     def __init__(self, fps=60.0, rate_hz=10.0, reference="pelvis", offset_std_deg=3.0, drift_std_deg_s=0.5,
-                 bias_std_deg=None, measurement_std_deg=6.0, bias_walk_deg_s=0.5, drift_walk_deg_s2=0.02,
+                 bias_std_deg=None, measurement_std_deg=MEASUREMENT_STD_DEG, bias_walk_deg_s=0.5, drift_walk_deg_s2=0.02,
                  max_turn_deg_s=120.0, gate_sigmas=3.0):
         if reference not in ("pelvis", "decoder"):
             raise ValueError(f"reference must be 'pelvis' or 'decoder', got {reference!r}")
@@ -78,7 +93,7 @@ class HeadingObserver:
         self.p0[:, 0, 0] = np.radians(offset_std_deg) ** 2
         self.p0[:, 1, 1] = np.radians(np.broadcast_to(bias_std_deg, (K,))) ** 2
         self.p0[:, 2, 2] = np.radians(drift_std_deg_s) ** 2
-        self.r = np.radians(measurement_std_deg) ** 2
+        self.r = np.radians(np.broadcast_to(np.asarray(measurement_std_deg, float), (K,))) ** 2
         self.q_bias = np.radians(bias_walk_deg_s) ** 2        # the bias wanders as the activity changes, per second
         self.q_rate = np.radians(drift_walk_deg_s2) ** 2      # the drift rate's random walk, per second
         self.max_turn = np.radians(max_turn_deg_s)
@@ -93,6 +108,7 @@ class HeadingObserver:
         self._half_cos, self._half_sin = np.zeros(K), np.zeros(K)
         self._present = np.zeros(K)
         self._q = np.zeros((4, K))                          # scratch for the yaw product
+        self._reference = np.zeros((K, 4))
         # observe_pipeline's FK of one decoder row, without the IMU override.
         self._fk = (np.zeros((1, NUM_JOINTS, 3, 3)), np.zeros((1, NUM_JOINTS, 3, 3)), np.zeros((1, NUM_JOINTS, 3)))
         self.reset()
@@ -184,7 +200,8 @@ class HeadingObserver:
         if pipe.t % self.every:
             return False
         if self.reference == "pelvis":
-            return self.observe(pipe.t, pipe._in["waist_rot"], pipe._in["imu_flag"])
+            v = pipe._in
+            return self.observe(pipe.t, body_references(v["waist_rot"], v["head_rot"], self._reference), v["imu_flag"])
         out = self._fk
         pipe.path.forward_rows(s, pipe.buffer.rot6d[s, row:row + 1], 1, False, out)
         return self.observe(pipe.t, quat.from_matrix(out[1][0, IMU_JOINTS]), pipe._in["imu_flag"])
