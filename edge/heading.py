@@ -107,8 +107,11 @@ class HeadingObserver:
         self._estimate = np.zeros(K)                        # the heading error at this frame, radians
         self._half_cos, self._half_sin = np.zeros(K), np.zeros(K)
         self._present = np.zeros(K)
-        self._q = np.zeros((4, K))                          # scratch for the yaw product
+        self._q = np.zeros((2, K))                          # scratch for the yaw product
+        self._q_rows = (self._q[0], self._q[1])
         self._reference = np.zeros((K, 4))
+        self._raw_cols = tuple(self.raw[:, i] for i in range(4))
+        self._out, self._out_cols = None, None
         # observe_pipeline's FK of one decoder row, without the IMU override.
         self._fk = (np.zeros((1, NUM_JOINTS, 3, 3)), np.zeros((1, NUM_JOINTS, 3, 3)), np.zeros((1, NUM_JOINTS, 3)))
         self.reset()
@@ -124,7 +127,8 @@ class HeadingObserver:
     def estimate(self, t, imu_flag):
         """Each IMU's heading error at frame t [7] radians: the filter's offset carried on by its rate
         while the IMU is fully present; a fading or lost one (flag < 1) holds its offset."""
-        np.greater_equal(imu_flag, 1.0, out=self._present)
+        np.minimum(imu_flag, 1.0, out=self._present)      # 1 where the flag is, else 0 (flags are 0..1;
+        np.floor(self._present, out=self._present)          # a comparison into floats would allocate)
         np.subtract(t, self.t_state, out=self._estimate)
         self._estimate *= self._present
         self._estimate *= self.rate
@@ -137,24 +141,27 @@ class HeadingObserver:
         frame t, in place; keeps the raw ones for observe. No arrays are made."""
         np.copyto(self.raw, imu_rot)
         est = self.estimate(t, imu_flag)
-        c, s, q = self._half_cos, self._half_sin, self._q
+        c, s, (q0, q1) = self._half_cos, self._half_sin, self._q_rows
         np.multiply(est, -0.5, out=s)                 # yaw(-est) = (cos(-est/2), 0, sin(-est/2), 0)
         np.cos(s, out=c)
         np.sin(s, out=s)
-        w, x, y, z = self.raw[:, 0], self.raw[:, 1], self.raw[:, 2], self.raw[:, 3]
+        if imu_rot is not self._out:            # column views made once per target array (the pipeline's _in)
+            self._out, self._out_cols = imu_rot, tuple(imu_rot[:, i] for i in range(4))
+        w, x, y, z = self._raw_cols
+        ow, ox, oy, oz = self._out_cols
         # yaw(a) * (w,x,y,z) = (cw - sy, cx + sz, cy + sw, cz - sx) with (c, s) = (cos a/2, sin a/2)
-        np.multiply(c, w, out=q[0])
-        np.multiply(s, y, out=q[1])
-        np.subtract(q[0], q[1], out=imu_rot[:, 0])
-        np.multiply(c, x, out=q[0])
-        np.multiply(s, z, out=q[1])
-        np.add(q[0], q[1], out=imu_rot[:, 1])
-        np.multiply(c, y, out=q[0])
-        np.multiply(s, w, out=q[1])
-        np.add(q[0], q[1], out=imu_rot[:, 2])
-        np.multiply(c, z, out=q[0])
-        np.multiply(s, x, out=q[1])
-        np.subtract(q[0], q[1], out=imu_rot[:, 3])
+        np.multiply(c, w, out=q0)
+        np.multiply(s, y, out=q1)
+        np.subtract(q0, q1, out=ow)
+        np.multiply(c, x, out=q0)
+        np.multiply(s, z, out=q1)
+        np.add(q0, q1, out=ox)
+        np.multiply(c, y, out=q0)
+        np.multiply(s, w, out=q1)
+        np.add(q0, q1, out=oy)
+        np.multiply(c, z, out=q0)
+        np.multiply(s, x, out=q1)
+        np.subtract(q0, q1, out=oz)
 
     # ---- at the reduced rate
     def observe(self, t, reference_rot, imu_flag):
