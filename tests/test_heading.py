@@ -210,3 +210,11 @@ def test_pipeline_reset_starts_the_observer_again():
         pipe.reset()
         runs.append(np.array([pipe.step(sig.slice(t, t + 1)).positions.copy() for t in range(T)]))
     np.testing.assert_array_equal(runs[0], runs[1])
+
+
+def test_edge_eval_passes_heading_through():
+    from edgetools.eval import evaluate
+    runs = {h: evaluate([SAMPLE], trackers=("l_shin", "r_shin"), max_frames=240, heading=h, log=lambda *a: None)
+            for h in (None, True)}
+    assert runs[True]["heading_observer"] and not runs[None]["heading_observer"]
+    assert runs[True]["mpjpe_cm"] != runs[None]["mpjpe_cm"]
