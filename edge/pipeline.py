@@ -217,17 +217,17 @@ class Pipeline:
         self.reference = NumpyFrame(self)
         self.path = CompiledFrame(self, self.native) if self.native else self.reference
         self.timing, self.stage_ns = False, np.zeros(len(STAGES) + 1, np.int64)
+        # The extra IMUs' heading observer (edge.heading), when asked: heading=True, or a dict of its settings.
+        self.heading = None
+        if heading and self.imus:
+            from edge.heading import HeadingObserver
+            self.heading = HeadingObserver(fps, **(heading if isinstance(heading, dict) else {}))
         # Latent refinement of the shown sample (edge.refine), when asked: refine=True, or a dict of
         # Refiner settings (steps, eps, prior, continuity, terms, ...).
         self.refiner = None
         if refine:
             from edge.refine import Refiner
             self.refiner = Refiner(dec_session, m, self._forward_rows, **(refine if isinstance(refine, dict) else {}))
-        # The extra IMUs' heading observer (edge.heading), when asked: heading=True, or a dict of its settings.
-        self.heading = None
-        if heading and self.imus:
-            from edge.heading import HeadingObserver
-            self.heading = HeadingObserver(fps, **(heading if isinstance(heading, dict) else {}))
         self.reset()
 
 
@@ -323,7 +323,7 @@ class Pipeline:
         if live:
             b.override[s] = True
             b.trans_row[s] = N
-        if self.heading is not None:    # the shown sample's own segments against the IMUs, at its rate
+        if self.heading is not None:    # each IMU against its reference (edge.heading), at the observer's rate
             self.heading.observe_pipeline(self, s, sw.current)
         if timing:
             mark[3] = time.thread_time_ns()
