@@ -1,11 +1,14 @@
 """What each extra IMU set is worth, on the validation split, in one run (the variable-sensor-set issue).
 
     python bench/sensor_sets.py --data ../shared/mocap [--models DIR] [--baseline DIR] [--out out/sensor_sets]
+        [--heading [--heading-settings JSON]] [--perfect-heading]
 
 Runs edge eval at N=1 (int8 by default) with no extra IMUs, both shins, thighs and shins, and all seven,
 each clean and with DragPoser's faulty-sensor protocol (--faults disconnect), two evals at a time; with
 --baseline, also the 4-point case of another model folder (e.g. the previously shipped one). Prints the
-table of the issue's lines and writes every eval's JSON. Takes about a minute on 2 cores.
+table of the issue's lines and writes every eval's JSON. Takes about a minute on 2 cores. --heading
+runs the extra IMUs' heading observer (edge.heading); --perfect-heading takes the heading offset and
+drift out of the IMU noise instead (the most an observer could give).
 """
 import argparse
 import json
@@ -16,7 +19,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from edgetools.eval import evaluate
-from edge.imus import parse_set
+from edge.imus import ImuNoise, parse_set
 from edge.inference import DEFAULT_PRECISION
 
 SETS = {"none": "none", "shins": "l_shin,r_shin", "thighs+shins": "l_thigh,r_thigh,l_shin,r_shin", "all seven": "all"}
@@ -45,6 +48,10 @@ def main():
     ap.add_argument("--refine", action="store_true", help="with latent refinement (edge.refine) at its defaults")
     ap.add_argument("--refine-terms", default=None, help="comma-separated refinement terms (default all)")
     ap.add_argument("--refine-steps", type=int, default=2)
+    ap.add_argument("--heading", action="store_true", help="with the extra IMUs' heading observer (edge.heading)")
+    ap.add_argument("--heading-settings", default=None, help="its settings as JSON (a choosing run), e.g. '{\"measurement_std_deg\": 5}'")
+    ap.add_argument("--perfect-heading", action="store_true",
+                    help="IMU noise without its heading offset and drift (what a perfect heading observer would leave)")
     ap.add_argument("--max-clips", type=int, default=None, help="an even spread of this many val clips (a quick look)")
     ap.add_argument("--no-disconnect", action="store_true", help="skip the faulty-sensor runs")
     a = ap.parse_args()
@@ -53,6 +60,10 @@ def main():
     common = {"data": a.data, "samples": a.samples, "precision": a.precision, "max_clips": a.max_clips}
     if a.refine:
         common["refine"] = {"steps": a.refine_steps, **({"terms": a.refine_terms.split(",")} if a.refine_terms else {})}
+    if a.heading:
+        common["heading"] = json.loads(a.heading_settings) if a.heading_settings else True
+    if a.perfect_heading:
+        common["imu_noise"] = ImuNoise(yaw_offset_std_deg=0.0, yaw_drift_deg_s=0.0)
     jobs = []
     if a.baseline:
         jobs.append(("baseline none", out / "baseline_none.json", {**common, "models": a.baseline}))

@@ -127,7 +127,7 @@ def torso_segments(seg_m, seg_flag, waist_m, head_m):
 class Pipeline:
     def __init__(self, models=None, samples=1, seed=0, fps=60.0, body_scale=1.0, precision=DEFAULT_PRECISION, threads=1,
                  lookahead=None, transition=10, ssi=True, criteria=None, foot_ik=True, arm_ik=True,
-                 use_native=True, segments=True, selection=None, refine=None):
+                 use_native=True, segments=True, selection=None, refine=None, heading=None):
         if not 1 <= samples <= 128:
             raise ValueError(f"samples must be 1..128, got {samples}")
         lookahead = (10 if samples > 1 else 0) if lookahead is None else lookahead
@@ -217,6 +217,11 @@ class Pipeline:
         self.reference = NumpyFrame(self)
         self.path = CompiledFrame(self, self.native) if self.native else self.reference
         self.timing, self.stage_ns = False, np.zeros(len(STAGES) + 1, np.int64)
+        # The extra IMUs' heading observer (edge.heading), when asked: heading=True, or a dict of its settings.
+        self.heading = None
+        if heading and self.imus:
+            from edge.heading import HeadingObserver
+            self.heading = HeadingObserver(fps, **(heading if isinstance(heading, dict) else {}))
         # Latent refinement of the shown sample (edge.refine), when asked: refine=True, or a dict of
         # Refiner settings (steps, eps, prior, continuity, terms, ...).
         self.refiner = None
@@ -272,6 +277,8 @@ class Pipeline:
         self.switcher.reset()
         self.state_resets = 0       # decoder rows whose GRU state or output went non-finite (see _heal)
         self.inputs_held = 0        # frames whose signals were non-finite or out of range (see step)
+        if self.heading is not None:
+            self.heading.reset()
 
     # ------------------------------------------------------------------ per frame
     def step(self, sig):
@@ -286,6 +293,8 @@ class Pipeline:
         b.override[s] = False
         dec = self.decoder
         self._load_frame_in(sig)
+        if self.heading is not None:    # the IMUs' headings corrected before anything reads them (edge.heading)
+            sig = self.heading.correct_frame(self, sig)
         # During a move the spare row carries it: both latents and GRU states eased (path.inputs does it).
         live = sw.live(t)
         blend = (sw.trans[0], sw.trans[1], sw.weight(t)) if live else None
@@ -316,6 +325,8 @@ class Pipeline:
         if live:
             b.override[s] = True
             b.trans_row[s] = N
+        if self.heading is not None:    # each IMU against its reference (edge.heading), at the observer's rate
+            self.heading.observe_pipeline(self, s, sw.current)
         if timing:
             mark[3] = time.thread_time_ns()
 

@@ -78,7 +78,7 @@ def take_signals(take, trackers, faults=None, seed=0, index=0, imu_noise=None):
 
 def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECISION, max_frames=None, dump=None,
              models=None, seed=0, lookahead=None, ik=True, log=print, trackers=(), faults=None, segments=True,
-             selection=None, max_clips=None, imu_noise=None, refine=None):
+             selection=None, max_clips=None, imu_noise=None, refine=None, heading=None):
     files = find_clips(paths, split)
     if max_clips and len(files) > max_clips:        # an even spread over the list (a quick subset)
         files = [files[i] for i in np.linspace(0, len(files) - 1, max_clips).round().astype(int)]
@@ -87,7 +87,8 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECI
     if faults not in (None, "disconnect"):
         raise ValueError(f"--faults {faults!r}: edge eval knows 'disconnect' (DragPoser's protocol on the extra trackers)")
     pipe = Pipeline(models, samples=samples, seed=seed, precision=precision, ssi=not no_ssi, lookahead=lookahead,
-                    foot_ik=ik, arm_ik=ik, segments=segments, selection=selection, refine=refine)
+                    foot_ik=ik, arm_ik=ik, segments=segments, selection=selection, refine=refine,
+                    heading=heading)
     if trackers and not pipe.imus:
         raise ValueError(f"--trackers {','.join(trackers)}: the model in {models or 'models/'} reads no extra IMUs "
                          f"(its decoder takes {pipe.n_features} features)")
@@ -152,7 +153,7 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECI
         raise SystemExit("edge eval: no clip could be evaluated: " + "; ".join(skipped))
     result = {"clips": len(parts), "samples": samples, "ssi": pipe.ssi, "precision": precision, "ik": ik,
               "trackers": ["waist", *trackers], "faults": faults, "decoder_features": pipe.n_features,
-              "imu_segments": pipe.segments, "selection": [(c.name, c.weight) for c in pipe.criteria.criteria],
+              "imu_segments": pipe.segments, "heading_observer": pipe.heading is not None, "selection": [(c.name, c.weight) for c in pipe.criteria.criteria],
               "lookahead_frames": pipe.lookahead, "ssi_switches": switches, "transition_frames": switch_frames,
               "split": split, "warmup_s": WARMUP_S, **metrics.summarize(parts),
               **metrics.summarize_physical(phys), "ground_truth": metrics.summarize_physical(phys_gt),
@@ -187,7 +188,7 @@ def main(args):
         result = evaluate(args.data, args.split, args.samples, args.no_ssi, args.precision, args.max_frames,
                           args.dump, args.models, args.seed, args.lookahead, not args.no_ik,
                           trackers=parse_set(args.trackers), faults=args.faults, segments=not args.no_segments,
-                          refine=refine_settings(args))
+                          refine=refine_settings(args), heading=getattr(args, "heading", False) or None)
     except (FileNotFoundError, ValueError) as e:
         print(f"edge eval: {e}", file=sys.stderr)
         return 2
