@@ -127,7 +127,7 @@ def torso_segments(seg_m, seg_flag, waist_m, head_m):
 class Pipeline:
     def __init__(self, models=None, samples=1, seed=0, fps=60.0, body_scale=1.0, precision=DEFAULT_PRECISION, threads=1,
                  lookahead=None, transition=10, ssi=True, criteria=None, foot_ik=True, arm_ik=True,
-                 use_native=True, segments=True, selection=None, refine=None, heading=None):
+                 use_native=True, segments=True, selection=None, refine=None, heading=True):
         if not 1 <= samples <= 128:
             raise ValueError(f"samples must be 1..128, got {samples}")
         lookahead = (10 if samples > 1 else 0) if lookahead is None else lookahead
@@ -217,7 +217,8 @@ class Pipeline:
         self.reference = NumpyFrame(self)
         self.path = CompiledFrame(self, self.native) if self.native else self.reference
         self.timing, self.stage_ns = False, np.zeros(len(STAGES) + 1, np.int64)
-        # The extra IMUs' heading observer (edge.heading), when asked: heading=True, or a dict of its settings.
+        # The extra IMUs' heading observer (edge.heading), on when IMUs are worn: heading=True, a dict of its
+        # settings, or False/None for none.
         self.heading = None
         if heading and self.imus:
             from edge.heading import HeadingObserver

@@ -38,8 +38,8 @@ def main(argv=None):
                     help="leave the worn IMUs' segments to the decoder (by default each takes its IMU's rotation)")
     ev.add_argument("--lookahead", type=int, default=None, help="SSI look-ahead tau in frames (default 10 for N>1, 0 for N=1)")
     add_refine_flags(ev)
-    ev.add_argument("--heading", action="store_true",
-                    help="estimate and correct the extra IMUs' heading offset and drift online (edge.heading)")
+    ev.add_argument("--no-heading", action="store_true",
+                    help="leave the extra IMUs' heading offset and drift uncorrected (edge.heading runs by default)")
     ev.add_argument("--report", help="also draw the report (PNGs, GIF, index.html) into this folder (needs the [viz] extra; "
                                      "dumps into REPORT/dump unless --dump is given)")
 

@@ -78,7 +78,7 @@ def take_signals(take, trackers, faults=None, seed=0, index=0, imu_noise=None):
 
 def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECISION, max_frames=None, dump=None,
              models=None, seed=0, lookahead=None, ik=True, log=print, trackers=(), faults=None, segments=True,
-             selection=None, max_clips=None, imu_noise=None, refine=None, heading=None):
+             selection=None, max_clips=None, imu_noise=None, refine=None, heading=True):
     files = find_clips(paths, split)
     if max_clips and len(files) > max_clips:        # an even spread over the list (a quick subset)
         files = [files[i] for i in np.linspace(0, len(files) - 1, max_clips).round().astype(int)]
@@ -188,7 +188,7 @@ def main(args):
         result = evaluate(args.data, args.split, args.samples, args.no_ssi, args.precision, args.max_frames,
                           args.dump, args.models, args.seed, args.lookahead, not args.no_ik,
                           trackers=parse_set(args.trackers), faults=args.faults, segments=not args.no_segments,
-                          refine=refine_settings(args), heading=getattr(args, "heading", False) or None)
+                          refine=refine_settings(args), heading=not getattr(args, "no_heading", False))
     except (FileNotFoundError, ValueError) as e:
         print(f"edge eval: {e}", file=sys.stderr)
         return 2
