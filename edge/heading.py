@@ -198,9 +198,9 @@ class HeadingObserver:
         """observe() on the frame a Pipeline just stepped: against the body (body_references: the waist
         puck, the chest halfway to the headset), or against decoder row `row` of ring slot s (FK from
         the waist without the IMU override, the path's forward_rows)."""
-        if pipe.t % self.every:
-            return False
         v = pipe._in
+        if pipe.t % self.every or not v["imu_flag"].any():     # not this frame, or no extra IMU worn
+            return False
         if self.reference == "pelvis":
             # heading_of(a * b^-1) needs only that product's w and y: a . b and a . (-by, bz, bw, -bx).
             w = v["waist_rot"]
@@ -217,6 +217,8 @@ class HeadingObserver:
         the frame's Signals with those corrected orientations (what the numpy path reads): one object
         kept and refilled, no arrays made."""
         v = pipe._in
+        if not v["imu_flag"].any():         # no extra IMU worn: nothing to turn
+            return sig
         self.correct(v["imu_rot"])
         if getattr(self, "_sig_pipe", None) is not pipe:
             self._sig_pipe, self._imu_rot_view, self._sig = pipe, v["imu_rot"][None], copy.copy(sig)

@@ -78,8 +78,11 @@ def test_eval_runs_the_extra_imus_it_is_told_and_says_which(tmp_path):
         pytest.skip("the shipped decoder reads no extra IMUs")
     base = evaluate([str(SAMPLE)], samples=4, max_frames=400, log=lambda *a: None)
     four = parse_set("l_thigh,r_thigh,l_shin,r_shin")
-    legs = evaluate([str(SAMPLE)], samples=4, max_frames=400, log=lambda *a: None, trackers=four)
-    faulty = evaluate([str(SAMPLE)], samples=4, max_frames=400, log=lambda *a: None, trackers=four, faults="disconnect")
+    # Without the heading observer: on these 400 frames of one walk it has not settled and costs the
+    # leg IMUs 0.2 cm (on all of val it gains; models/MODEL_CARD.md). This test is about the plumbing.
+    legs = evaluate([str(SAMPLE)], samples=4, max_frames=400, log=lambda *a: None, trackers=four, heading=False)
+    faulty = evaluate([str(SAMPLE)], samples=4, max_frames=400, log=lambda *a: None, trackers=four, faults="disconnect",
+                      heading=False)
     assert base["trackers"] == ["waist"] and legs["trackers"] == ["waist", "l_thigh", "r_thigh", "l_shin", "r_shin"]
     assert faulty["faults"] == "disconnect" and legs["imu_segments"]
     assert legs["mpjpe_cm"] < base["mpjpe_cm"]                 # four leg IMUs beat none
