@@ -45,6 +45,7 @@ throttled period does not count). The loop is paced by the service's Pacer.
 import json
 import os
 import resource
+import signal
 import subprocess
 import sys
 import tempfile
@@ -387,6 +388,25 @@ def main(args):
     except ModelError as e:
         print(f"edge profile: {e}", file=sys.stderr)
         return 2
+    # Stopped by SIGTERM (systemd, timeout, kill) as by Ctrl-C: the worker is killed and the cgroup removed.
+    previous = signal.signal(signal.SIGTERM, _exit_on_sigterm) if _main_thread() else None
+    try:
+        return _profile(args, quota)
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _main_thread():
+    import threading
+    return threading.current_thread() is threading.main_thread()
+
+
+def _exit_on_sigterm(signum, frame):
+    raise SystemExit(128 + signum)
+
+
+def _profile(args, quota):
     limit = CpuLimit(quota, args.period_ms * 1000, disabled=args.no_cgroup)
     cfg = {"hz": args.hz, "quota": quota, "enforced": limit.enforced, "samples": args.samples, "frames": args.frames,
            "probe_frames": args.probe_frames, "max_samples": args.max_samples, "headroom": args.headroom, "precision": args.precision,

@@ -59,6 +59,27 @@ def test_quota_runs_in_a_cgroup_that_is_removed_afterwards(tmp_path):
     assert leftover_groups() == before
 
 
+def test_a_profile_stopped_by_sigterm_removes_its_cgroup(tmp_path):
+    """systemd, timeout or kill stop it with SIGTERM: the worker goes and so does the cgroup."""
+    import signal
+    import subprocess
+    import sys
+    import time
+    if not profile.CpuLimit(0.5, 10000).enforced:
+        pytest.skip("needs root and a writable cgroup cpu controller")
+    before = leftover_groups()
+    proc = subprocess.Popen([sys.executable, "-m", "edgetools.cli", "profile", "--cpu-quota", "0.5", "--samples", "1",
+                             "--frames", "100000", "--json", str(tmp_path / "p.json")], stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while leftover_groups() == before and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert leftover_groups() != before, "the profile made its cgroup"
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(30) == 128 + signal.SIGTERM
+    assert leftover_groups() == before
+
+
 def test_auto_probes_the_ladder_and_chooses_a_probed_n(tmp_path):
     r = run(tmp_path, "--samples", "auto", "--max-samples", "4", "--frames", "15", "--probe-frames", "8", "--hz", "120",
             "--no-cgroup")

@@ -55,7 +55,10 @@ def test_a_take_through_the_page_matches_the_serial_replay(take, tmp_path, monke
         web = replay(session, speed="realtime", seconds=10, samples=8, headset=headset)
     finally:
         headset.close()
-    serial = replay(session, speed="max", seconds=10, samples=8)
+    # Like for like: the serial link replayed in real time too. The same take through the serial link at
+    # --speed max (ticks exactly between samples) measured 5.50 cm, in real time 5.94-6.03 cm on this
+    # machine, the page's path 5.63-5.82: real-time arrival is what costs, not the page.
+    serial = replay(session, speed="realtime", seconds=10, samples=8)
     page = headset.state
 
     scripted = {entry["seq"]: entry for entry in headset.log}     # every frame the page sent, until finish()
