@@ -40,6 +40,13 @@ def feed(take, headset_fd, hub_fd, stop, hz=60.0):
         time.sleep(max(0.0, t0 + k / hz - time.monotonic()))
 
 
+def pty_board_config(headset_path, hub_path, output, runtime):
+    """A board on a pty headset link and a pty tracker hub."""
+    return config_mod.from_dict({"headset": {"url": f"serial://{headset_path}?role=headset"},
+                                 "trackers": [{"url": f"serial://{hub_path}?role=hub"}],
+                                 "output": output, "runtime": runtime})
+
+
 def run_board(seconds, runtime, output=None, prepare=None, headset=None):
     """A service on two ptys (headset, tracker hub) fed the sample take for `seconds`, and `edge listen`
     on the headset side; `headset(service, fd)`, when given, runs in a thread of its own and may write
@@ -47,12 +54,7 @@ def run_board(seconds, runtime, output=None, prepare=None, headset=None):
     take = from_sample(SAMPLE)
     hm, hs, hpath = pty_pair()
     tm, ts, tpath = pty_pair()
-    cfg = config_mod.from_dict({
-        "headset": {"url": f"serial://{hpath}?role=headset"},
-        "trackers": [{"url": f"serial://{tpath}?role=hub"}],
-        "output": {"pose_stream": "headset", **(output or {})},
-        "runtime": runtime,
-    })
+    cfg = pty_board_config(hpath, tpath, {"pose_stream": "headset", **(output or {})}, runtime)
     service = Service(cfg, status=None)
     if prepare:
         prepare(service)
@@ -243,12 +245,7 @@ def test_a_pose_stream_port_plugged_in_after_start_is_opened_and_gets_the_poses(
     take = from_sample(SAMPLE)
     hm, hs, hpath = pty_pair()
     tm, ts, tpath = pty_pair()
-    cfg = config_mod.from_dict({
-        "headset": {"url": f"serial://{hpath}?role=headset"},
-        "trackers": [{"url": f"serial://{tpath}?role=hub"}],
-        "output": {"pose_stream": f"serial://{port}"},
-        "runtime": {"samples": 1, "adaptive": False},
-    })
+    cfg = pty_board_config(hpath, tpath, {"pose_stream": f"serial://{port}"}, {"samples": 1, "adaptive": False})
     status = io.StringIO()
     service = Service(cfg, status=status)
     assert service.pose_out.source is None and f"pose stream serial://{port}" in status.getvalue()
