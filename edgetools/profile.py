@@ -82,6 +82,9 @@ def add_arguments(p):
     p.add_argument("--hog-procs", type=int, default=4, help="busy processes in the hog (default 4)")
     p.add_argument("--quick", action="store_true",
                    help="an answer in under a minute: 120 probe frames per N up to N=64, then 600 measured frames")
+    p.add_argument("--refine-steps", type=int, default=2, metavar="K",
+                   help="measure with a live target refined K steps a frame (edge.refine; a headset's TARGET at its "
+                        "worst: every frame), so the N chosen leaves room for them; 0: without (default 2)")
     p.add_argument("--json", required=True, help="write the profile here")
 
 
@@ -147,8 +150,11 @@ def board_service(cfg, samples, feeder):
     runtime = {"samples": samples, "adaptive": False, "precision": cfg["precision"], "hz": cfg["hz"]}
     if cfg.get("models"):
         runtime["models"] = cfg["models"]
+    k = cfg.get("refine_steps", 0)
+    refine = {"steps": k} if k else {"enabled": False}
     board = config_mod.from_dict({"headset": {"url": headset}, "trackers": [{"url": waist}],
-                                  "output": {"pose_stream": "headset"}, "runtime": runtime}, "edge profile")
+                                  "output": {"pose_stream": "headset"}, "runtime": runtime, "refine": refine},
+                                 "edge profile")
     return Service(board, clock=lambda: feeder.now, status=None, threaded=False)   # the feed is in-process
 
 
@@ -181,6 +187,10 @@ def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None):  # noqa
         for k in range(warm):
             pacer.wait()
             tick(k)
+        if pipe.refiner is not None:          # a target that never ends, 45 cm from the left toe: refined every frame
+            from edge.skeleton import JOINT
+            pipe.refiner.add_target("l_toe", pipe.out.positions[JOINT["l_toe"]] + [0.0, 0.4, 0.2], radius=0.0,
+                                    first=0, last=1 << 40)
         resp, comp, cpu = (np.full(frames, np.nan) for _ in range(3))
         st = {k: np.full(frames, np.nan) for k in ("sync", "pipeline_step", "output_encoding")}
         stage_cpu = np.full((frames, len(STAGES)), np.nan)
@@ -236,7 +246,7 @@ def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None):  # noqa
              "frame_ms": _pct(ms(resp)), "compute_ms": _pct(ms(comp)), "cpu_ms": _pct(ms(cpu)),
              "stages_in_loop_ms": {k: _pct(ms(v)) for k, v in st.items()},
              "stages_cpu_ms": {name: _pct(stage_cpu[:, k]) for k, name in enumerate(STAGES)},
-             "ssi_switches": pipe.switch_count}
+             "ssi_switches": pipe.switch_count, "refined_frames": pipe.refiner.applied if pipe.refiner else 0}
     if adaptive or hog:
         stats["contention"] = contention_report(resp, live_n, period, hog, governor)
     return stats, pipe
@@ -325,7 +335,8 @@ def worker(cfg):
     return {"chosen_samples": chosen, "frames": st["frames"], "frame_ms": st["frame_ms"], "compute_ms": st["compute_ms"],
             "cpu_ms": st["cpu_ms"], "deadline_misses": st["deadline_misses"], "late_starts": st["late_starts"],
             "skipped_frames": st["skipped_frames"],
-            "ssi_switches": st["ssi_switches"], "stages": stages, "rss_mb": round(rss_now, 1),
+            "ssi_switches": st["ssi_switches"], "refined_frames": st["refined_frames"], "stages": stages,
+            "rss_mb": round(rss_now, 1),
             "rss_peak_mb": round(rss, 1), "budget": budget, "frame_budget_ms": frame_budget_ms,
             "probes": probes, "runs": attempts, "core": sorted(os.sched_getaffinity(0)),
             "compiled_core": pipe.native is not None,
@@ -377,6 +388,9 @@ def main(args):
     if not 0.01 <= quota <= 1.0:
         print("edge profile: --cpu-quota is a fraction of one core, 0.01..1", file=sys.stderr)
         return 2
+    if not 0 <= args.refine_steps <= 8:
+        print("edge profile: --refine-steps must be 0..8", file=sys.stderr)
+        return 2
     if args.hz <= 0 or args.frames < 1:
         print("edge profile: --hz and --frames must be positive", file=sys.stderr)
         return 2
@@ -411,10 +425,12 @@ def _profile(args, quota):
     cfg = {"hz": args.hz, "quota": quota, "enforced": limit.enforced, "samples": args.samples, "frames": args.frames,
            "probe_frames": args.probe_frames, "max_samples": args.max_samples, "headroom": args.headroom, "precision": args.precision,
            "models": args.models, "adaptive": args.adaptive, "hog_at": args.hog_at, "hog_seconds": args.hog_seconds,
-           "hog_procs": args.hog_procs, "cgroup_root": str(limit.path.parent) if limit.enforced else None}
+           "hog_procs": args.hog_procs, "cgroup_root": str(limit.path.parent) if limit.enforced else None,
+           "refine_steps": args.refine_steps}
     print(f"edge profile: {args.hz:g} Hz, CPU {quota:g} of one core "
           f"({'cgroup quota ' + str(limit.quota_us) + ' us per ' + str(limit.period_us) + ' us' if limit.enforced else 'quota NOT enforced: ' + limit.why}), "
-          f"samples {args.samples}, {args.frames} frames", file=sys.stderr)
+          f"samples {args.samples}, {args.frames} frames"
+          + (f", a target refined {args.refine_steps} steps a frame" if args.refine_steps else ""), file=sys.stderr)
     root = Path(__file__).resolve().parent.parent
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1",
                PYTHONPATH=os.pathsep.join([str(root)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
@@ -435,6 +451,7 @@ def _profile(args, quota):
         limit.cleanup()
     throttled = {k: round(after[k] - before.get(k, 0), 3) for k in after} if after else None
     result = {"hz": args.hz, "precision": args.precision, "samples_requested": args.samples,
+              "refine_steps": args.refine_steps,
               "cpu_quota": {**limit.describe(), "throttling": throttled}, "quota_enforced": limit.enforced,
               "chosen_samples": res["chosen_samples"], "frames": res["frames"],
               "deadline_misses": res["deadline_misses"], "frame_ms": res["frame_ms"],
@@ -444,6 +461,7 @@ def _profile(args, quota):
               "stage_methods": {k: STAGE_METHODS[k] for k in res["stages"]},
               "budget": {**res["budget"], "frame_period_ms": res["frame_budget_ms"], "headroom": args.headroom},
               "probes": res["probes"], "runs": res["runs"], "ssi_switches": res["ssi_switches"],
+              "refined_frames": res["refined_frames"],
               "pinned_core": res["core"], "compiled_core": res["compiled_core"],
               "input": f"{SAMPLE.name} signals looped, through FrameSynchronizer",
               "seconds": round(time.time() - t0, 1)}

@@ -80,6 +80,15 @@ def test_a_profile_stopped_by_sigterm_removes_its_cgroup(tmp_path):
     assert leftover_groups() == before
 
 
+def test_the_profile_measures_frames_with_a_live_target_refined_k_steps(tmp_path):
+    """--refine-steps K: every measured frame refines the shown sample against a target (a headset's
+    TARGET at its worst), so the N chosen leaves room for it; 0 measures without."""
+    with_target = run(tmp_path, "--samples", "2", "--frames", "30", "--no-cgroup", "--refine-steps", "1")
+    assert with_target["refine_steps"] == 1 and with_target["refined_frames"] == 30
+    without = run(tmp_path, "--samples", "2", "--frames", "30", "--no-cgroup", "--refine-steps", "0")
+    assert without["refine_steps"] == 0 and without["refined_frames"] == 0
+
+
 def test_auto_probes_the_ladder_and_chooses_a_probed_n(tmp_path):
     r = run(tmp_path, "--samples", "auto", "--max-samples", "4", "--frames", "15", "--probe-frames", "8", "--hz", "120",
             "--no-cgroup")
