@@ -82,9 +82,9 @@ def add_arguments(p):
     p.add_argument("--hog-procs", type=int, default=4, help="busy processes in the hog (default 4)")
     p.add_argument("--quick", action="store_true",
                    help="an answer in under a minute: 120 probe frames per N up to N=64, then 600 measured frames")
-    p.add_argument("--refine-steps", type=int, default=2, metavar="K",
+    p.add_argument("--refine-steps", type=int, default=0, metavar="K",
                    help="measure with a live target refined K steps a frame (edge.refine; a headset's TARGET at its "
-                        "worst: every frame), so the N chosen leaves room for them; 0: without (default 2)")
+                        "worst: every frame), so the N chosen leaves room for them (default 0: without)")
     p.add_argument("--json", required=True, help="write the profile here")
 
 
