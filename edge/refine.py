@@ -6,18 +6,22 @@ shown sample's latent against the live constraints, with the decoder fixed (Drag
 refined latent's GRU state goes forward, so refinement shapes the frames after it too.
 
 The board has no autograd: the Jacobian of the constraints' residuals with respect to the 30 latent
-dimensions comes from one batched decoder call on the latent and 30 small steps along its axes (what
-N=31 costs), FK of those 31 rows, and the terms' residuals on each (forward differences). A step
-solves (J^T J + (prior + continuity + damping) I) dz = -(J^T r + prior and continuity gradients).
+dimensions comes from one batched decoder call on the latent, 30 steps along its axes (0.5: with int8
+a smaller step drowns in the activations' per-batch quantisation) and the sample's own latent (what
+N=32 costs), then FK of those rows and the terms' residuals on each (forward differences). A step
+solves (J J^T + (prior + continuity + damping) I) dz = -(J r + prior and continuity gradients); with
+the compiled core everything after the decode is one C call (ep_refine_step; the numpy step here is
+its reference). No target live: the latent is let go back to the sample's own over release_s.
 
 Constraint terms (each a small class like the SSI criteria, on and off by config and by what is live):
-- ImuOrientation: each worn IMU's segment as the decoder makes it against its measured orientation
-  (chordal distance of the rotations; tilt only where heading is not trusted);
-- FloorContact: no toe or ankle under the floor, and a planted foot (its lock) stays where it was;
 - TargetReach: a point a joint should reach within a radius during a window of frames (SSI 5.3's
-  targets, given by the headset or by `edge ssi-study`).
-The latent prior (towards the sample's own latent, which the CVAE drew from its prior) and the
-continuity with the last frame's latent are analytic and always on.
+  targets, given by the headset or by `edge ssi-study`); a foot target also pulls that leg's IK goal;
+- KeepPose (guard): every joint but the target's limb as the sample's own decode makes it;
+- FloorContact (guard): no toe or ankle under the floor, and a planted foot (its lock) stays put;
+- ImuOrientation (off by default): each worn IMU's segment as the decoder makes it against its
+  measurement (chordal distance; tilt only where heading is not trusted).
+Guards join a live term and never move the latent alone. The latent prior (towards the sample's own
+latent, which the CVAE drew from its prior) and the continuity with the last frame's are analytic.
 
 Targets are untrusted input: one with a non-finite value, on an unknown joint or farther than
 MAX_REACH_M from the pelvis is refused and counted (`refused`), never applied.
