@@ -356,9 +356,7 @@ class Pipeline:
         """edge.refine on the shown sample's row of this frame: its latent moves (and stays moved for
         the next frame), and its decode (6D, contacts, the GRU state it wrote) replaces the row's."""
         if not self.refiner.busy():
-            if self._target_row[0] >= 0:
-                self._target_row[0] = -1
-                self.path.set_target_row(-1)
+            self._set_target_row(-1)
             return
         dec, f = self.decoder, self.feet
         self._slot_now = s
@@ -366,7 +364,11 @@ class Pipeline:
                                   self.buffer.seg_m[s], self.buffer.seg_flag[s], f.lock_pos[c], f.weight[c])
         if out is not None:
             dec.rot6d[c], dec.contacts[c], dec.state[c] = out
-        row = c if self.refiner.foot_pull(self.t, self._target_joint, self._target_goal, self._target_weight) else -1
+        pulls = self.refiner.foot_pull(self.t, self._target_joint, self._target_goal, self._target_weight)
+        self._set_target_row(c if pulls else -1)
+
+    def _set_target_row(self, row):
+        """The row whose leg goals a foot target pulls this frame (-1: none), for both paths' foot goals."""
         if row != self._target_row[0]:
             self._target_row[0] = row
             self.path.set_target_row(row)
@@ -635,14 +637,14 @@ class NumpyFrame:
         return positions, rotations
 
     # ---- the stages
-    def forward(self, rot6d, waist_m, anchor, seg_m=None, seg_flag=None):
+    def forward(self, rot6d, waist_m, anchor, seg_m=None, seg_flag=None, out=None):
         """6D -> local rotations, FK with the waist IMU as root, body hung from the tracked head; the
         segments of worn IMUs take their measured rotations (fk_with_segments; seg_m [J,3,3], seg_flag [J]).
-        waist_m [3,3] or per row [R,3,3]; anchor (the tracked head joint) [3] or [R,3]. Writes the
-        scratch rows _local, _world, _pos."""
+        waist_m [3,3] or per row [R,3,3]; anchor (the tracked head joint) [3] or [R,3]. Writes out =
+        (local, world, pos), by default the scratch rows _local, _world, _pos."""
         p = self.p
         R = len(rot6d)
-        loc, W, P = p._local[:R], p._world[:R], p._pos[:R]
+        loc, W, P = (p._local[:R], p._world[:R], p._pos[:R]) if out is None else out
         loc[:, 0] = waist_m
         quat.matrix_from_6d(rot6d.reshape(R, NUM_PREDICTED, 6), out=loc[:, 1:])
         if seg_flag is not None and seg_flag.any():
@@ -654,14 +656,8 @@ class NumpyFrame:
     def forward_rows(self, s, rot6d, rows, segments, out):
         """forward() of decoder rows against ring slot s's inputs, into out = (local, world, pos)."""
         b = self.p.buffer
-        loc, W, P = out
-        loc[:, 0] = b.waist_m[s]
-        quat.matrix_from_6d(rot6d[:rows].reshape(rows, NUM_PREDICTED, 6), out=loc[:, 1:])
-        if segments and b.seg_flag[s].any():
-            fk_with_segments(loc, W, P, b.seg_m[s], b.seg_flag[s])
-        else:
-            fk(loc, self.p._zero3, out=(W, P))
-        P += b.anchor[s][None, None, :] - P[:, HEAD:HEAD + 1]
+        seg = (b.seg_m[s], b.seg_flag[s]) if segments else (None, None)
+        self.forward(rot6d[:rows], b.waist_m[s], b.anchor[s], *seg, out=out)
 
     def foot_goals(self, N):
         """Update the N samples' foot-contact locks from the decoder's contacts and the FK ankles; each
@@ -793,8 +789,8 @@ class CompiledFrame:
         self.bind_decoder(p.decoder)
         # forward_rows' arguments (the refiner's FK), filled per call.
         self._fin, self._rows_out = native.ForwardInputs(), native.PoseRows()
-        self._ring_addr = {"waist": native.addr(b.waist_m), "anchor": native.addr(b.anchor), "seg_m": native.addr(b.seg_m),
-                           "seg_flag": native.addr(b.seg_flag)}
+        self._ring_addr = {k: (native.addr(getattr(b, v)), getattr(b, v).strides[0]) for k, v in (   # (address, bytes a slot)
+            ("waist", "waist_m"), ("anchor", "anchor"), ("seg_m", "seg_m"), ("seg_flag", "seg_flag"))}
 
     def reset(self):
         self.first = True           # the first frame's velocity is zero: prev = points
@@ -834,13 +830,11 @@ class CompiledFrame:
 
     def forward_rows(self, s, rot6d, rows, segments, out):
         """ep_forward: NumpyFrame.forward_rows in one C call."""
-        fin = self._fin
+        fin, ring = self._fin, self._ring_addr
         fin.rot6d, fin.rot6d_stride = native.addr(rot6d), rot6d.shape[1]
-        fin.root_m = self._ring_addr["waist"] + s * 72
-        fin.anchor = self._ring_addr["anchor"] + s * 24
-        J = NUM_JOINTS
-        fin.seg_m = self._ring_addr["seg_m"] + s * J * 72 if segments else None
-        fin.seg_flag = self._ring_addr["seg_flag"] + s * J * 8 if segments else None
+        fin.root_m, fin.anchor = ring["waist"][0] + s * ring["waist"][1], ring["anchor"][0] + s * ring["anchor"][1]
+        fin.seg_m = ring["seg_m"][0] + s * ring["seg_m"][1] if segments else None
+        fin.seg_flag = ring["seg_flag"][0] + s * ring["seg_flag"][1] if segments else None
         loc, W, P = out
         self._rows_out.local, self._rows_out.world, self._rows_out.pos = native.addr(loc), native.addr(W), native.addr(P)
         self.lib.ep_forward(ctypes.byref(self.core.contents.sk), rows, ctypes.byref(fin), ctypes.byref(self._rows_out))

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from edge import native
 from edge.imus import IMU_JOINTS
 from edge.skeleton import ANKLES, JOINT, NUM_JOINTS, TOES
 
@@ -220,6 +221,7 @@ class Refiner:
         self.terms = [known[t]() if isinstance(t, str) else t for t in terms]   # names or term objects
         for name, w in (weights or {}).items():         # {term name: weight}
             self.term(name).weight = w
+        self._reach = self.term("targets")              # TargetReach, or None when it is not among the terms
         self.ctx = RefineContext()
         self.ctx.keep = np.ones(NUM_JOINTS, bool)
         # The compiled step (ep_refine_step): compiled = (the C library, the pipeline's core context, a
@@ -241,7 +243,7 @@ class Refiner:
     def busy(self):
         """Whether refine has anything to do: a target waiting or live, a latent still let go, or a term
         that reads the sensors every frame. When not, the pipeline skips the stage (and pays nothing)."""
-        reach = self.term("targets")
+        reach = self._reach
         return bool(reach is not None and reach.targets) or self._displaced or any(
             not t.guard and t.name != "targets" and t.weight > 0 for t in self.terms)
 
@@ -249,12 +251,12 @@ class Refiner:
         """Whether the refined sample should stay shown: a target is live, or the latent is still being
         let go. SSI does not switch then (a switch would hand the output to a sample that was not
         refined, through a transition made from the samples' own latents)."""
-        reach = self.term("targets")
+        reach = self._reach
         return self._displaced or bool(reach is not None and reach.live(frame))
 
     def remove_target(self, key):
         """Drop the targets added with `key` (the headset's target id); True if there were any."""
-        reach = self.term("targets")
+        reach = self._reach
         if reach is None:
             return False
         kept = [g for g in reach.targets if g.key != key]
@@ -279,7 +281,7 @@ class Refiner:
         if pelvis is not None and np.linalg.norm(position - pelvis) > MAX_REACH_M:
             self.refused["out_of_reach"] += 1
             return None
-        reach = self.term("targets")
+        reach = self._reach
         if reach is None:
             return None
         if key is not None:             # a target sent again under its id replaces the last one
@@ -298,7 +300,7 @@ class Refiner:
         goal [2,3] and weight [2] (0: none), the target's joint, point and pull (its term weight times the
         window's ramp, at most `ik_pull`). IK closes what the latent could not. True when any pulls."""
         weight[:] = 0.0
-        reach = self.term("targets")
+        reach = self._reach
         if reach is None or not self.ik_pull:
             return False
         for g in reach.live(frame):
@@ -316,7 +318,7 @@ class Refiner:
         row's decode (rot6d [D], contacts [2], GRU state out [H]), or None when no term is live."""
         ctx = self.ctx
         ctx.frame, ctx.seg_m, ctx.seg_flag, ctx.lock_pos, ctx.lock_weight = frame, seg_m, seg_flag, lock_pos, lock_weight
-        reach = self.term("targets")
+        reach = self._reach
         if reach is not None and any(g.last < frame for g in reach.targets):
             reach.forget(frame)
         ctx.keep[:] = True
@@ -343,7 +345,6 @@ class Refiner:
         return out
 
     def _init_compiled(self, L, R):
-        from edge import native
         MAX_TARGETS = 8
         self._c_max_m = 3 * MAX_TARGETS + 3 * NUM_JOINTS + 10
         self._c_buf = {"pos": np.zeros((R, NUM_JOINTS, 3)), "r": np.zeros((R, self._c_max_m)), "A": np.zeros((L, L)),
@@ -381,7 +382,6 @@ class Refiner:
                 c["keep"][:] = ctx.keep
                 a.keep_on, a.keep_w = 1, float(np.sqrt(t.weight))
             else:
-                from edge import native
                 a.floor_on, a.floor_w, a.planted_w = 1, float(np.sqrt(t.weight)), float(np.sqrt(t.planted))
                 a.lock_pos, a.lock_weight = native.addr(ctx.lock_pos), native.addr(ctx.lock_weight)
         return True
@@ -391,12 +391,8 @@ class Refiner:
         latent the frame started from (continuity), zp the sample's own (prior). Returns the constraints'
         cost at z. The compiled step when this frame's terms allow (ep_refine_step), else numpy."""
         if self._c_on:
-            from edge import native
-            b, L = self.batch, self.L
-            b.latent[:L + 1] = z.astype(np.float32)
-            b.latent[1:L + 1] += self._steps
-            b.latent[L + 1] = self._prior_latent
-            b.step()
+            self._fill_batch(z, self._steps)
+            self.batch.step()
             lib, core, slot = self._c
             cost = lib.ep_refine_step(core, self._c_args, slot(), native.addr(z), native.addr(z_prev), native.addr(zp))
             if cost >= 0:
@@ -418,19 +414,21 @@ class Refiner:
         the sample's own latent (KeepPose's reference). The batch's features and GRU state, the live
         terms and the context are this frame's (set by refine)."""
         eps = self.eps if eps is None else eps
-        b, L = self.batch, self.L
-        b.latent[:L + 1] = z.astype(np.float32)
-        b.latent[1:L + 1] += self._steps if eps == self.eps else np.eye(L, dtype=np.float32) * np.float32(eps)
-        b.latent[L + 1] = self._prior_latent
-        r = self._residuals(self._terms, self._raw)[:L + 1]      # [L+1, m]
+        self._fill_batch(z, self._steps if eps == self.eps else np.eye(self.L, dtype=np.float32) * np.float32(eps))
+        r = self._residuals(self._terms, self._raw)[:self.L + 1]      # [L+1, m]
         return r[0], (r[1:] - r[0]) / eps
 
     def residuals_at(self, z):
         """The live terms' residuals [m] at latent z (every batch row decoded at z): for checking jacobian."""
-        b, L = self.batch, self.L
-        b.latent[:L + 1] = z.astype(np.float32)
-        b.latent[L + 1] = self._prior_latent
+        self._fill_batch(z, 0.0)
         return self._residuals(self._terms, self._raw)[0]
+
+    def _fill_batch(self, z, steps):
+        """The batch's latents: z, z + steps[k] for each axis k (0: z again), and the sample's own."""
+        b, L = self.batch, self.L
+        b.latent[:L + 1] = z
+        b.latent[1:L + 1] += steps
+        b.latent[L + 1] = self._prior_latent
 
     def _let_go(self, latent, prior_latent, hidden, features):
         """No term live: ease the latent back towards the sample's own; None once it is there."""

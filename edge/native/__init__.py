@@ -149,8 +149,6 @@ _SIGNATURES = {
     "ep_physical_cost": [_I, _I, _P, _P, _P, ctypes.POINTER(PhysicalParams), _P],
     "ep_post": [ctypes.POINTER(Skeleton), _I, ctypes.POINTER(LimbGoals), ctypes.POINTER(PoseRows)],
     "ep_switch_to": [_I, _P, _I, _D],
-    "ep_frame_sane": [_P, _I, _D],
-    "ep_all_finite_f32": [_P, _I],
     "ep_frame_poses": [ctypes.POINTER(CoreContext), _I, _I, _I, _I, _I, _D, _P, _P, _P, _P, _I],
     "ep_frame_costs": [ctypes.POINTER(CoreContext), ctypes.POINTER(Selection), _I, _I, _D, _D, _I, _D],
     "ep_refine_step": [ctypes.POINTER(CoreContext), ctypes.POINTER(RefineArgs), _I, _P, _P, _P],
@@ -159,7 +157,7 @@ _SIGNATURES = {
     "ep_max_joints": [],
     "ep_layout": [_P, _I],
 }
-_RETURNS_INT = {"ep_switch_to", "ep_max_joints", "ep_frame_sane", "ep_all_finite_f32", "ep_layout", "ep_frame_poses",
+_RETURNS_INT = {"ep_switch_to", "ep_max_joints", "ep_layout", "ep_frame_poses",
                 "ep_frame_costs", "ep_frame_inputs"}
 _RETURNS_DOUBLE = {"ep_refine_step"}
 _MIRRORS = (Skeleton, PoseRows, ForwardInputs, LimbGoals, FootLocks, PhysicalParams, Selection, RefineArgs)

@@ -708,6 +708,13 @@ int ep_layout(int64_t *out, int n) {
 static void copy_f32(float *dst, const float *src, int64_t n) { for (int64_t i = 0; i < n; i++) dst[i] = src[i]; }
 static void copy_f64(double *dst, const double *src, int64_t n) { for (int64_t i = 0; i < n; i++) dst[i] = src[i]; }
 
+/* The toe joint of foot f: the child of ankles[f] (edge.skeleton.TOES). */
+static inline int toe_of(const skeleton *sk, int f) {
+    int a = (int)sk->ankles[f], toe = a + 1;
+    while (toe < sk->J && sk->parents[toe] != a) toe++;
+    return toe;
+}
+
 /* 1 when the n floats are all finite: x * 0 is 0 for a finite x and NaN otherwise, and a NaN stays in
  * its lane's sum. Sixteen independent lanes, so the compiler vectorises it without reassociating. */
 static int all_finite_f32(const float *x, int64_t n) {
@@ -755,8 +762,7 @@ int ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n, 
             for (int l = 0; l < nl && r0 + l < N; l++)
                 for (int f = 0; f < 2; f++) {
                     int i = (r0 + l) * 2 + f;
-                    int a = (int)sk->ankles[f], toe = a + 1;
-                    while (toe < J && sk->parents[toe] != a) toe++;
+                    int a = (int)sk->ankles[f], toe = toe_of(sk, f);
                     const double *o = sk->offsets + toe * 3;
                     double ankle[3] = {k.P[a][0][l], k.P[a][1][l], k.P[a][2][l]};
                     double drop = k.W[a][3][l] * o[0] + k.W[a][4][l] * o[1] + k.W[a][5][l] * o[2];
@@ -859,8 +865,7 @@ void ep_emit(const core_context *x, int slot, int row) {
     const pose_rows out = {x->out_local, x->out_world, x->out_pos};
     row_pose(x, slot, row, &out);
     for (int f = 0; f < 2; f++) {
-        int a = (int)sk->ankles[f], toe = a + 1;
-        while (toe < sk->J && sk->parents[toe] != a) toe++;
+        int a = (int)sk->ankles[f], toe = toe_of(sk, f);
         double h = lowest_point(x->out_pos[a * 3 + 1], x->out_pos[toe * 3 + 1] - x->out_pos[a * 3 + 1]);
         x->out_contacts[f] = x->ring_contacts[r * 2 + f] * support(h);
     }
@@ -973,8 +978,6 @@ void ep_physical_cost(int N, int J, const double *pos, const float *contacts, co
     }
 }
 
-/* edge.pipeline.NumpyFrame.finite: 1 when the n floats are all finite (the decoder's state and output). */
-int ep_all_finite_f32(const float *x, int n) { return all_finite_f32(x, n); }
 
 /* edge.pipeline.NumpyFrame.sane: 1 when the frame's n signal values are all finite and its
  * head and controller positions (in[0..3), in[7..13)) lie within `limit` metres of the origin. */
@@ -1122,8 +1125,7 @@ static int refine_residuals(const core_context *x, const refine_args *a, const d
                 for (int c = 0; c < 3; c++) r[m++] = a->keep_w * (P[j * 3 + c] - ref[j * 3 + c]);
     if (a->floor_on) {
         for (int f = 0; f < 4; f++) {           /* toes at FLOOR_TOE, ankles at FLOOR_ANKLE */
-            int j = f < 2 ? (int)sk->ankles[f] + 1 : (int)sk->ankles[f - 2];
-            if (f < 2) while (j < sk->J && sk->parents[j] != sk->ankles[f]) j++;
+            int j = f < 2 ? toe_of(sk, f) : (int)sk->ankles[f - 2];
             double under = P[j * 3 + 1] - (f < 2 ? FLOOR_TOE : FLOOR_ANKLE);
             r[m++] = a->floor_w * (under < 0.0 ? under : 0.0);
         }
