@@ -3,7 +3,7 @@ controllers play the bundled take, into the webxr:// source of the real Service 
 
 - A 10 s take through the page, scored by the replay harness as the serial replay of the same take is:
   the board receives >= 95 % of the 72 Hz frames, decodes the scripted head pose within 1e-4, its MPJPE
-  is within 1.05x the serial path's, and the page has drawn the body it got back (its own counters and
+  (the mean of two real-time runs) is within 1.05x the serial path's (the same), and the page has drawn the body it got back (its own counters and
   the bone colours in a screenshot of its view).
 - In the page: a wrong code refused, a second headset refused as busy, the socket killed mid-take and
   the page back with poses flowing within 2 s, the service alive throughout.
@@ -50,16 +50,27 @@ def test_a_take_through_the_page_matches_the_serial_replay(take, tmp_path, monke
         return seq, page_ms, sample
     monkeypatch.setattr(webxr.wire, "decode_xr_pose", recording)
     session = Session.load(SESSION)
-    headset = QuestHeadset(take, tmp_path / "state", screenshot=tmp_path / "mirror.png")
-    try:
-        web = replay(session, speed="realtime", seconds=10, samples=8, headset=headset)
-    finally:
-        headset.close()
-    # Like for like: the serial link replayed in real time too. The same take through the serial link at
-    # --speed max (ticks exactly between samples) measured 5.50 cm, in real time 5.94-6.03 cm on this
-    # machine, the page's path 5.63-5.82: real-time arrival is what costs, not the page.
-    serial = replay(session, speed="realtime", seconds=10, samples=8)
+
+    def through_the_page(state, screenshot=None):
+        headset = QuestHeadset(take, tmp_path / state, screenshot=screenshot)
+        try:
+            return replay(session, speed="realtime", seconds=10, samples=8, headset=headset), headset
+        finally:
+            headset.close()
+
+    # Like for like: the serial link replayed in real time too (at --speed max, ticks fall exactly between
+    # samples: 5.50 cm against 5.94-6.03 in real time). One real-time run of either path varies by about
+    # 5 % on this VM (5.58-6.06 cm through the page, 5.73-6.01 over serial), so each path runs twice,
+    # interleaved, and the means are compared.
+    web, headset = through_the_page("state", tmp_path / "mirror.png")
+    decoded_first = list(decoded)
+    serial = [replay(session, speed="realtime", seconds=10, samples=8)]
+    web_again, _ = through_the_page("state-again")
+    serial.append(replay(session, speed="realtime", seconds=10, samples=8))
+    decoded[:] = decoded_first
     page = headset.state
+    web_cm = (web["mpjpe_cm"] + web_again["mpjpe_cm"]) / 2
+    serial_cm = sum(run["mpjpe_cm"] for run in serial) / 2
 
     scripted = {entry["seq"]: entry for entry in headset.log}     # every frame the page sent, until finish()
     received = [d for d in decoded if d[0] in scripted]
@@ -68,12 +79,15 @@ def test_a_take_through_the_page_matches_the_serial_replay(take, tmp_path, monke
     pos_error = max(np.abs(np.array(scripted[s]["head_pos"]) - p).max() for s, _, p, _ in received)
     rot_error = max(np.abs(np.sign(np.dot(scripted[s]["head_rot"], q)) * q - scripted[s]["head_rot"]).max()
                     for s, _, _, q in received)
-    ratio = web["mpjpe_cm"] / serial["mpjpe_cm"]
+    ratio = web_cm / serial_cm
     print(f"\nwebxr: board received {len(received)} of the {len(scripted)} XR frames the page sent "
           f"({len(received) / len(scripted):.1%}); {len(received) / at_72hz:.1%} of 72 Hz over {span_ms / 1000:.2f} s; "
-          f"head error {pos_error:.2e} m, {rot_error:.2e} (quaternion); mpjpe {web['mpjpe_cm']:.3f} cm vs serial "
-          f"{serial['mpjpe_cm']:.3f} cm (x{ratio:.3f}); page drew {page['drawn']} frames from {page['bodies']} bodies, "
-          f"round trip p50 {page['latencyMs']} ms; deadline misses {web['deadline_misses']}")
+          f"head error {pos_error:.2e} m, {rot_error:.2e} (quaternion); mpjpe {web_cm:.3f} cm "
+          f"({web['mpjpe_cm']:.3f}, {web_again['mpjpe_cm']:.3f}) vs serial {serial_cm:.3f} cm ("
+          f"{serial[0]['mpjpe_cm']:.3f}, {serial[1]['mpjpe_cm']:.3f}) (x{ratio:.3f}); page drew {page['drawn']} frames "
+          f"from {page['bodies']} bodies, round trip p50 {page['latencyMs']} ms; deadline misses page "
+          f"{web['deadline_misses']}, {web_again['deadline_misses']}, serial {serial[0]['deadline_misses']}, "
+          f"{serial[1]['deadline_misses']}")
     assert span_ms > 9000 and len(received) >= 0.95 * at_72hz and len(received) >= 0.95 * len(scripted)
     assert pos_error <= 1e-4 and rot_error <= 1e-4
     assert ratio <= 1.05
