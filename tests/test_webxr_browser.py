@@ -3,8 +3,8 @@ controllers play the bundled take, into the webxr:// source of the real Service 
 
 - A 10 s take through the page, scored by the replay harness as the serial replay of the same take is:
   the board receives >= 95 % of the 72 Hz frames, decodes the scripted head pose within 1e-4, its MPJPE
-  (the mean of two real-time runs) is within 1.05x the serial path's (the same), and the page has drawn the body it got back (its own counters and
-  the bone colours in a screenshot of its view).
+  (the mean of two real-time runs) is within 1.05x the serial path's (the same), and the page has drawn
+  the body it got back (its own counters and the bone colours in a screenshot of its view).
 - In the page: a wrong code refused, a second headset refused as busy, the socket killed mid-take and
   the page back with poses flowing within 2 s, the service alive throughout.
 
@@ -67,7 +67,7 @@ def test_a_take_through_the_page_matches_the_serial_replay(take, tmp_path, monke
     serial = [replay(session, speed="realtime", seconds=10, samples=8)]
     web_again, _ = through_the_page("state-again")
     serial.append(replay(session, speed="realtime", seconds=10, samples=8))
-    decoded[:] = decoded_first
+    decoded[:] = decoded_first            # the head poses are checked against the first run's page log
     page = headset.state
     web_cm = (web["mpjpe_cm"] + web_again["mpjpe_cm"]) / 2
     serial_cm = sum(run["mpjpe_cm"] for run in serial) / 2

@@ -16,8 +16,8 @@ clock (`play`): the same take `edge replay` plays over the serial link. Each fra
 logged against the sequence number the page sent it with, so a test can hold the board's decoded poses to it.
 
 Chromium is Debian's (/usr/bin/chromium); Playwright's own browser downloads are not used. The headset is
-another device, not a second job for the board: on a machine with more than one core the browser and
-Playwright's driver are kept to the last core at a lower priority, so drawing the page does not take the
+another device, not a second job for the board: for the replay (QuestHeadset), on a machine with more
+than one core, the browser and Playwright's driver are kept to the last core at a lower priority, so drawing the page does not take the
 board's frame time (on two cores, sharing them made the board late 22-47 times in 10 s and its MPJPE
 1.1-1.6x the serial link's).
 """
@@ -131,7 +131,7 @@ def keep_to_own_core(board_pid):
         try:
             os.sched_setaffinity(pid, {cores[-1]})
             os.setpriority(os.PRIO_PROCESS, pid, 10)
-        except (OSError, PermissionError):    # gone, or not ours
+        except OSError:                        # gone, or not ours
             pass
 
 
