@@ -215,6 +215,9 @@ class Refiner:
         self._pos = np.zeros((R, NUM_JOINTS, 3))
         self._raw_pos = np.zeros((R, NUM_JOINTS, 3))
         self._steps = np.eye(L, dtype=np.float32) * np.float32(eps)
+        # The latent being refined, the one the frame started from, and the sample's own (float64 [L]).
+        self.z, self.z_prev, self.z_prior = np.zeros(L), np.zeros(L), np.zeros(L)
+        self._z_addrs = tuple(native.addr(v) for v in (self.z, self.z_prev, self.z_prior))
         known = {"imus": ImuOrientation, "imus-tilt": lambda: ImuOrientation(tilt_only=True), "floor": FloorContact,
                  "targets": TargetReach, "keep": KeepPose}
         terms = DEFAULT_TERMS if terms is None else terms
@@ -332,23 +335,25 @@ class Refiner:
         b = self.batch
         b.features[:] = features
         b.hidden[0][:] = hidden
-        z_prev = latent.astype(np.float64)
-        z = z_prev.copy()
-        zp = prior_latent.astype(np.float64)
+        self.z_prev[:] = latent
+        self.z[:] = latent
+        self.z_prior[:] = prior_latent
         self._prior_latent = prior_latent
-        costs = [self.step(z, z_prev, zp) for _ in range(self.steps)]
-        latent[:] = z.astype(np.float32)
+        first = cost = self.step()
+        for _ in range(self.steps - 1):
+            cost = self.step()
+        latent[:] = self.z
         out = self._decode(latent, hidden, features)
         self.applied += 1
         self._displaced = True
-        self.last_cost = (costs[0], costs[-1])
+        self.last_cost = (first, cost)
         return out
 
     def _init_compiled(self, L, R):
         MAX_TARGETS = 8
         self._c_max_m = 3 * MAX_TARGETS + 3 * NUM_JOINTS + 10
         self._c_buf = {"pos": np.zeros((R, NUM_JOINTS, 3)), "r": np.zeros((R, self._c_max_m)), "A": np.zeros((L, L)),
-                       "jt": np.zeros((self._c_max_m, L)),
+                       "jt": np.zeros((L, self._c_max_m)),
                        "g": np.zeros(L), "joint": np.zeros(MAX_TARGETS, np.int64), "tpos": np.zeros((MAX_TARGETS, 3)),
                        "radius": np.zeros(MAX_TARGETS), "w": np.zeros(MAX_TARGETS), "keep": np.ones(NUM_JOINTS, np.uint8)}
         c = self._c_buf
@@ -386,15 +391,21 @@ class Refiner:
                 a.lock_pos, a.lock_weight = native.addr(ctx.lock_pos), native.addr(ctx.lock_weight)
         return True
 
-    def step(self, z, z_prev, zp):
+    def step(self, z=None, z_prev=None, zp=None):
         """One Levenberg-Marquardt step on z [L] float64 in place, from the Jacobian at z; z_prev is the
-        latent the frame started from (continuity), zp the sample's own (prior). Returns the constraints'
-        cost at z. The compiled step when this frame's terms allow (ep_refine_step), else numpy."""
+        latent the frame started from (continuity), zp the sample's own (prior); by default the
+        refiner's own (self.z, self.z_prev, self.z_prior, as refine fills them). Returns the
+        constraints' cost at z. The compiled step when this frame's terms allow (ep_refine_step), else numpy."""
+        if z is None:
+            z, z_prev, zp = self.z, self.z_prev, self.z_prior
+            addrs = self._z_addrs
+        else:
+            addrs = None
         if self._c_on:
             self._fill_batch(z, self._steps)
             self.batch.step()
             lib, core, slot = self._c
-            cost = lib.ep_refine_step(core, self._c_args, slot(), native.addr(z), native.addr(z_prev), native.addr(zp))
+            cost = lib.ep_refine_step(core, self._c_args, slot(), *(addrs or map(native.addr, (z, z_prev, zp))))
             if cost >= 0:
                 return cost
         r, J = self.jacobian(z)

@@ -231,7 +231,7 @@ typedef struct {
 
 /* edge.refine.Refiner.step's inputs besides the core context (ep_refine_step): the batch's decode
  * rot6d [R, rot6d_stride] float of R = L + 2 rows (the latent, its L steps of eps, the sample's own);
- * scratch pos [R,J,3], r [R, max_m], A [L,L], g [L], jt [max_m, L]; the live terms: n_targets targets (joint, point
+ * scratch pos [R,J,3], r [R, max_m], A [L,L], g [L], jt [L, max_m] (the Jacobian); the live terms: n_targets targets (joint, point
  * [3], radius, sqrt weight incl. the window's pull), KeepPose (keep [J] 0/1 and its sqrt weight, when
  * keep_on), FloorContact (sqrt weights of the floor and the planted feet; the shown sample's locks
  * lock_pos [2,3] and lock_weight [2], when floor_on); and the step's prior, continuity, damping and
@@ -1106,6 +1106,16 @@ int ep_frame_inputs(const core_context *x, int slot, int first, int N, int c, in
 }
 
 
+/* The dot product of a and b [n] in 8 partial sums (so it vectorises), added pairwise. */
+static inline double dot_lanes(const double *a, const double *b, int n) {
+    double acc[8] = {0};
+    int i = 0;
+    for (; i + 8 <= n; i += 8)
+        for (int l = 0; l < 8; l++) acc[l] += a[i + l] * b[i + l];
+    for (; i < n; i++) acc[0] += a[i] * b[i];
+    return ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7]));
+}
+
 /* One row's residuals of the live terms (edge.refine's TargetReach, KeepPose, FloorContact, in that
  * order) from its positions P [J,3] and the reference row's ref [J,3], into r; returns how many. */
 static int refine_residuals(const core_context *x, const refine_args *a, const double *P, const double *ref, double *r) {
@@ -1166,49 +1176,41 @@ double ep_refine_step(const core_context *x, const refine_args *a, int slot, dou
         refine_residuals(x, a, a->pos + (int64_t)row * J * 3, ref, a->r + (int64_t)row * a->max_m);
     double *r0 = a->r, cost = 0.0;
     for (int i = 0; i < m; i++) cost += r0[i] * r0[i];
-    /* the Jacobian residual by residual, jt[i][p] = (r_{p+1}[i] - r_0[i]) / eps, so that A = J J^T and
-     * g accumulate one residual at a time over contiguous rows (independent sums: SIMD) */
+    /* the Jacobian J [L][m], J[p][i] = (r_{p+1}[i] - r_0[i]) / eps, row by row (contiguous) */
     double *jt = a->jt;
     for (int p = 0; p < L; p++) {
         const double *rp = a->r + (int64_t)(p + 1) * a->max_m;
-        for (int i = 0; i < m; i++) jt[i * L + p] = (rp[i] - r0[i]) / a->eps;
+        double *jp = jt + (int64_t)p * a->max_m;
+        for (int i = 0; i < m; i++) jp[i] = (rp[i] - r0[i]) / a->eps;
     }
+    /* A = J J^T + lambda I (its lower triangle, mirrored) and g = J r_0 + prior (z - zp) + continuity (z - z_prev) */
     const double lambda = a->prior + a->continuity + a->damping;
     double *A = a->A, *g = a->g;
     for (int p = 0; p < L; p++) {
-        g[p] = 0.0;
-        for (int q = 0; q < L; q++) A[p * L + q] = 0.0;
-    }
-    for (int i = 0; i < m; i++) {
-        const double *ji = jt + i * L;
-        for (int p = 0; p < L; p++) {
-            const double jp = ji[p];
-            g[p] += jp * r0[i];
-            for (int q = 0; q < L; q++) A[p * L + q] += jp * ji[q];
-        }
+        const double *jp = jt + (int64_t)p * a->max_m;
+        for (int q = 0; q <= p; q++)
+            A[p * L + q] = A[q * L + p] = dot_lanes(jp, jt + (int64_t)q * a->max_m, m);
+        g[p] = dot_lanes(jp, r0, m);
     }
     for (int p = 0; p < L; p++) {
         A[p * L + p] += lambda;
         g[p] += a->prior * (z[p] - zp[p]) + a->continuity * (z[p] - z_prev[p]);
     }
     /* Cholesky A = C C^T (lower, in A), then C y = -g, C^T dz = y */
-    double y[64], dz[64];
+    double y[64], dz[64], inv[64];      /* inv: 1 / C's diagonal (a multiply, not a divide, per entry) */
     for (int p = 0; p < L; p++) {
-        for (int q = 0; q <= p; q++) {
-            double s = A[p * L + q];
-            for (int t = 0; t < q; t++) s -= A[p * L + t] * A[q * L + t];
-            A[p * L + q] = p == q ? sqrt(s > 1e-300 ? s : 1e-300) : s / A[q * L + q];
-        }
+        for (int q = 0; q < p; q++)
+            A[p * L + q] = (A[p * L + q] - dot_lanes(A + p * L, A + q * L, q)) * inv[q];
+        double s = A[p * L + p] - dot_lanes(A + p * L, A + p * L, p);
+        A[p * L + p] = sqrt(s > 1e-300 ? s : 1e-300);
+        inv[p] = 1.0 / A[p * L + p];
     }
-    for (int p = 0; p < L; p++) {
-        double s = -g[p];
-        for (int t = 0; t < p; t++) s -= A[p * L + t] * y[t];
-        y[p] = s / A[p * L + p];
-    }
+    for (int p = 0; p < L; p++)
+        y[p] = (-g[p] - dot_lanes(A + p * L, y, p)) * inv[p];
     for (int p = L - 1; p >= 0; p--) {
         double s = y[p];
         for (int t = p + 1; t < L; t++) s -= A[t * L + p] * dz[t];
-        dz[p] = s / A[p * L + p];
+        dz[p] = s * inv[p];
     }
     double n2 = 0.0;
     for (int p = 0; p < L; p++) n2 += dz[p] * dz[p];
