@@ -4,7 +4,7 @@ Buffers are allocated once and bound with IOBinding, so a frame's inference allo
 """
 import numpy as np
 
-from edge.modelfiles import ModelError, load_manifest
+from edge.modelfiles import JACOBIAN, ModelError, load_manifest
 
 
 def make_session(path, threads=1):
@@ -89,6 +89,31 @@ class Decoder:
             self._cur = 1 - self._cur
 
 
+class JacobianBatch:
+    """The refiner's batch on the Jacobian graph (models.nets.JacobianStep): `rows` latents decoded from
+    one frame's features [1,F] and GRU state (hidden[0], [1,H]) into rot6d [rows,D], on bound buffers.
+    Fill features, hidden[0] and latent as for a one-shot Decoder, then step()."""
+
+    def __init__(self, session, rows, latent_dim, hidden_dim, n_features):
+        names = {i.name for i in session.get_inputs()}
+        if names != {"features", "latent", "hidden"} or [o.name for o in session.get_outputs()] != ["rot6d"]:
+            raise ModelError("Jacobian model: expected inputs features/latent/hidden and output rot6d; "
+                             "re-export it (python -m models.export --jacobian-only)")
+        self.session, self.rows = session, rows
+        self.features = np.zeros((1, n_features), np.float32)
+        self.latent = np.zeros((rows, latent_dim), np.float32)
+        self.hidden = [np.zeros((1, hidden_dim), np.float32)]
+        self.rot6d = np.zeros((rows, session.get_outputs()[0].shape[1]), np.float32)
+        self._io = session.io_binding()
+        _bind(self._io, "features", self.features)
+        _bind(self._io, "latent", self.latent)
+        _bind(self._io, "hidden", self.hidden[0])
+        _bind(self._io, "rot6d", self.rot6d, output=True)
+
+    def step(self):
+        self.session.run_with_iobinding(self._io)
+
+
 class Autoencoder:
     """The plausibility autoencoder: local positions [B,J*3] -> rotations [B,(J-1)*6].
 
@@ -143,6 +168,18 @@ def open_models(folder=None, threads=1, precision=DEFAULT_PRECISION):
     names = model_files(precision, load_manifest(need=(), **kw))
     manifest = load_manifest(need=names, **kw)
     return manifest, make_session(manifest["paths"][names[0]], threads), make_session(manifest["paths"][names[1]], threads)
+
+
+def open_jacobian(folder=None, threads=1, precision=DEFAULT_PRECISION):
+    """The refiner's batch graph (models.nets.JacobianStep) for a precision: the manifest's `precisions`
+    entry "jacobian" when it names one, else the fp32 graph when the folder lists it; None when the
+    models have none (the refiner then differentiates with the decoder's own graph)."""
+    kw = {} if folder is None else {"folder": folder}
+    manifest = load_manifest(need=(), **kw)
+    name = manifest.get("precisions", {}).get(precision, {}).get("jacobian", JACOBIAN)
+    if name not in manifest["files"]:
+        return None
+    return make_session(load_manifest(need=(name,), **kw)["paths"][name], threads)
 
 
 def load_models(folder=None, samples=1, threads=1, precision=DEFAULT_PRECISION):

@@ -8,6 +8,8 @@ import os
 from pathlib import Path
 
 MANIFEST = "manifest.json"
+# The refiner's batch (models.nets.JacobianStep); a folder without it refines with the decoder's own graph.
+JACOBIAN = "decoder_jacobian.onnx"
 # The shipped models; EDGEPOSE_MODELS points the runtime at another folder.
 DEFAULT_DIR = Path(os.environ.get("EDGEPOSE_MODELS", Path(__file__).resolve().parent.parent / "models"))
 

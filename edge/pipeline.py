@@ -32,7 +32,7 @@ from edge.criteria import Composite, FrameContext, PhysicalPlausibility, Plausib
 from edge.features import NUM_POINT_FEATURES, body_points, features, heading, imu_features
 from edge.imus import IMU_JOINTS, NUM_IMUS
 from edge.ik import FootLock, apply_limb_ik
-from edge.inference import DEFAULT_PRECISION, Autoencoder, Decoder, open_models
+from edge.inference import DEFAULT_PRECISION, Autoencoder, Decoder, open_jacobian, open_models
 from edge.physics import floor_lift, lowest_point, support
 from edge.plausibility import PlausibilityScorer
 from edge.signals import EYE_OFFSET, GRIP_OFFSET, Signals
@@ -230,6 +230,7 @@ class Pipeline:
             from edge.refine import Refiner
             compiled = (self.native, self.path.core, lambda: self._slot_now) if self.native else None
             self.refiner = Refiner(dec_session, m, self._forward_rows, compiled=compiled,
+                                   jacobian_session=open_jacobian(models, threads, precision),
                                    **(refine if isinstance(refine, dict) else {}))
         self.reset()
 

@@ -196,16 +196,18 @@ class Refiner:
 
     def __init__(self, decoder_session, manifest, forward, steps=2, eps=0.5, prior=3e-4, continuity=3e-4,
                  damping=1e-3, max_step=3.0, release_s=0.1, fps=60.0, terms=None, weights=None, ik_pull=0.5,
-                 compiled=None):
-        from edge.inference import Decoder
+                 compiled=None, jacobian_session=None):
+        from edge.inference import Decoder, JacobianBatch
         L, H, F = manifest["latent"], manifest["hidden"], manifest["features"]
         self.L, self.steps, self.eps, self.ik_pull = L, steps, eps, ik_pull
         self.prior, self.continuity, self.damping, self.max_step = prior, continuity, damping, max_step
         # With no term live the latent eases back to the sample's own, by this fraction a frame (a time
         # constant of release_s), so a constraint that ends lets go smoothly (as a foot lock does).
         self.release = 1.0 - np.exp(-1.0 / (fps * release_s))
-        # The latent, L steps along its axes, and the sample's own latent (KeepPose's reference).
-        self.batch = Decoder(decoder_session, L + 2, L, H, F, recurrent=False)
+        # The latent, L steps along its axes, and the sample's own latent (KeepPose's reference): on the
+        # Jacobian graph (what the rows share computed once) when the models have one, else the decoder's.
+        self.batch = (JacobianBatch(jacobian_session, L + 2, L, H, F) if jacobian_session is not None
+                      else Decoder(decoder_session, L + 2, L, H, F, recurrent=False))
         self.final = Decoder(decoder_session, 1, L, H, F, recurrent=False)        # the refined latent's decode
         self.forward = forward
         R = L + 2

@@ -1,8 +1,10 @@
 """Export the trained networks as one-step ONNX graphs and write models/manifest.json.
 
     python -m models.export [--ckpt .cache/train] [--out models]
+    python -m models.export --ckpt models/checkpoints --jacobian-only      (add only the refiner's batch)
 
-Both are exported in inference form (models.nets.DecoderStep, AEStep): normalisation folded into the
+Three graphs: the decoder step, the pose autoencoder, and the refiner's batch (JacobianStep: the
+decoder's rotations for many latents on one frame's inputs). All are exported in inference form (models.nets.DecoderStep, AEStep): normalisation folded into the
 first layer, the decoder's GRU written out as Gemm + Sigmoid/Tanh with its two gates in one Gemm
 (ONNX Runtime cannot quantize the ONNX GRU op, and PyTorch has mis-exported nn.GRU before).
 """
@@ -13,9 +15,9 @@ from pathlib import Path
 
 import torch
 
-from edge.modelfiles import write_manifest
+from edge.modelfiles import JACOBIAN, sha256, write_manifest
 from edge.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS
-from models.nets import CVAE, HIDDEN, LATENT, AEStep, DecoderStep, PoseAE
+from models.nets import CVAE, HIDDEN, LATENT, AEStep, DecoderStep, JacobianStep, PoseAE
 
 
 def load_checkpoint(ckpt):
@@ -40,6 +42,14 @@ def export_decoder(cvae, path):
                       dynamic_axes={k: {0: "N"} for k in ("features", "latent", "hidden", "rot6d", "contacts", "hidden_out")})
 
 
+def export_jacobian(cvae, path):
+    """The refiner's batch (models.nets.JacobianStep): one frame's features and GRU state, R latents."""
+    args = (torch.zeros(1, cvae.n_features), torch.zeros(4, LATENT), torch.zeros(1, HIDDEN))
+    torch.onnx.export(JacobianStep(cvae).eval(), args, str(path), dynamo=False, external_data=False, opset_version=17,
+                      input_names=["features", "latent", "hidden"], output_names=["rot6d"],
+                      dynamic_axes={"latent": {0: "R"}, "rot6d": {0: "R"}})
+
+
 def export_autoencoder(ae, path):
     torch.onnx.export(AEStep(ae).eval(), (torch.zeros(4, NUM_JOINTS * 3),), str(path), dynamo=False, external_data=False,
                       opset_version=17, input_names=["positions"], output_names=["rot6d"],
@@ -51,24 +61,43 @@ def export_all(ckpt, out):
     cvae, ae, meta = load_checkpoint(ckpt)
     export_decoder(cvae, out / "decoder.onnx")
     export_autoencoder(ae, out / "autoencoder.onnx")
+    export_jacobian(cvae, out / JACOBIAN)
     info = {
         "fps": 60.0, "latent": LATENT, "hidden": HIDDEN, "features": cvae.n_features,
         "joint_names": list(JOINT_NAMES), "parents": PARENTS.tolist(),
         "plausibility_threshold_m": meta["plausibility_threshold_m"],
         "training": {k: v for k, v in meta.items() if k != "plausibility_threshold_m"},
     }
-    write_manifest(out, ["decoder.onnx", "autoencoder.onnx"], info)
+    write_manifest(out, ["decoder.onnx", "autoencoder.onnx", JACOBIAN], info)
     # Keep the PyTorch weights beside the ONNX files: the parity tests compare the two.
     (out / "checkpoints").mkdir(exist_ok=True)
     for name in ("cvae.pt", "ae.pt", "meta.json"):
         shutil.copyfile(Path(ckpt) / name, out / "checkpoints" / name)
 
 
+def add_jacobian(ckpt, out):
+    """Export only the refiner's batch into a folder whose other models are already there, and list it
+    in their manifest (the other files and their digests stay as they are)."""
+    out = Path(out)
+    cvae, _, _ = load_checkpoint(ckpt)
+    export_jacobian(cvae, out / JACOBIAN)
+    manifest = json.loads((out / "manifest.json").read_text())
+    manifest["files"][JACOBIAN] = {"sha256": sha256(out / JACOBIAN), "bytes": (out / JACOBIAN).stat().st_size,
+                                   "source_checkpoint": "checkpoints/cvae.pt"}
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--ckpt", default=".cache/train")
     ap.add_argument("--out", default="models")
+    ap.add_argument("--jacobian-only", action="store_true",
+                    help=f"export only {JACOBIAN} (the refiner's batch) beside models already there")
     a = ap.parse_args()
+    if a.jacobian_only:
+        add_jacobian(a.ckpt, a.out)
+        print(f"wrote {a.out}/{JACOBIAN} and listed it in {a.out}/manifest.json")
+        return
     export_all(a.ckpt, a.out)
     print(f"wrote {a.out}/decoder.onnx, {a.out}/autoencoder.onnx, {a.out}/manifest.json; "
           f"now build the int8 models the runtime defaults to: python -m quantize --models {a.out}")

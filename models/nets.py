@@ -171,6 +171,39 @@ class DecoderStep(nn.Module):
         return self.rot_head(y), torch.sigmoid(self.contact_head(y)), h
 
 
+class JacobianStep(nn.Module):
+    """DecoderStep's rot6d for R latents that share one frame's features and GRU state: the batch the
+    refiner (edge.refine) differentiates by forward differences. What the rows share is computed once
+    (the first layer's feature part, the gates' and the candidate's hidden parts: about half of a
+    row's arithmetic), and only the rotations are made (the refiner needs nothing else).
+
+    Inputs: features [1,F], latent [R,30], hidden [1,128]; output: rot6d [R,120], row r equal to
+    DecoderStep's rot6d for (features, latent[r], hidden) up to float rounding."""
+
+    def __init__(self, cvae: CVAE):
+        super().__init__()
+        d, H = DecoderStep(cvae), HIDDEN
+        self.prior, self.norm = d.prior, d.norm
+        w, b = d.fc.weight.detach(), d.fc.bias.detach()
+        self.fc_latent = _linear(w[:, :LATENT], torch.zeros(H))
+        self.fc_features = _linear(w[:, LATENT:], b)
+        w, b = d.gates_ru.weight.detach(), d.gates_ru.bias.detach()
+        self.gates_x = _linear(w[:, :H], torch.zeros(2 * H))
+        self.gates_h = _linear(w[:, H:], b)
+        self.cand_x, self.cand_h, self.rot_head = d.cand_x, d.cand_h, d.rot_head
+
+    def forward(self, features, latent, hidden):
+        if self.prior is not None:      # as DecoderStep: epsilon -> z through the learned conditional prior
+            out = self.prior(torch.cat([self.norm(features), hidden], dim=-1))
+            latent = out[:, :LATENT] + torch.exp(0.5 * out[:, LATENT:].clamp(-8, 3)) * latent
+        x = torch.relu(self.fc_latent(latent) + self.fc_features(features))          # [R,H] + [1,H]
+        ru = torch.sigmoid(self.gates_x(x) + self.gates_h(hidden))
+        r, u = ru[:, :HIDDEN], ru[:, HIDDEN:]
+        n = torch.tanh(self.cand_x(x) + r * self.cand_h(hidden))
+        h = n + u * (hidden - n)
+        return self.rot_head(torch.relu(h))
+
+
 def _linear(weight, bias):
     """An nn.Linear holding copies of these weights."""
     layer = nn.Linear(weight.shape[1], weight.shape[0])

@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from edge.inference import make_session
-from edge.modelfiles import MANIFEST, ModelError, sha256
+from edge.modelfiles import JACOBIAN, MANIFEST, ModelError, sha256
 from quantize.common import (MODELS, autoencoder_call_us, decoder_call_us, fp32_name, head_anchored_positions,
-                             int8_name, latents_for, mocap_windows, rollout)
+                             int8_name, jacobian_call_us, latents_for, mocap_windows, rollout)
 
 CALIB_WINDOWS, CALIB_FRAMES, CALIB_LATENTS = 48, 120, 2
 VAL_WINDOWS, VAL_FRAMES, VAL_LATENTS = 48, 240, 2
@@ -199,6 +199,42 @@ def check_sources(folder):
 
 # ---------------------------------------------------------------------------------------------- build
 
+def build_jacobian(folder, tmp, entries, report, log):
+    """The refiner's batch graph (models.nets.JacobianStep, the decoder's weights) in dynamic int8, as
+    the decoder's dynamic build: kept for the int8 runtime unless slower than fp32 on the refiner's 32
+    rows (best of 5 turns). Returns the file the int8 runtime opens; the int8 file joins `entries`."""
+    src, name = folder / JACOBIAN, JACOBIAN.replace(".onnx", ".int8.onnx")
+    quantize_dynamic_model(src, tmp / name)
+    turns = {"fp32": [], "int8": []}
+    for _ in range(5):
+        turns["fp32"].append(jacobian_call_us(src, 32, frames=150, warmup=20)["p50"])
+        turns["int8"].append(jacobian_call_us(tmp / name, 32, frames=150, warmup=20)["p50"])
+    best = {k: min(v) for k, v in turns.items()}
+    chosen = name if best["int8"] <= best["fp32"] else JACOBIAN
+    report["selection"]["jacobian_runtime"] = {
+        "file": chosen, "why": f"int8 {best['int8']:.1f} us vs fp32 {best['fp32']:.1f} us per call on 32 rows (best of 5 turns)"}
+    log(f"  jacobian: int8 {best['int8']:.1f} us, fp32 {best['fp32']:.1f} us on 32 rows: the int8 runtime opens {chosen}")
+    shutil.copyfile(tmp / name, folder / name)
+    entries[name] = {"precision": "int8", "method": "dynamic", "source": JACOBIAN,
+                     "source_sha256": sha256(src)}
+    return chosen
+
+
+def build_jacobian_only(folder, log=print):
+    """build_jacobian alone, for models whose decoder and autoencoder builds are already there."""
+    folder = Path(folder)
+    if JACOBIAN not in read_manifest(folder)["files"]:
+        raise ModelError(f"{folder}/manifest.json does not list {JACOBIAN}: "
+                         f"python -m models.export --ckpt {folder}/checkpoints --out {folder} --jacobian-only")
+    report, entries = {"selection": {}}, {}
+    with tempfile.TemporaryDirectory(prefix="quantize-") as tmp:
+        runtime = build_jacobian(folder, Path(tmp), entries, report, log)
+    precisions = read_manifest(folder).get("precisions", {}).get("int8", {})
+    add_to_manifest(folder, entries, {"int8": {**precisions, "jacobian": runtime}})
+    report["files"] = {k: read_manifest(folder)["files"][k] for k in entries}
+    return report
+
+
 def build(folder, data=None, methods=("dynamic", "static"), log=print):
     """Build models/{decoder,autoencoder}.int8.onnx and add them to the manifest. Returns a report dict."""
     folder = Path(folder)
@@ -274,6 +310,8 @@ def build(folder, data=None, methods=("dynamic", "static"), log=print):
             os.replace(part, out)
             entries[int8_name(model)] = {"precision": "int8", "method": chosen, "source": fp32_name(model),
                                          "source_sha256": digests[fp32_name(model)]}
+        if JACOBIAN in manifest["files"]:
+            runtime["jacobian"] = build_jacobian(folder, tmp, entries, report, log)
     add_to_manifest(folder, entries, {"int8": runtime})
     report["precisions"] = {"int8": runtime}
     report["files"] = {k: read_manifest(folder)["files"][k] for k in entries}

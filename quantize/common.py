@@ -6,7 +6,7 @@ numpy + onnxruntime only (the mocap windows come from models.dataset, which need
 import numpy as np
 
 from edge import quat
-from edge.inference import Autoencoder, Decoder, make_session
+from edge.inference import Autoencoder, Decoder, JacobianBatch, make_session
 from edge.skeleton import HEAD, NUM_JOINTS, NUM_PREDICTED, fk
 from edge.timing import time_calls
 
@@ -74,6 +74,16 @@ def decoder_call_us(path, rows, frames=400, warmup=50):
     dec.features[:] = rng.standard_normal(dec.features.shape) * 0.3
     dec.latent[:] = rng.standard_normal(dec.latent.shape)
     return _call_us(dec.step, frames, warmup)
+
+
+def jacobian_call_us(path, rows, frames=400, warmup=50):
+    """One bare call of the refiner's batch graph on `rows` latents (edge.inference.JacobianBatch)."""
+    session = make_session(path)
+    batch = JacobianBatch(session, rows, 30, 128, session.get_inputs()[0].shape[1])
+    rng = np.random.default_rng(0)
+    batch.features[:] = rng.standard_normal(batch.features.shape) * 0.3
+    batch.latent[:] = rng.standard_normal(batch.latent.shape)
+    return _call_us(batch.step, frames, warmup)
 
 
 def autoencoder_call_us(path, rows, frames=400, warmup=50):

@@ -16,8 +16,8 @@ from edgetools.takes import from_sample
 from quantize.common import head_anchored_positions, rollout
 from tests.conftest import SAMPLE
 
-FP32 = ("decoder.onnx", "autoencoder.onnx")
-INT8 = ("decoder.int8.onnx", "autoencoder.int8.onnx")
+FP32 = ("decoder.onnx", "autoencoder.onnx", "decoder_jacobian.onnx")
+INT8 = ("decoder.int8.onnx", "autoencoder.int8.onnx", "decoder_jacobian.int8.onnx")
 
 
 @pytest.fixture(scope="module")

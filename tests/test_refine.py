@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from edge.imus import IMU_JOINTS
+from edge.inference import Decoder, JacobianBatch
 from edge.pipeline import Pipeline
 from edge.refine import ImuOrientation, RefineContext, TargetReach
 from edge.skeleton import JOINT, NUM_JOINTS
@@ -41,13 +42,48 @@ def test_the_jacobian_matches_central_differences(take):
     run_to(pipe, take, 55)                       # refine ran this frame: the batch holds its inputs
     r = pipe.refiner
     z = pipe.decoder.latent[0].astype(np.float64)
-    h = 1e-3
+    h = 3e-3        # float32 rounding over h stays ~1e-4 of the scale; truncation ~h (1e-3 sat at 0.046 of 0.05)
     r0, J = r.jacobian(z, eps=h)
     central = np.stack([(r.residuals_at(z + h * e) - r.residuals_at(z - h * e)) / (2 * h) for e in np.eye(r.L)])
     assert np.abs(r0 - r.residuals_at(z)).max() < 1e-6
     scale = np.abs(central).max()
     assert scale > 1e-3, "the target term must depend on the latent"
     assert np.abs(J - central).max() < 0.05 * scale
+
+
+def test_the_jacobian_graph_decodes_each_latent_as_the_decoder_does(take):
+    """The refiner's batch graph (models.nets.JacobianStep: one frame's features and GRU state shared
+    by every row) gives each latent the rotations the decoder step gives it (fp32), and the pipeline's
+    refiner runs on it when the models have it."""
+    pipe = Pipeline(samples=1, precision="fp32", refine=True)
+    run_to(pipe, take, 80)
+    dec, m = pipe.decoder, pipe.manifest
+    batch = pipe.refiner.batch
+    assert isinstance(batch, JacobianBatch)
+    rng = np.random.default_rng(3)
+    latents = (dec.latent[0] + rng.standard_normal((batch.rows, m["latent"]))).astype(np.float32)
+    one = Decoder(dec.session, batch.rows, m["latent"], m["hidden"], m["features"], recurrent=False)
+    one.features[:], one.hidden[0][:], one.latent[:] = dec.features[0], dec.state[0], latents
+    batch.features[:], batch.hidden[0][:], batch.latent[:] = dec.features[0], dec.state[0], latents
+    one.step()
+    batch.step()
+    assert np.abs(one.rot6d - one.rot6d[0]).max() > 0.05, "the latents must make different poses"
+    np.testing.assert_allclose(batch.rot6d, one.rot6d, rtol=0, atol=1e-5)
+
+
+def test_models_without_the_jacobian_graph_refine_with_the_decoder(tmp_path):
+    """An older model folder (no decoder_jacobian.onnx in its manifest) still refines, on the decoder's graph."""
+    import json
+    import shutil
+    from edge.modelfiles import DEFAULT_DIR
+    for f in ("decoder.onnx", "autoencoder.onnx", "manifest.json"):
+        shutil.copyfile(DEFAULT_DIR / f, tmp_path / f)
+    manifest = json.loads((tmp_path / "manifest.json").read_text())
+    manifest["files"] = {k: v for k, v in manifest["files"].items() if k in ("decoder.onnx", "autoencoder.onnx")}
+    manifest.pop("precisions", None)
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    pipe = Pipeline(models=tmp_path, samples=1, precision="fp32", refine=True)
+    assert isinstance(pipe.refiner.batch, Decoder)
 
 
 @pytest.mark.parametrize("ik_pull", [0.0, 1.0])
