@@ -33,11 +33,12 @@ pinned to the same core and taking turns block by block in alternating order, so
 time and machine noise hits both alike. Printed per N: each side's pipeline and decoder p50 / p99,
 pipeline / decoder, and this tree / REV with the range of the per-block ratios.
 
---refine times latent refinement (edge.refine) against what it is built from, interleaved: one
-refinement step (the batched decode of the latent and its 30 steps, FK of the batch, the terms'
-residuals and the 30x30 solve) against one bare decoder call on N=31 rows; and, per N, the whole frame
-with a live target at K=1, 2, 3 steps against the frame without one, with p99. Prints DragPoser's
-published per-iteration cost (desktop i7, PyTorch, section 5) beside ours.
+--refine times latent refinement (edge.refine) against what it is built from: one refinement step
+(the batch's decode of the latent, its 30 steps and the sample's own latent on the Jacobian graph,
+then FK, the terms' residuals and the 30x30 solve in C) against one bare decoder call on N=31 rows,
+taking turns call by call; and, per N, interleaved in blocks, the whole frame with a live target at
+K=1, 2, 3 steps against the frame without one, with p99. Prints DragPoser's published per-iteration
+cost (desktop i7, PyTorch, section 5) beside ours.
 
 Pins itself to one core (like the board's budget). A benchmark, not a test: it prints figures and,
 besides that agreement check, asserts nothing.
@@ -57,7 +58,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from edge.inference import Decoder, open_models
 from edge.pipeline import Pipeline
 from edgetools.takes import from_sample
-from edge.timing import time_calls
+from edge.timing import time_alternating, time_calls
 
 SAMPLE = Path(__file__).resolve().parent.parent / "samples" / "cmu_09_12_walk.npz"
 WARMUP = 120
@@ -246,7 +247,10 @@ def refine_bench(a, frames, ns):
         return r.step()
 
     calls = {"refine_step": refine_step, "decoder_n31": lambda t: dec31.step()}
-    times = interleaved(calls, a.blocks, per_block)
+    for k in calls:                 # warm both
+        time_calls(calls[k], WARMUP)
+    # call by call in turns (these two are short: a block of either would see another machine state)
+    times = {k: v.reshape(a.blocks, per_block) for k, v in time_alternating(calls, a.blocks * per_block).items()}
     step = {"us": {k: summary(v) for k, v in times.items()}, "ratio": ratio(times, "refine_step", "decoder_n31")}
     q = step["ratio"]
     print(f"one refinement step {step['us']['refine_step']['p50']:.0f} us (p99 {step['us']['refine_step']['p99']:.0f}); "

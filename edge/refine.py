@@ -216,7 +216,7 @@ class Refiner:
         self._raw_world = np.zeros((R, NUM_JOINTS, 3, 3))
         self._pos = np.zeros((R, NUM_JOINTS, 3))
         self._raw_pos = np.zeros((R, NUM_JOINTS, 3))
-        self._steps = np.eye(L, dtype=np.float32) * np.float32(eps)
+        self._steps = self._axis_steps(eps)
         # The latent being refined, the one the frame started from, and the sample's own (float64 [L]).
         self.z, self.z_prev, self.z_prior = np.zeros(L), np.zeros(L), np.zeros(L)
         self._z_addrs = tuple(native.addr(v) for v in (self.z, self.z_prev, self.z_prior))
@@ -340,7 +340,7 @@ class Refiner:
         self.z_prev[:] = latent
         self.z[:] = latent
         self.z_prior[:] = prior_latent
-        self._prior_latent = prior_latent
+        b.latent[self.L + 1] = prior_latent     # KeepPose's reference row: the same for the frame's steps
         first = cost = self.step()
         for _ in range(self.steps - 1):
             cost = self.step()
@@ -353,7 +353,7 @@ class Refiner:
 
     def _init_compiled(self, L, R):
         MAX_TARGETS = 8
-        self._c_max_m = 3 * MAX_TARGETS + 3 * NUM_JOINTS + 10
+        self._c_max_m = (3 * MAX_TARGETS + 3 * NUM_JOINTS + 10 + 7) // 8 * 8     # the C step pads to 8
         self._c_buf = {"pos": np.zeros((R, NUM_JOINTS, 3)), "r": np.zeros((R, self._c_max_m)), "A": np.zeros((L, L)),
                        "jt": np.zeros((L, self._c_max_m)),
                        "g": np.zeros(L), "joint": np.zeros(MAX_TARGETS, np.int64), "tpos": np.zeros((MAX_TARGETS, 3)),
@@ -427,7 +427,7 @@ class Refiner:
         the sample's own latent (KeepPose's reference). The batch's features and GRU state, the live
         terms and the context are this frame's (set by refine)."""
         eps = self.eps if eps is None else eps
-        self._fill_batch(z, self._steps if eps == self.eps else np.eye(self.L, dtype=np.float32) * np.float32(eps))
+        self._fill_batch(z, self._steps if eps == self.eps else self._axis_steps(eps))
         r = self._residuals(self._terms, self._raw)[:self.L + 1]      # [L+1, m]
         return r[0], (r[1:] - r[0]) / eps
 
@@ -437,11 +437,15 @@ class Refiner:
         return self._residuals(self._terms, self._raw)[0]
 
     def _fill_batch(self, z, steps):
-        """The batch's latents: z, z + steps[k] for each axis k (0: z again), and the sample's own."""
+        """The batch's first L + 1 latents: z, then z + steps[k] along each axis k (steps [L,L], or 0: z
+        in every row). The last row, the sample's own latent, refine sets once a frame."""
         b, L = self.batch, self.L
         b.latent[:L + 1] = z
         b.latent[1:L + 1] += steps
-        b.latent[L + 1] = self._prior_latent
+
+    def _axis_steps(self, eps):
+        """[L, L] float32: eps along each axis."""
+        return np.eye(self.L, dtype=np.float32) * np.float32(eps)
 
     def _let_go(self, latent, prior_latent, hidden, features):
         """No term live: ease the latent back towards the sample's own; None once it is there."""

@@ -171,21 +171,31 @@ def test_the_latent_lets_go_after_the_window_and_the_pose_returns(take):
 
 
 @pytest.mark.skipif(not __import__("edge.native").native.load(), reason="needs the compiled core")
-def test_the_compiled_step_is_the_numpy_step(take):
-    """ep_refine_step (FK, the targets, keep and floor residuals, the Jacobian and the Cholesky solve in
-    C) moves the latent where the numpy step does, from the same batch."""
+@pytest.mark.parametrize("imus", ["none", "all seven"])
+def test_the_compiled_step_is_the_numpy_step(take, imus):
+    """ep_refine_step (FK in float32 with the worn IMUs' segments, the targets, keep and floor
+    residuals, the Jacobian and the Cholesky solve in C) moves the latent where the numpy step does,
+    from the same batch (to 1 % of the step)."""
+    from dataclasses import replace
+    from edge.imus import IMU_LOCATIONS, ImuNoise, mask
+    from edgetools.synth import wear
+    if imus != "none":
+        take = replace(take, signals=wear(take.signals, mask(IMU_LOCATIONS), take.fps, np.random.default_rng(0),
+                                          ImuNoise()))
     pipe = Pipeline(samples=1, precision="fp32", refine={"steps": 1, "terms": ["targets", "keep", "floor"]})
     goal, _ = lifted_toe_target(take, 60)
     pipe.refiner.add_target(L_TOE, goal, radius=0.02, first=40, last=60)
     run_to(pipe, take, 55)
     r = pipe.refiner
     assert r._c_on, "this frame's terms are all the compiled step's"
+    assert (pipe.buffer.seg_flag[pipe.buffer.slot(pipe.t)] > 0).any() == (imus != "none")   # segments set
     z0 = pipe.decoder.latent[0].astype(np.float64) + 0.1
     zp = pipe.latents[0].astype(np.float64)
     compiled, numpy_ = z0.copy(), z0.copy()
     cost_c = r.step(compiled, z0, zp)
     r._c_on = False
     cost_n = r.step(numpy_, z0, zp)
-    assert abs(cost_c - cost_n) <= 1e-9 * max(cost_n, 1e-12)
+    # the compiled step's FK runs in float32 (the numpy step's in float64): 1e-7 of a position
+    assert abs(cost_c - cost_n) <= 1e-6 * max(cost_n, 1e-12)
     assert np.abs(compiled - z0).max() > 1e-3
-    np.testing.assert_allclose(compiled, numpy_, rtol=0, atol=1e-7)
+    assert np.abs(compiled - numpy_).max() <= 0.01 * np.abs(numpy_ - z0).max()

@@ -106,7 +106,7 @@ static inline void lane_matvec3_shared_m(const double *m, lane *restrict v, lane
 
 
 /* vec3_dot */
-static inline void lane_dot3(lane *a, lane *b, lane out) {
+static inline void lane_dot3(const lane *a, const lane *b, double *restrict out) {
     EACH out[l] = a[0][l] * b[0][l] + a[1][l] * b[1][l] + a[2][l] * b[2][l];
 }
 
@@ -1116,6 +1116,76 @@ static inline double dot_lanes(const double *a, const double *b, int n) {
     return ((acc[0] + acc[4]) + (acc[1] + acc[5])) + ((acc[2] + acc[6]) + (acc[3] + acc[7]));
 }
 
+/* ------------------------------------------------------------------ the refiner's FK in float32 */
+
+/* The refiner's Jacobian comes from differences of mm to cm between rows: float32 (0.1 um at 1 m)
+ * carries them, at twice the lanes per vector of block_forward's float64. */
+#define LANES32 16
+#define EACH32 for (int l = 0; l < LANES32; l++)
+typedef float lane32[LANES32];
+
+/* lane_matrix_from_6d_f32 into float lanes; a and b each [3] lanes (the matrix's first two columns). */
+static inline void lane32_matrix_from_6d(lane32 *a, lane32 *b, lane32 *restrict m) {
+    EACH32 {
+        float na = sqrtf(a[0][l] * a[0][l] + a[1][l] * a[1][l] + a[2][l] * a[2][l]);
+        na = na > 1e-8f ? na : 1e-8f;
+        float x0 = a[0][l] / na, x1 = a[1][l] / na, x2 = a[2][l] / na;
+        float d = x0 * b[0][l] + x1 * b[1][l] + x2 * b[2][l];
+        float c0 = b[0][l] - d * x0, c1 = b[1][l] - d * x1, c2 = b[2][l] - d * x2;
+        float nb = sqrtf(c0 * c0 + c1 * c1 + c2 * c2);
+        nb = nb > 1e-8f ? nb : 1e-8f;
+        float y0 = c0 / nb, y1 = c1 / nb, y2 = c2 / nb;
+        m[0][l] = x0; m[1][l] = y0; m[2][l] = x1 * y2 - x2 * y1;
+        m[3][l] = x1; m[4][l] = y1; m[5][l] = x2 * y0 - x0 * y2;
+        m[6][l] = x2; m[7][l] = y2; m[8][l] = x0 * y1 - x1 * y0;
+    }
+}
+
+/* lane_matmul3 in float lanes: out = a b */
+static inline void lane32_matmul3(const lane32 *restrict a, const lane32 *restrict b, lane32 *restrict out) {
+    for (int i = 0; i < 3; i++)
+        for (int k = 0; k < 3; k++)
+            EACH32 out[i * 3 + k][l] = a[i * 3][l] * b[k][l] + a[i * 3 + 1][l] * b[3 + k][l] + a[i * 3 + 2][l] * b[6 + k][l];
+}
+
+/* block_forward's world positions, in float32, for rows r0..r0+nl (nl <= LANES32) into pos [R,J,3]
+ * (float64): the same FK (root, 6D, worn IMUs' segments, the head at the anchor) without the local
+ * rotations. The root and anchor are the frame's, shared by every row (the refiner's batch). */
+static void block_positions_f32(int r0, int nl, const skeleton *sk, const forward_inputs *in, double *pos) {
+    const int J = sk->J, head = sk->head;
+    lane32 W[MAX_JOINTS][9], P[MAX_JOINTS][3], a[3], b[3];
+    for (int k = 0; k < 9; k++) EACH32 W[0][k][l] = (float)in->root_m[k];
+    for (int i = 0; i < 3; i++) EACH32 P[0][i][l] = 0.0f;
+    for (int j = 1; j < J; j++) {
+        const int p = (int)sk->parents[j];
+        EACH32 {
+            const float *o = in->rot6d + (int64_t)(r0 + (l < nl ? l : nl - 1)) * in->rot6d_stride + (j - 1) * 6;
+            a[0][l] = o[0]; a[1][l] = o[1]; a[2][l] = o[2];
+            b[0][l] = o[3]; b[1][l] = o[4]; b[2][l] = o[5];
+        }
+        lane32 Lj[9];
+        lane32_matrix_from_6d(a, b, Lj);
+        lane32_matmul3(W[p], Lj, W[j]);
+        if (in->seg_flag && in->seg_flag[j] > 0.0) {     /* a worn IMU sets the segment (blended in 6D) */
+            const float f = (float)in->seg_flag[j];
+            const double *m = in->seg_m + j * 9;
+            for (int i = 0; i < 3; i++) EACH32 {
+                a[i][l] = (1 - f) * W[j][i * 3][l] + f * (float)m[i * 3];
+                b[i][l] = (1 - f) * W[j][i * 3 + 1][l] + f * (float)m[i * 3 + 1];
+            }
+            lane32_matrix_from_6d(a, b, W[j]);
+        }
+        const double *off = sk->offsets + j * 3;
+        for (int i = 0; i < 3; i++)
+            EACH32 P[j][i][l] = P[p][i][l] + (W[p][i * 3][l] * (float)off[0] + W[p][i * 3 + 1][l] * (float)off[1] +
+                                              W[p][i * 3 + 2][l] * (float)off[2]);
+    }
+    for (int j = 0; j < J; j++)
+        for (int i = 0; i < 3; i++)
+            for (int l = 0; l < nl; l++)
+                pos[((int64_t)(r0 + l) * J + j) * 3 + i] = in->anchor[i] + (double)(P[j][i][l] - P[head][i][l]);
+}
+
 /* One row's residuals of the live terms (edge.refine's TargetReach, KeepPose, FloorContact, in that
  * order) from its positions P [J,3] and the reference row's ref [J,3], into r; returns how many. */
 static int refine_residuals(const core_context *x, const refine_args *a, const double *P, const double *ref, double *r) {
@@ -1161,27 +1231,28 @@ double ep_refine_step(const core_context *x, const refine_args *a, int slot, dou
     int m = a->n_targets * 3 + (a->floor_on ? 10 : 0);
     if (a->keep_on)
         for (int j = 0; j < J; j++) m += a->keep[j] ? 3 : 0;
-    if (m > a->max_m || L > 64)
+    if (((m + 7) & ~7) > a->max_m || L > 64)
         return -1.0;
     const forward_inputs fin = {a->rot6d, a->rot6d_stride, x->ring_waist + slot * 9, 0, x->ring_anchor + slot * 3, 0,
                                 x->ring_seg_m + (int64_t)slot * J * 9, x->ring_seg_flag + (int64_t)slot * J};
-    block k;
-    for (int r0 = 0; r0 < R; r0 += LANES) {
-        int nl = R - r0 < LANES ? R - r0 : LANES;
-        block_forward(&k, r0, nl, sk, &fin);
-        block_store(&k, r0, nl, J, 0, 0, a->pos);
-    }
+    for (int r0 = 0; r0 < R; r0 += LANES32)
+        block_positions_f32(r0, R - r0 < LANES32 ? R - r0 : LANES32, sk, &fin, a->pos);
     const double *ref = a->pos + (int64_t)(R - 1) * J * 3;
     for (int row = 0; row <= L; row++)
         refine_residuals(x, a, a->pos + (int64_t)row * J * 3, ref, a->r + (int64_t)row * a->max_m);
     double *r0 = a->r, cost = 0.0;
     for (int i = 0; i < m; i++) cost += r0[i] * r0[i];
-    /* the Jacobian J [L][m], J[p][i] = (r_{p+1}[i] - r_0[i]) / eps, row by row (contiguous) */
+    /* the Jacobian J [L][m], J[p][i] = (r_{p+1}[i] - r_0[i]) / eps, row by row (contiguous), and r_0,
+     * zero-padded to m8 (a multiple of 8) so the dot products below have no scalar tail */
+    const int m8 = (m + 7) & ~7;
+    const double inv_eps = 1.0 / a->eps;
     double *jt = a->jt;
+    for (int i = m; i < m8; i++) r0[i] = 0.0;
     for (int p = 0; p < L; p++) {
         const double *rp = a->r + (int64_t)(p + 1) * a->max_m;
         double *jp = jt + (int64_t)p * a->max_m;
-        for (int i = 0; i < m; i++) jp[i] = (rp[i] - r0[i]) / a->eps;
+        for (int i = 0; i < m; i++) jp[i] = (rp[i] - r0[i]) * inv_eps;
+        for (int i = m; i < m8; i++) jp[i] = 0.0;
     }
     /* A = J J^T + lambda I (its lower triangle, mirrored) and g = J r_0 + prior (z - zp) + continuity (z - z_prev) */
     const double lambda = a->prior + a->continuity + a->damping;
@@ -1189,8 +1260,8 @@ double ep_refine_step(const core_context *x, const refine_args *a, int slot, dou
     for (int p = 0; p < L; p++) {
         const double *jp = jt + (int64_t)p * a->max_m;
         for (int q = 0; q <= p; q++)
-            A[p * L + q] = A[q * L + p] = dot_lanes(jp, jt + (int64_t)q * a->max_m, m);
-        g[p] = dot_lanes(jp, r0, m);
+            A[p * L + q] = A[q * L + p] = dot_lanes(jp, jt + (int64_t)q * a->max_m, m8);
+        g[p] = dot_lanes(jp, r0, m8);
     }
     for (int p = 0; p < L; p++) {
         A[p * L + p] += lambda;
