@@ -440,6 +440,13 @@ class Pipeline:
         self._pending = None if n == self.samples else n
         return n
 
+    def set_refine_steps(self, k):
+        """Refinement steps a frame from the next frame on (edge.governor moves N and K together). At
+        K = 0 a live target no longer moves the latent (a foot target still pulls the leg IK) and a
+        latent that was moved is let go. Without a refiner there is nothing to set."""
+        if self.refiner is not None:
+            self.refiner.steps = max(int(k), 0)
+
     def flush(self):
         """Poses for the frames still in the look-ahead buffer (end of a take)."""
         out = []

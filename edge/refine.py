@@ -330,8 +330,8 @@ class Refiner:
         for g in (reach.live(frame) if reach is not None else ()):
             ctx.keep[LIMB_OF.get(g.joint, [g.joint])] = False
         terms = self.live_terms(ctx)
-        if all(t.guard for t in terms):         # nothing to reach for: the guards alone would only hold
-            return self._let_go(latent, prior_latent, hidden, features)
+        if all(t.guard for t in terms) or self.steps == 0:   # nothing to reach for (the guards alone would
+            return self._let_go(latent, prior_latent, hidden, features)   # only hold), or no steps to spend
         self._terms, self._raw = terms, any(t.needs_raw_world for t in terms)
         self._c_on = self._prepare_compiled(terms)
         b = self.batch

@@ -153,6 +153,21 @@ def test_without_a_live_constraint_the_refiner_changes_nothing(take, samples):
     assert np.array_equal(got, want)
 
 
+def test_at_zero_steps_a_live_target_moves_no_latent_and_a_moved_one_is_let_go(take):
+    """The governor's K = 0 rung (Pipeline.set_refine_steps): the target stays live but the latent is
+    the sample's own again within a few frames; at K = 2 it had moved."""
+    pipe = Pipeline(samples=1, precision="fp32", refine={"steps": 2, "ik_pull": 0.0})
+    goal, _ = lifted_toe_target(take, 100)
+    pipe.refiner.add_target(L_TOE, goal, radius=0.0, first=40, last=200)
+    run_to(pipe, take, 60)
+    assert np.abs(pipe.decoder.latent[0] - pipe.latents[0]).max() > 0.1
+    pipe.set_refine_steps(0)
+    for t in range(61, 120):
+        pipe.step(take.signals.slice(t, t + 1))
+    assert pipe.refiner.term("targets").live(pipe.t), "the target is still live"
+    np.testing.assert_array_equal(pipe.decoder.latent[0], pipe.latents[0])
+
+
 def test_the_latent_lets_go_after_the_window_and_the_pose_returns(take):
     """After a target's window the refined latent eases back to the sample's own (0.1 s time
     constant) and the latent is the sample's again; the GRU state forgets the refined frames more

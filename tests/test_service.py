@@ -157,7 +157,7 @@ def test_a_service_that_runs_late_lowers_n_and_keeps_streaming():
     summary = service.summary()
     assert summary["samples"] == 1 and summary["samples_max"] == 16
     # One cut, in proportion to how late the tick was (thousands of periods: straight to 1).
-    assert [c[1:] for c in summary["samples_changes"]] == [[16, 1, "late"]]
+    assert [c[1:] for c in summary["samples_changes"]] == [[16, 1, "late", 0, 0]]
     assert frames[-1].num_samples == 1 and len(frames) > 60
     assert ear.stats["corrupt"] == 0
 
