@@ -1,6 +1,6 @@
-"""`edge profile`: how many SSI samples fit a CPU budget, measured on the real pipeline.
+"""`edge profile`: how many SSI samples and refinement steps fit a CPU budget, measured on the real pipeline.
 
-    edge profile [--cpu-quota Q] [--hz H] [--samples N|auto] [--frames K] [--precision fp32|int8] --json OUT
+    edge profile [--cpu-quota Q] [--hz H] [--samples N|auto] [--refine-steps K] [--frames F] [--precision fp32|int8] --json OUT
     edge profile --samples 128 --adaptive --frames 4200 --hog-at 15 --hog-seconds 30 --hog-procs 5 --json OUT
 
 A worker process runs the board's per-frame path on synthesised input (the bundled sample's tracker
@@ -20,17 +20,21 @@ period. (On a board, set the service's period the same way: systemd CPUQuotaPeri
 Elsewhere the worker is only pinned to one core, quota_enforced is false, and the budget below is the
 modelled one (CPU time per frame against Q x 1000/H ms).
 
---samples auto probes N = 1, 2, 4, 8, 16, 24, 32, 48, 64, 96, 128 in turn (--probe-frames real-time
-frames each, under the same limit; a probe that does not fit is repeated once) and chooses the largest N whose p99 frame time leaves 20 %
-headroom (--headroom): p99 <= 0.8 x 1000/H ms (quota enforced; the quota's effect is in the measured
-time) or p99 CPU time <= 0.8 x Q x 1000/H ms (not enforced). It then runs --frames frames at that N,
-the run whose numbers are reported; if that run misses deadlines it steps down one N and runs again
-(every attempt is kept in the JSON).
+N and K together. Refinement steps (K, edge.refine) only cost while a headset's target is live; the
+profile measures the worst case, a target live every frame (--refine-steps K, default 2: the most
+steps, as [refine] steps; 0: no target and N alone). --samples auto probes the governor's rungs
+(edge.governor.rungs, cheapest first: (1,0), (1,1), (2,1), ..., (32,1), (32,2), (48,2), ... (128,2))
+in turn (--probe-frames real-time frames each, under the same limit; a probe that does not fit is
+repeated once) and chooses the highest rung whose p99 frame time leaves 20 % headroom (--headroom):
+p99 <= 0.8 x 1000/H ms (quota enforced; the quota's effect is in the measured time) or p99 CPU time
+<= 0.8 x Q x 1000/H ms (not enforced). It then runs --frames frames there, the run whose numbers are
+reported; if that run misses deadlines it steps down one rung and runs again (every attempt is kept
+in the JSON). Deploy with the chosen N as [runtime] samples and K as [refine] steps.
 
 Contention (--hog-at S [--hog-seconds D] [--hog-procs K]): K busy processes start S seconds into the
 measured run, on the worker's core but outside its cgroup, and stop D seconds later. With
 --adaptive the deadline watchdog (edge.governor, the same one `edge run` uses) lowers N while
-frames run late and raises it again when there is slack; `contention` in the JSON has deadline
+frames run late and raises it again when there is slack (and K with it, along the same rungs); `contention` in the JSON has deadline
 misses and N before, during and after the hog, every change of N and each frame's time, and
 `edge report OUT --out DIR` draws them. Without --adaptive the same run shows what a fixed N does.
 A frame whose deadline passed before it could start is skipped and counted as a miss, as `edge run`
@@ -52,9 +56,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from edge.governor import rungs
 from edge.inference import DEFAULT_PRECISION
 
-LADDER = (1, 2, 4, 8, 16, 24, 32, 48, 64, 96, 128)
 SAMPLE = Path(__file__).resolve().parent.parent / "samples" / "cmu_09_12_walk.npz"
 from edgetools.cpulimit import CGROUP_V1, CGROUP_V2, CpuLimit, Hog  # noqa: F401  (CGROUP_*: tests read them)
 
@@ -82,9 +86,10 @@ def add_arguments(p):
     p.add_argument("--hog-procs", type=int, default=4, help="busy processes in the hog (default 4)")
     p.add_argument("--quick", action="store_true",
                    help="an answer in under a minute: 120 probe frames per N up to N=64, then 600 measured frames")
-    p.add_argument("--refine-steps", type=int, default=0, metavar="K",
-                   help="measure with a live target refined K steps a frame (edge.refine; a headset's TARGET at its "
-                        "worst: every frame), so the N chosen leaves room for them (default 0: without)")
+    p.add_argument("--refine-steps", type=int, default=2, metavar="K",
+                   help="the most refinement steps a frame: measure with a live target refined every frame (a "
+                        "headset's TARGET at its worst) and choose N and K together along the governor's rungs "
+                        "(default 2, as [refine] steps; 0: no target, N alone)")
     p.add_argument("--json", required=True, help="write the profile here")
 
 
@@ -141,9 +146,10 @@ def _pct(a):
             "max": round(float(a.max()), 4)}
 
 
-def board_service(cfg, samples, feeder):
+def board_service(cfg, samples, feeder, steps):
     """The board's Service on the feeder's sim:// sources, as `edge run` builds it (no adaptive N:
-    the profiler steers N itself from the release-to-done times)."""
+    the profiler steers N itself from the release-to-done times), refining `steps` a frame (of at
+    most cfg['refine_steps'])."""
     from firmware_bridge import config as config_mod
     from firmware_bridge.service import Service
     headset, waist = feeder.urls()
@@ -155,15 +161,19 @@ def board_service(cfg, samples, feeder):
     board = config_mod.from_dict({"headset": {"url": headset}, "trackers": [{"url": waist}],
                                   "output": {"pose_stream": "headset"}, "runtime": runtime, "refine": refine},
                                  "edge profile")
-    return Service(board, clock=lambda: feeder.now, status=None, threaded=False)   # the feed is in-process
+    service = Service(board, clock=lambda: feeder.now, status=None, threaded=False)   # the feed is in-process
+    service.pipeline.set_refine_steps(steps)
+    return service
 
 
-def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None):  # noqa: C901
+def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None, steps=None):  # noqa: C901
     """Real-time frames at cfg['hz'] through the board service's tick (sources -> sync -> calibration ->
     Pipeline.step -> POSE_FRAME), paced by the service's Pacer. Returns (stats, pipeline).
 
-    adaptive: edge.governor picks N after every frame (samples is the largest). hog: (first frame,
-    frames, processes) of a CPU hog during the measured frames."""
+    steps: refinement steps a frame (default cfg['refine_steps']); with cfg['refine_steps'] > 0 a
+    target is live every frame. adaptive: edge.governor picks N and K after every frame (samples and
+    cfg['refine_steps'] are the largest). hog: (first frame, frames, processes) of a CPU hog during
+    the measured frames."""
     import numpy as np
     from edge.governor import SampleGovernor
     from edge.pipeline import STAGES
@@ -172,7 +182,8 @@ def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None):  # noqa
     hz = cfg["hz"]
     period = 1.0 / hz
     feeder = Feeder(hz, f"profile{os.getpid()}-{samples}-{frames}")
-    service = board_service(cfg, samples, feeder)
+    steps = cfg.get("refine_steps", 0) if steps is None else steps
+    service = board_service(cfg, samples, feeder, steps)
     pipe = service.pipeline
     hog_proc = Hog(hog[2], cfg.get("cgroup_root")) if hog else None
     clock, cpu_clock = time.perf_counter, time.thread_time
@@ -194,8 +205,9 @@ def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None):  # noqa
         resp, comp, cpu = (np.full(frames, np.nan) for _ in range(3))
         st = {k: np.full(frames, np.nan) for k in ("sync", "pipeline_step", "output_encoding")}
         stage_cpu = np.full((frames, len(STAGES)), np.nan)
-        live_n = np.empty(frames, np.int32)
-        governor = SampleGovernor(1000.0 * period, samples) if adaptive else None
+        live_n, live_k = np.empty(frames, np.int32), np.empty(frames, np.int32)
+        governor = SampleGovernor(1000.0 * period, samples, max_steps=cfg.get("refine_steps", 0)) if adaptive else None
+        refiner = pipe.refiner
         misses = late_starts = skipped = 0
         pipe.timing = True
         marks, stage_ns = service.tick_marks, pipe.stage_ns
@@ -210,7 +222,7 @@ def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None):  # noqa
                 for j in range(i, min(i + late, frames)):
                     # Their deadline passed before they could start: skipped and missed, as `edge run`
                     # does (a late service resynchronises to the next tick instead of bursting).
-                    live_n[j] = pipe.samples
+                    live_n[j], live_k[j] = pipe.samples, refiner.steps if refiner else 0
                     resp[j] = clock() - (release - (i + late - j) * period)
                     skipped += 1
                     misses += 1
@@ -219,7 +231,7 @@ def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None):  # noqa
                     break
                 now = clock()
                 late_starts += 1 if now > release + 0.001 else 0
-                live_n[i] = pipe.samples
+                live_n[i], live_k[i] = pipe.samples, refiner.steps if refiner else 0
                 ca = cpu_clock()
                 tick(warm + i)
                 d, cd = clock(), cpu_clock()
@@ -232,7 +244,7 @@ def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None):  # noqa
                 if i % 30 == 29 or i == frames - 1:
                     # cheap on purpose: this runs inside the measured process between frames
                     bar.update(30 if i % 30 == 29 else (i % 30) + 1,
-                               postfix=f"N={pipe.samples} last {resp[i] * 1e3:.2f} ms misses {misses}")
+                               postfix=f"N={pipe.samples} K={live_k[i]} last {resp[i] * 1e3:.2f} ms misses {misses}")
                 i += 1
         pipe.timing = False
     finally:                 # never leave busy processes behind, whatever happened
@@ -241,19 +253,20 @@ def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None):  # noqa
         service.close()
         feeder.close()
     ms = lambda x: x * 1e3  # noqa: E731
-    stats = {"samples": samples, "frames": frames, "deadline_misses": misses, "late_starts": late_starts,
+    stats = {"samples": samples, "refine_steps": steps, "frames": frames, "deadline_misses": misses,
+             "late_starts": late_starts,
              "skipped_frames": skipped,
              "frame_ms": _pct(ms(resp)), "compute_ms": _pct(ms(comp)), "cpu_ms": _pct(ms(cpu)),
              "stages_in_loop_ms": {k: _pct(ms(v)) for k, v in st.items()},
              "stages_cpu_ms": {name: _pct(stage_cpu[:, k]) for k, name in enumerate(STAGES)},
              "ssi_switches": pipe.switch_count, "refined_frames": pipe.refiner.applied if pipe.refiner else 0}
     if adaptive or hog:
-        stats["contention"] = contention_report(resp, live_n, period, hog, governor)
+        stats["contention"] = contention_report(resp, live_n, period, hog, governor, live_k)
     return stats, pipe
 
 
-def contention_report(resp, live_n, period, hog, governor):
-    """Deadline misses and N before, during and after the hog, and when N changed."""
+def contention_report(resp, live_n, period, hog, governor, live_k):
+    """Deadline misses and N (and K) before, during and after the hog, and when they changed."""
     import numpy as np
     late = resp > period
     phases = {"whole": slice(0, len(resp))}
@@ -267,9 +280,12 @@ def contention_report(resp, live_n, period, hog, governor):
             out["phases"][name] = {"frames": int(len(n)), "deadline_misses": int(m.sum()),
                                    "miss_rate": round(float(m.mean()), 5), "samples_mean": round(float(n.mean()), 2),
                                    "samples_min": int(n.min()), "samples_max": int(n.max()),
-                                   "samples_last": int(n[-1]), "frame_ms": _pct(resp[sl] * 1e3)}
+                                   "samples_last": int(n[-1]), "refine_steps_min": int(live_k[sl].min()),
+                                   "refine_steps_last": int(live_k[sl][-1]), "frame_ms": _pct(resp[sl] * 1e3)}
     steps = np.flatnonzero(np.diff(live_n)) + 1
     out["samples_timeline"] = [[0, int(live_n[0])]] + [[int(i), int(live_n[i])] for i in steps]
+    steps = np.flatnonzero(np.diff(live_k)) + 1
+    out["refine_steps_timeline"] = [[0, int(live_k[0])]] + [[int(i), int(live_k[i])] for i in steps]
     out["frame_ms_per_frame"] = [round(float(x), 2) for x in resp * 1e3]     # for `edge report`
     out["period_ms"] = 1e3 * period
     if hog:
@@ -297,42 +313,46 @@ def worker(cfg):
         v = st["frame_ms"]["p99"] if budget["metric"].startswith("frame") else st["cpu_ms"]["p99"]
         return v <= budget["ms"] and st["deadline_misses"] == 0
 
+    # The (N, K) rungs the governor moves along (edge.governor.rungs), cheapest first.
+    ladder = rungs(cfg["max_samples"], cfg.get("refine_steps", 0))
     probes = []
     if cfg["samples"] == "auto":
         best = None
-        for n in [n for n in LADDER if n <= cfg["max_samples"]]:
+        for n, k in ladder:
             for _attempt in range(2):          # a failed probe is repeated once: one busy second is not a verdict
-                st, _ = paced_run(cfg, n, cfg["probe_frames"], f"probe N={n:<3d}")
+                st, _ = paced_run(cfg, n, cfg["probe_frames"], f"probe N={n:<3d} K={k}", steps=k)
                 st["fits"] = fits(st)
-                probes.append({k: st[k] for k in ("samples", "frames", "deadline_misses", "frame_ms", "cpu_ms", "fits")})
+                probes.append({k: st[k] for k in ("samples", "refine_steps", "frames", "deadline_misses", "frame_ms",
+                                                  "cpu_ms", "fits")})
                 if st["fits"]:
                     break
             if not st["fits"]:
                 break
-            best = n
-        chosen = best or 1
-    else:
-        chosen = int(cfg["samples"])
+            best = (n, k)
+        chosen = best or ladder[0]
+    else:       # a fixed N, with the most steps the ladder gives it
+        chosen = max(r for r in rungs(int(cfg["samples"]), cfg.get("refine_steps", 0)) if r[0] == int(cfg["samples"]))
     attempts = []
     hog = None
     if cfg.get("hog_at") is not None:
         hog = (int(round(cfg["hog_at"] * hz)), int(round(cfg["hog_seconds"] * hz)), cfg["hog_procs"])
     adaptive = bool(cfg.get("adaptive"))
     while True:
-        st, pipe = paced_run(cfg, chosen, cfg["frames"], f"run N={chosen:<3d}", adaptive, hog)
-        attempts.append({k: st[k] for k in ("samples", "frames", "deadline_misses", "frame_ms", "cpu_ms")})
+        n, k = chosen
+        st, pipe = paced_run(cfg, n, cfg["frames"], f"run N={n:<3d} K={k}", adaptive, hog, steps=k)
+        attempts.append({k: st[k] for k in ("samples", "refine_steps", "frames", "deadline_misses", "frame_ms", "cpu_ms")})
         # Adaptive or contended runs are reported as they went: stepping down would hide the verdict.
-        if (st["deadline_misses"] == 0 or cfg["samples"] != "auto" or chosen == 1 or len(attempts) >= 3
+        if (st["deadline_misses"] == 0 or cfg["samples"] != "auto" or chosen == ladder[0] or len(attempts) >= 3
                 or adaptive or hog):
             break
-        chosen = max(n for n in LADDER if n < chosen)
+        chosen = ladder[ladder.index(chosen) - 1]
     stages = {"sync": st["stages_in_loop_ms"]["sync"], "pipeline_step": st["stages_in_loop_ms"]["pipeline_step"],
               "output_encoding": st["stages_in_loop_ms"]["output_encoding"]}
     stages.update(st["stages_cpu_ms"])
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     with open("/proc/self/statm") as f:
         rss_now = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
-    return {"chosen_samples": chosen, "frames": st["frames"], "frame_ms": st["frame_ms"], "compute_ms": st["compute_ms"],
+    return {"chosen_samples": chosen[0], "chosen_refine_steps": chosen[1], "frames": st["frames"], "frame_ms": st["frame_ms"], "compute_ms": st["compute_ms"],
             "cpu_ms": st["cpu_ms"], "deadline_misses": st["deadline_misses"], "late_starts": st["late_starts"],
             "skipped_frames": st["skipped_frames"],
             "ssi_switches": st["ssi_switches"], "refined_frames": st["refined_frames"], "stages": stages,
@@ -430,7 +450,8 @@ def _profile(args, quota):
     print(f"edge profile: {args.hz:g} Hz, CPU {quota:g} of one core "
           f"({'cgroup quota ' + str(limit.quota_us) + ' us per ' + str(limit.period_us) + ' us' if limit.enforced else 'quota NOT enforced: ' + limit.why}), "
           f"samples {args.samples}, {args.frames} frames"
-          + (f", a target refined {args.refine_steps} steps a frame" if args.refine_steps else ""), file=sys.stderr)
+          + (f", a target live every frame, refined up to {args.refine_steps} steps" if args.refine_steps
+             else ", no target"), file=sys.stderr)
     root = Path(__file__).resolve().parent.parent
     env = dict(os.environ, OPENBLAS_NUM_THREADS="1", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1",
                PYTHONPATH=os.pathsep.join([str(root)] + [p for p in [os.environ.get("PYTHONPATH")] if p]))
@@ -453,7 +474,8 @@ def _profile(args, quota):
     result = {"hz": args.hz, "precision": args.precision, "samples_requested": args.samples,
               "refine_steps": args.refine_steps,
               "cpu_quota": {**limit.describe(), "throttling": throttled}, "quota_enforced": limit.enforced,
-              "chosen_samples": res["chosen_samples"], "frames": res["frames"],
+              "chosen_samples": res["chosen_samples"], "chosen_refine_steps": res["chosen_refine_steps"],
+              "frames": res["frames"],
               "deadline_misses": res["deadline_misses"], "frame_ms": res["frame_ms"],
               "compute_ms": res["compute_ms"], "cpu_ms": res["cpu_ms"], "late_starts": res["late_starts"],
               "skipped_frames": res["skipped_frames"],
@@ -471,7 +493,8 @@ def _profile(args, quota):
     Path(args.json).parent.mkdir(parents=True, exist_ok=True)
     Path(args.json).write_text(json.dumps(result, indent=2) + "\n")
     fm = result["frame_ms"]
-    print(f"chosen_samples={result['chosen_samples']} frames={result['frames']} deadline_misses={result['deadline_misses']} "
+    print(f"chosen_samples={result['chosen_samples']} chosen_refine_steps={result['chosen_refine_steps']} "
+          f"frames={result['frames']} deadline_misses={result['deadline_misses']} "
           f"frame_ms p50={fm['p50']:.2f} p99={fm['p99']:.2f} cpu_ms p99={result['cpu_ms']['p99']:.2f} "
           f"rss_mb={result['rss_mb']} quota_enforced={str(limit.enforced).lower()}")
     for name, ph in (result.get("contention") or {}).get("phases", {}).items():

@@ -89,16 +89,22 @@ def test_the_profile_measures_frames_with_a_live_target_refined_k_steps(tmp_path
     assert without["refine_steps"] == 0 and without["refined_frames"] == 0
 
 
-def test_auto_probes_the_ladder_and_chooses_a_probed_n(tmp_path):
-    r = run(tmp_path, "--samples", "auto", "--max-samples", "4", "--frames", "15", "--probe-frames", "8", "--hz", "120",
-            "--no-cgroup")
-    probed = [p["samples"] for p in r["probes"]]
-    assert probed == sorted(probed) and set(probed) <= {1, 2, 4}
-    # The rule: the measured run starts at the largest N that fitted when probed (1 if none did) and
-    # steps down only after a run that missed deadlines; the reported N is the last run's.
-    fitting = [p["samples"] for p in r["probes"] if p["fits"]]
-    assert r["runs"][0]["samples"] == (max(fitting) if fitting else 1)
-    assert r["chosen_samples"] == r["runs"][-1]["samples"]
+def test_auto_probes_the_rungs_and_chooses_a_probed_n_and_k(tmp_path):
+    """--samples auto walks the governor's (N, K) rungs, cheapest first, with a target live every
+    frame; the measured run starts at the highest rung that fitted."""
+    from edge.governor import rungs
+    r = run(tmp_path, "--samples", "auto", "--max-samples", "4", "--refine-steps", "2", "--frames", "15",
+            "--probe-frames", "8", "--hz", "120", "--no-cgroup")
+    ladder = rungs(4, 2)
+    probed = [(p["samples"], p["refine_steps"]) for p in r["probes"]]
+    order = [ladder.index(rung) for rung in probed]
+    assert order == sorted(order) and order[0] == 0              # in ladder order, from the cheapest
+    # The rule: the measured run starts at the highest rung that fitted when probed (the first if none
+    # did) and steps down only after a run that missed deadlines; the reported N and K are the last run's.
+    fitting = [ladder.index((p["samples"], p["refine_steps"])) for p in r["probes"] if p["fits"]]
+    first = r["runs"][0]
+    assert (first["samples"], first["refine_steps"]) == ladder[max(fitting) if fitting else 0]
+    assert (r["chosen_samples"], r["chosen_refine_steps"]) == (r["runs"][-1]["samples"], r["runs"][-1]["refine_steps"])
     assert all(run["deadline_misses"] > 0 for run in r["runs"][:-1])
 
 
