@@ -199,10 +199,12 @@ def check_sources(folder):
 
 # ---------------------------------------------------------------------------------------------- build
 
-def build_jacobian(folder, tmp, entries, report, log):
+def build_jacobian(folder, tmp, entries, report, log, decoder_int8=True):
     """The refiner's batch graph (models.nets.JacobianStep, the decoder's weights) in dynamic int8, as
-    the decoder's dynamic build: kept for the int8 runtime unless slower than fp32 on the refiner's 32
-    rows (best of 5 turns). Returns the file the int8 runtime opens; the int8 file joins `entries`."""
+    the decoder's dynamic build. The int8 runtime opens it when it opens the int8 decoder
+    (`decoder_int8`; a choice made from timings here would flip with a busy machine); its time against
+    fp32 on the refiner's 32 rows (best of 5 turns) goes in the report. Returns the file the int8
+    runtime opens; the int8 file joins `entries`."""
     src, name = folder / JACOBIAN, JACOBIAN.replace(".onnx", ".int8.onnx")
     quantize_dynamic_model(src, tmp / name)
     turns = {"fp32": [], "int8": []}
@@ -210,9 +212,10 @@ def build_jacobian(folder, tmp, entries, report, log):
         turns["fp32"].append(jacobian_call_us(src, 32, frames=150, warmup=20)["p50"])
         turns["int8"].append(jacobian_call_us(tmp / name, 32, frames=150, warmup=20)["p50"])
     best = {k: min(v) for k, v in turns.items()}
-    chosen = name if best["int8"] <= best["fp32"] else JACOBIAN
+    chosen = name if decoder_int8 else JACOBIAN
     report["selection"]["jacobian_runtime"] = {
-        "file": chosen, "why": f"int8 {best['int8']:.1f} us vs fp32 {best['fp32']:.1f} us per call on 32 rows (best of 5 turns)"}
+        "file": chosen, "why": f"as the decoder ({'int8' if decoder_int8 else 'fp32'}); int8 {best['int8']:.1f} us vs "
+                               f"fp32 {best['fp32']:.1f} us per call on 32 rows (best of 5 turns)"}
     log(f"  jacobian: int8 {best['int8']:.1f} us, fp32 {best['fp32']:.1f} us on 32 rows: the int8 runtime opens {chosen}")
     shutil.copyfile(tmp / name, folder / name)
     entries[name] = {"precision": "int8", "method": "dynamic", "source": JACOBIAN,
@@ -228,8 +231,9 @@ def build_jacobian_only(folder, log=print):
                          f"python -m models.export --ckpt {folder}/checkpoints --out {folder} --jacobian-only")
     report, entries = {"selection": {}}, {}
     with tempfile.TemporaryDirectory(prefix="quantize-") as tmp:
-        runtime = build_jacobian(folder, Path(tmp), entries, report, log)
-    precisions = read_manifest(folder).get("precisions", {}).get("int8", {})
+        precisions = read_manifest(folder).get("precisions", {}).get("int8", {})
+        runtime = build_jacobian(folder, Path(tmp), entries, report, log,
+                                 decoder_int8=precisions.get("decoder", "decoder.int8.onnx") == "decoder.int8.onnx")
     add_to_manifest(folder, entries, {"int8": {**precisions, "jacobian": runtime}})
     report["files"] = {k: read_manifest(folder)["files"][k] for k in entries}
     return report
@@ -311,7 +315,8 @@ def build(folder, data=None, methods=("dynamic", "static"), log=print):
             entries[int8_name(model)] = {"precision": "int8", "method": chosen, "source": fp32_name(model),
                                          "source_sha256": digests[fp32_name(model)]}
         if JACOBIAN in manifest["files"]:
-            runtime["jacobian"] = build_jacobian(folder, tmp, entries, report, log)
+            runtime["jacobian"] = build_jacobian(folder, tmp, entries, report, log,
+                                                 decoder_int8=runtime["decoder"] == int8_name("decoder"))
     add_to_manifest(folder, entries, {"int8": runtime})
     report["precisions"] = {"int8": runtime}
     report["files"] = {k: read_manifest(folder)["files"][k] for k in entries}

@@ -37,6 +37,10 @@ def take():
     return from_sample(SAMPLE)
 
 
+def each(runs, key):
+    return ", ".join(f"{run[key]:.3f}" if isinstance(run[key], float) else str(run[key]) for run in runs)
+
+
 def test_a_take_through_the_page_matches_the_serial_replay(take, tmp_path, monkeypatch):
     from edgetools.sim.replay import replay
     from edgetools.sim.session import Session
@@ -60,17 +64,24 @@ def test_a_take_through_the_page_matches_the_serial_replay(take, tmp_path, monke
 
     # Like for like: the serial link replayed in real time too (at --speed max, ticks fall exactly between
     # samples: 5.50 cm against 5.94-6.03 in real time). One real-time run of either path varies by about
-    # 5 % on this VM (5.58-6.06 cm through the page, 5.73-6.01 over serial), so each path runs twice,
-    # interleaved, and the means are compared.
+    # 5 % on this VM (5.58-6.06 cm through the page, 5.64-6.01 over serial), and now and then a page run
+    # is far off (8.33 cm once on CI, beside 6.01), so each path runs three times, interleaved, and the
+    # medians are compared. The page path runs 0-5 % behind on this 2-core VM (medians x0.998-1.067 over
+    # five runs of the file): its board also serves the page's WebSocket and shares the machine with
+    # Chromium, and it is late 7-16 times in 10 s where the serial path is late 0-4 times. So the bound is
+    # 1.10: what the page carries is checked exactly below (head error), and a broken clock alignment or
+    # a dropped stream costs far more than 10 %.
     web, headset = through_the_page("state", tmp_path / "mirror.png")
     decoded_first = list(decoded)
     serial = [replay(session, speed="realtime", seconds=10, samples=8)]
-    web_again, _ = through_the_page("state-again")
-    serial.append(replay(session, speed="realtime", seconds=10, samples=8))
+    webs = [web]
+    for k in (1, 2):
+        webs.append(through_the_page(f"state-{k}")[0])
+        serial.append(replay(session, speed="realtime", seconds=10, samples=8))
     decoded[:] = decoded_first            # the head poses are checked against the first run's page log
     page = headset.state
-    web_cm = (web["mpjpe_cm"] + web_again["mpjpe_cm"]) / 2
-    serial_cm = sum(run["mpjpe_cm"] for run in serial) / 2
+    web_cm = float(np.median([run["mpjpe_cm"] for run in webs]))
+    serial_cm = float(np.median([run["mpjpe_cm"] for run in serial]))
 
     scripted = {entry["seq"]: entry for entry in headset.log}     # every frame the page sent, until finish()
     received = [d for d in decoded if d[0] in scripted]
@@ -82,15 +93,13 @@ def test_a_take_through_the_page_matches_the_serial_replay(take, tmp_path, monke
     ratio = web_cm / serial_cm
     print(f"\nwebxr: board received {len(received)} of the {len(scripted)} XR frames the page sent "
           f"({len(received) / len(scripted):.1%}); {len(received) / at_72hz:.1%} of 72 Hz over {span_ms / 1000:.2f} s; "
-          f"head error {pos_error:.2e} m, {rot_error:.2e} (quaternion); mpjpe {web_cm:.3f} cm "
-          f"({web['mpjpe_cm']:.3f}, {web_again['mpjpe_cm']:.3f}) vs serial {serial_cm:.3f} cm ("
-          f"{serial[0]['mpjpe_cm']:.3f}, {serial[1]['mpjpe_cm']:.3f}) (x{ratio:.3f}); page drew {page['drawn']} frames "
-          f"from {page['bodies']} bodies, round trip p50 {page['latencyMs']} ms; deadline misses page "
-          f"{web['deadline_misses']}, {web_again['deadline_misses']}, serial {serial[0]['deadline_misses']}, "
-          f"{serial[1]['deadline_misses']}")
+          f"head error {pos_error:.2e} m, {rot_error:.2e} (quaternion); mpjpe median {web_cm:.3f} cm "
+          f"({each(webs, 'mpjpe_cm')}) vs serial {serial_cm:.3f} cm ({each(serial, 'mpjpe_cm')}) (x{ratio:.3f}); "
+          f"page drew {page['drawn']} frames from {page['bodies']} bodies, round trip p50 {page['latencyMs']} ms; "
+          f"deadline misses page {each(webs, 'deadline_misses')}, serial {each(serial, 'deadline_misses')}")
     assert span_ms > 9000 and len(received) >= 0.95 * at_72hz and len(received) >= 0.95 * len(scripted)
     assert pos_error <= 1e-4 and rot_error <= 1e-4
-    assert ratio <= 1.05
+    assert ratio <= 1.10
     assert web["poses_decoded"] > 500 and page["bodies"] >= 0.9 * web["poses_decoded"]
     assert page["drawn"] > 0.9 * page["xrFrames"] - 72 and page["samples"] == 8 and page["latencyMs"] > 0
     assert bone_pixels(tmp_path / "mirror.png") > 100        # the mirrored body is on screen
