@@ -66,24 +66,25 @@ def _call_us(call, frames, warmup):
     return {"p50": float(np.median(us)), "p99": float(np.percentile(us, 99))}
 
 
-def decoder_call_us(path, rows, frames=400, warmup=50):
-    """One bare decoder step on `rows` rows, through the runtime's IOBinding path (edge.inference.Decoder)."""
+def _decode_call_us(kind, path, rows, frames, warmup):
+    """One bare step of a decoder-like runtime class (`kind`: Decoder or JacobianBatch) on `rows` rows of
+    random features and latents, through its IOBinding path."""
     session = make_session(path)
-    dec = Decoder(session, rows, 30, 128, session.get_inputs()[0].shape[1])
-    rng = np.random.default_rng(0)
-    dec.features[:] = rng.standard_normal(dec.features.shape) * 0.3
-    dec.latent[:] = rng.standard_normal(dec.latent.shape)
-    return _call_us(dec.step, frames, warmup)
-
-
-def jacobian_call_us(path, rows, frames=400, warmup=50):
-    """One bare call of the refiner's batch graph on `rows` latents (edge.inference.JacobianBatch)."""
-    session = make_session(path)
-    batch = JacobianBatch(session, rows, 30, 128, session.get_inputs()[0].shape[1])
+    batch = kind(session, rows, 30, 128, session.get_inputs()[0].shape[1])
     rng = np.random.default_rng(0)
     batch.features[:] = rng.standard_normal(batch.features.shape) * 0.3
     batch.latent[:] = rng.standard_normal(batch.latent.shape)
     return _call_us(batch.step, frames, warmup)
+
+
+def decoder_call_us(path, rows, frames=400, warmup=50):
+    """One bare decoder step on `rows` rows (edge.inference.Decoder)."""
+    return _decode_call_us(Decoder, path, rows, frames, warmup)
+
+
+def jacobian_call_us(path, rows, frames=400, warmup=50):
+    """One bare call of the refiner's batch graph on `rows` latents (edge.inference.JacobianBatch)."""
+    return _decode_call_us(JacobianBatch, path, rows, frames, warmup)
 
 
 def autoencoder_call_us(path, rows, frames=400, warmup=50):

@@ -124,8 +124,24 @@ static inline void lane_sub3(lane *a, lane *b, lane *restrict out) {
     for (int i = 0; i < 3; i++) EACH out[i][l] = a[i][l] - b[i][l];
 }
 
-/* edge.quat.matrix_from_6d on the decoder's float32 output (numpy keeps float32 through the
- * Gram-Schmidt): 6 floats per lane, `stride` floats between lanes' rows. */
+/* edge.quat.matrix_from_6d of one float32 6D (columns a and b) into m [9] (row-major), in float32 as
+ * numpy keeps it through the Gram-Schmidt. */
+static inline void matrix_from_6d_f32(float a0, float a1, float a2, float b0, float b1, float b2, float *restrict m) {
+    float na = sqrtf(a0 * a0 + a1 * a1 + a2 * a2);
+    na = na > 1e-8f ? na : 1e-8f;
+    float x0 = a0 / na, x1 = a1 / na, x2 = a2 / na;
+    float d = x0 * b0 + x1 * b1 + x2 * b2;
+    float c0 = b0 - d * x0, c1 = b1 - d * x1, c2 = b2 - d * x2;
+    float nb = sqrtf(c0 * c0 + c1 * c1 + c2 * c2);
+    nb = nb > 1e-8f ? nb : 1e-8f;
+    float y0 = c0 / nb, y1 = c1 / nb, y2 = c2 / nb;
+    m[0] = x0; m[1] = y0; m[2] = x1 * y2 - x2 * y1;
+    m[3] = x1; m[4] = y1; m[5] = x2 * y0 - x0 * y2;
+    m[6] = x2; m[7] = y2; m[8] = x0 * y1 - x1 * y0;
+}
+
+/* matrix_from_6d_f32 of the decoder's float32 output into double lanes: 6 floats per lane, `stride`
+ * floats between lanes' rows. */
 static inline void lane_matrix_from_6d_f32(const float *r6, int64_t stride, int r0, int nl, lane *restrict m) {
     float a0[LANES], a1[LANES], a2[LANES], b0[LANES], b1[LANES], b2[LANES];
     EACH {
@@ -133,17 +149,9 @@ static inline void lane_matrix_from_6d_f32(const float *r6, int64_t stride, int 
         a0[l] = q[0]; a1[l] = q[1]; a2[l] = q[2]; b0[l] = q[3]; b1[l] = q[4]; b2[l] = q[5];
     }
     EACH {
-        float na = sqrtf(a0[l] * a0[l] + a1[l] * a1[l] + a2[l] * a2[l]);
-        na = na > 1e-8f ? na : 1e-8f;
-        float x0 = a0[l] / na, x1 = a1[l] / na, x2 = a2[l] / na;
-        float d = x0 * b0[l] + x1 * b1[l] + x2 * b2[l];
-        float c0 = b0[l] - d * x0, c1 = b1[l] - d * x1, c2 = b2[l] - d * x2;
-        float nb = sqrtf(c0 * c0 + c1 * c1 + c2 * c2);
-        nb = nb > 1e-8f ? nb : 1e-8f;
-        float y0 = c0 / nb, y1 = c1 / nb, y2 = c2 / nb;
-        m[0][l] = x0; m[1][l] = y0; m[2][l] = x1 * y2 - x2 * y1;
-        m[3][l] = x1; m[4][l] = y1; m[5][l] = x2 * y0 - x0 * y2;
-        m[6][l] = x2; m[7][l] = y2; m[8][l] = x0 * y1 - x1 * y0;
+        float t[9];
+        matrix_from_6d_f32(a0[l], a1[l], a2[l], b0[l], b1[l], b2[l], t);
+        for (int k = 0; k < 9; k++) m[k][l] = t[k];
     }
 }
 
@@ -1124,20 +1132,12 @@ static inline double dot_lanes(const double *a, const double *b, int n) {
 #define EACH32 for (int l = 0; l < LANES32; l++)
 typedef float lane32[LANES32];
 
-/* lane_matrix_from_6d_f32 into float lanes; a and b each [3] lanes (the matrix's first two columns). */
+/* matrix_from_6d_f32 in float lanes; a and b each [3] lanes (the matrix's first two columns). */
 static inline void lane32_matrix_from_6d(lane32 *a, lane32 *b, lane32 *restrict m) {
     EACH32 {
-        float na = sqrtf(a[0][l] * a[0][l] + a[1][l] * a[1][l] + a[2][l] * a[2][l]);
-        na = na > 1e-8f ? na : 1e-8f;
-        float x0 = a[0][l] / na, x1 = a[1][l] / na, x2 = a[2][l] / na;
-        float d = x0 * b[0][l] + x1 * b[1][l] + x2 * b[2][l];
-        float c0 = b[0][l] - d * x0, c1 = b[1][l] - d * x1, c2 = b[2][l] - d * x2;
-        float nb = sqrtf(c0 * c0 + c1 * c1 + c2 * c2);
-        nb = nb > 1e-8f ? nb : 1e-8f;
-        float y0 = c0 / nb, y1 = c1 / nb, y2 = c2 / nb;
-        m[0][l] = x0; m[1][l] = y0; m[2][l] = x1 * y2 - x2 * y1;
-        m[3][l] = x1; m[4][l] = y1; m[5][l] = x2 * y0 - x0 * y2;
-        m[6][l] = x2; m[7][l] = y2; m[8][l] = x0 * y1 - x1 * y0;
+        float t[9];
+        matrix_from_6d_f32(a[0][l], a[1][l], a[2][l], b[0][l], b[1][l], b[2][l], t);
+        for (int k = 0; k < 9; k++) m[k][l] = t[k];
     }
 }
 
