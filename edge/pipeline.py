@@ -362,7 +362,7 @@ class Pipeline:
         dec, f = self.decoder, self.feet
         self._slot_now = s
         out = self.refiner.refine(self.t, dec.latent[c], self.latents[c], dec.hidden[dec.last_read][c], dec.features[0],
-                                  self.buffer.seg_m[s], self.buffer.seg_flag[s], f.lock_pos[c], f.weight[c])
+                                  self.buffer.seg_m[s], self.buffer.seg_flag[s], f.lock_pos[c], f.weight[c], row=c)
         if out is not None:
             dec.rot6d[c], dec.contacts[c], dec.state[c] = out
         pulls = self.refiner.foot_pull(self.t, self._target_joint, self._target_goal, self._target_weight)

@@ -26,6 +26,7 @@ latent, which the CVAE drew from its prior) and the continuity with the last fra
 Targets are untrusted input: one with a non-finite value, on an unknown joint or farther than
 MAX_REACH_M from the pelvis is refused and counted (`refused`), never applied.
 """
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,6 +39,7 @@ from edge.skeleton import ANKLES, JOINT, NUM_JOINTS, TOES
 # latent and never move it alone). ImuOrientation is there to turn on: measured on val it did not pay
 # (models/MODEL_CARD.md: it raised thighs+shins' mpjpe).
 DEFAULT_TERMS = ("targets", "keep", "floor")
+COMPILED_TERMS = ("targets", "keep", "floor")       # what ep_refine_step computes (others: the numpy step)
 MAX_REACH_M = 1.5           # a target farther than this from the pelvis is no reach of the user's
 FLOOR_TOE, FLOOR_ANKLE = 0.0, 0.07      # the lowest a toe and an ankle joint may go (as the IK's floor)
 
@@ -75,6 +77,7 @@ class RefineContext:
         self.positions = self.raw_world = None
         self.seg_m = self.seg_flag = None
         self.lock_pos = self.lock_weight = None
+        self.keep, self.kept = np.ones(NUM_JOINTS, bool), NUM_JOINTS     # KeepPose's joints, and how many
 
 
 class ImuOrientation:
@@ -137,9 +140,19 @@ class TargetReach:
     def __init__(self, weight=1.0):
         self.weight = weight
         self.targets = []
+        # live()'s answer, kept while no window opens or closes and the targets are the same (a frame
+        # with a target makes no new list): for frames from .. until - 1, of this list at this length.
+        self._live, self._from, self._until, self._of, self._count = [], 0, -1, None, 0
 
     def live(self, frame):
-        return [g for g in self.targets if g.first <= frame <= g.last]
+        """The targets live at `frame`: the same list object until a window opens or closes or a target
+        is added or dropped (a refined frame tests it with `is`)."""
+        if not (self._from <= frame < self._until and self._of is self.targets and self._count == len(self.targets)):
+            self._live = [g for g in self.targets if g.first <= frame <= g.last]
+            edges = [e for g in self.targets for e in (g.first, g.last + 1) if e > frame]
+            self._from, self._until = frame, min(edges, default=1 << 62)
+            self._of, self._count = self.targets, len(self.targets)
+        return self._live
 
     def size(self, ctx):
         return 3 * len(self.live(ctx.frame))
@@ -170,7 +183,7 @@ class KeepPose(object):
         self.weight = weight
 
     def size(self, ctx):
-        return 3 * int(ctx.keep.sum())
+        return 3 * ctx.kept
 
     def residuals(self, ctx):
         d = ctx.positions[:, ctx.keep] - ctx.ref_positions[ctx.keep]
@@ -228,7 +241,7 @@ class Refiner:
             self.term(name).weight = w
         self._reach = self.term("targets")              # TargetReach, or None when it is not among the terms
         self.ctx = RefineContext()
-        self.ctx.keep = np.ones(NUM_JOINTS, bool)
+        self._keep_for = None           # the live-target list ctx.keep was made for
         # The compiled step (ep_refine_step): compiled = (the C library, the pipeline's core context, a
         # function giving this frame's ring slot). It takes TargetReach, KeepPose and FloorContact;
         # a frame with the IMU term live takes the numpy step.
@@ -308,27 +321,37 @@ class Refiner:
         reach = self._reach
         if reach is None or not self.ik_pull:
             return False
+        pulls = False
         for g in reach.live(frame):
             f = FOOT_OF.get(g.joint)
             if f is not None:
                 joint[f], goal[f] = g.joint, g.position
-                weight[f] = self.ik_pull * g.pull(frame)
-        return bool(weight.any())
+                weight[f] = v = self.ik_pull * g.pull(frame)
+                pulls = pulls or v > 0
+        return pulls
 
     # ---- one frame
-    def refine(self, frame, latent, prior_latent, hidden, features, seg_m, seg_flag, lock_pos, lock_weight):
+    def refine(self, frame, latent, prior_latent, hidden, features, seg_m, seg_flag, lock_pos, lock_weight, row=0):
         """Refine `latent` [L] float32 (in place) for this frame: K steps from it against the live terms,
         with the prior towards `prior_latent` and continuity with `latent` as it came in. `hidden` [H]
-        is the GRU state the row read, `features` [F] the frame's decoder input. Returns the refined
-        row's decode (rot6d [D], contacts [2], GRU state out [H]), or None when no term is live."""
+        is the GRU state the row read, `features` [F] the frame's decoder input, lock_pos [2,3] and
+        lock_weight [2] its foot locks (`row` of FootLock's state, where the compiled step reads them).
+        Returns the refined row's decode (rot6d [D], contacts [2], GRU state out [H]), or None when no
+        term is live."""
         ctx = self.ctx
+        self._row = row
         ctx.frame, ctx.seg_m, ctx.seg_flag, ctx.lock_pos, ctx.lock_weight = frame, seg_m, seg_flag, lock_pos, lock_weight
         reach = self._reach
-        if reach is not None and any(g.last < frame for g in reach.targets):
-            reach.forget(frame)
-        ctx.keep[:] = True
-        for g in (reach.live(frame) if reach is not None else ()):
-            ctx.keep[LIMB_OF.get(g.joint, [g.joint])] = False
+        live = reach.live(frame) if reach is not None else ()
+        if live is not self._keep_for:          # a window opened or closed, or the targets changed
+            if reach is not None and any(g.last < frame for g in reach.targets):
+                reach.forget(frame)
+                live = reach.live(frame)
+            ctx.keep[:] = True
+            for g in live:                      # KeepPose holds all but the live targets' limbs
+                ctx.keep[LIMB_OF.get(g.joint, [g.joint])] = False
+            ctx.kept = int(ctx.keep.sum())
+            self._keep_for = live
         terms = self.live_terms(ctx)
         if all(t.guard for t in terms) or self.steps == 0:   # nothing to reach for (the guards alone would
             return self._let_go(latent, prior_latent, hidden, features)   # only hold), or no steps to spend
@@ -368,29 +391,41 @@ class Refiner:
             prior=self.prior, continuity=self.continuity, damping=self.damping, max_step=self.max_step)
         self._c_max_targets = MAX_TARGETS
         self._c_on = False          # this frame's terms are all the compiled step's
+        self._c_live = self._c_settings = None      # what the arguments were last filled for
+        # The shown row's foot locks, read in place from FootLock's state [N,2,3] and [N,2] (float64):
+        # (lock_pos address, bytes a row, weight address, bytes a row).
+        locks = self._c[1].contents.locks
+        self._lock_addr = (locks.lock_pos, 2 * 3 * 8, locks.weight, 2 * 8)
 
     def _prepare_compiled(self, terms):
-        """This frame's live terms into the compiled step's arguments; False if it cannot take them."""
-        if self._c is None or any(t.name not in ("targets", "keep", "floor") for t in terms):
+        """This frame's live terms into the compiled step's arguments; False if it cannot take them. The
+        targets' joints, points and radii and the keep mask change only with the live set; their pulls
+        (the windows' ramps) every frame."""
+        if self._c is None or any(t.name not in COMPILED_TERMS for t in terms):
             return False
         a, c, ctx = self._c_args, self._c_buf, self.ctx
-        a.n_targets, a.keep_on, a.floor_on = 0, 0, 0
-        a.prior, a.continuity, a.damping, a.max_step, a.eps = self.prior, self.continuity, self.damping, self.max_step, self.eps
+        live = self._keep_for
+        if len(live) > self._c_max_targets:
+            return False
+        if live is not self._c_live:
+            for i, g in enumerate(live):
+                c["joint"][i], c["tpos"][i], c["radius"][i] = g.joint, g.position, g.radius
+            c["keep"][:] = ctx.keep
+            self._c_live = live
+        w, frame = c["w"], ctx.frame
+        for i, g in enumerate(live):
+            w[i] = math.sqrt(self._reach.weight * g.weight * g.pull(frame))
+        settings = (self.prior, self.continuity, self.damping, self.max_step, self.eps)
+        if settings != self._c_settings:
+            a.prior, a.continuity, a.damping, a.max_step, a.eps = self._c_settings = settings
+        a.n_targets, a.keep_on, a.floor_on = len(live), 0, 0
         for t in terms:
-            if t.name == "targets":
-                live = t.live(ctx.frame)
-                if len(live) > self._c_max_targets:
-                    return False
-                for i, g in enumerate(live):
-                    c["joint"][i], c["tpos"][i], c["radius"][i] = g.joint, g.position, g.radius
-                    c["w"][i] = np.sqrt(t.weight * g.weight * g.pull(ctx.frame))
-                a.n_targets = len(live)
-            elif t.name == "keep":
-                c["keep"][:] = ctx.keep
-                a.keep_on, a.keep_w = 1, float(np.sqrt(t.weight))
-            else:
-                a.floor_on, a.floor_w, a.planted_w = 1, float(np.sqrt(t.weight)), float(np.sqrt(t.planted))
-                a.lock_pos, a.lock_weight = native.addr(ctx.lock_pos), native.addr(ctx.lock_weight)
+            if t.name == "keep":
+                a.keep_on, a.keep_w = 1, math.sqrt(t.weight)
+            elif t.name == "floor":
+                a.floor_on, a.floor_w, a.planted_w = 1, math.sqrt(t.weight), math.sqrt(t.planted)
+                a.lock_pos = self._lock_addr[0] + self._row * self._lock_addr[1]
+                a.lock_weight = self._lock_addr[2] + self._row * self._lock_addr[3]
         return True
 
     def step(self, z=None, z_prev=None, zp=None):

@@ -144,6 +144,24 @@ def test_a_target_term_is_live_only_in_its_window():
         assert reach.size(ctx) == live
 
 
+def test_live_targets_are_one_list_until_a_window_opens_or_closes_or_the_targets_change():
+    """TargetReach.live keeps its answer between window edges (a refined frame makes no new list, and
+    the refiner redoes its masks only when it changes), and sees a target added or dropped at once."""
+    from edge.refine import Target
+    reach = TargetReach()
+    a = Target(L_TOE, np.zeros(3), first=10, last=20)
+    reach.targets.append(a)
+    assert reach.live(9) == []
+    at_10 = reach.live(10)
+    assert at_10 == [a] and reach.live(15) is at_10 and reach.live(20) is at_10
+    b = Target(L_TOE, np.ones(3), first=0, last=30)
+    reach.targets.append(b)                                    # added mid-window
+    assert reach.live(15) == [a, b]
+    assert reach.live(21) == [b]                               # a's window closed
+    reach.targets = [a]                                        # b dropped (as remove_target does)
+    assert reach.live(21) == [] and reach.live(12) == [a]      # and a frame before (a reset)
+
+
 @pytest.mark.parametrize("samples", [1, 8])
 def test_without_a_live_constraint_the_refiner_changes_nothing(take, samples):
     """4-point input and no target: every output pose is bit for bit the unrefined pipeline's (the
