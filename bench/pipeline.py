@@ -289,10 +289,16 @@ def against(a, ns):
         rev = subprocess.run(["git", "rev-parse", "--short", a.against], cwd=here, check=True, capture_output=True,
                              text=True).stdout.strip()
         trees = {"this": here, rev: Path(tmp)}
+        # Each side reads its own tree's bundled sample: an older tree may not read a newer sample file
+        # (e598c25's Signals has no extra IMUs). Said when the two differ.
+        samples = {side: tree / "samples" / SAMPLE.name if (tree / "samples" / SAMPLE.name).exists() else SAMPLE
+                   for side, tree in trees.items()}
         per_block = a.frames // a.blocks
         rows = []
         print(f"this tree against {a.against} ({rev}), {a.precision}, one core; p50 (p99) microseconds; "
               f"{a.blocks} blocks of {per_block} interleaved")
+        if samples["this"].read_bytes() != samples[rev].read_bytes():
+            print(f"(each side fed its own tree's {SAMPLE.name}: the two files differ)")
         print(f"{'N':>4} {'side':>8} {'pipeline':>16} {'decoder':>14} {'pipe/dec':>9}   this/{rev} pipeline [blocks]")
         for n in ns:
             procs = {}
@@ -300,7 +306,8 @@ def against(a, ns):
                 env = dict(os.environ, PYTHONPATH=str(tree))
                 procs[side] = subprocess.Popen(
                     [sys.executable, str(Path(__file__).resolve().parent / "pipeline_worker.py"), str(n), a.precision,
-                     str(SAMPLE), str(WARMUP)], cwd=tree, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+                     str(samples[side]), str(WARMUP)], cwd=tree, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                    text=True)
             for p in procs.values():
                 json.loads(p.stdout.readline())     # warmed
             times = {(side, what): np.empty((a.blocks, per_block)) for side in trees for what in ("pipeline", "decoder")}
