@@ -327,8 +327,10 @@ def decode_target(payload, t=0.0):
     """TARGET payload -> TargetSample; `t` is the frame's time in seconds."""
     check_payload_size(payload, TARGET_RECORD.itemsize, "TARGET")
     record = np.frombuffer(payload, TARGET_RECORD)[0]
+    with np.errstate(invalid="ignore"):     # a signalling NaN from the wire is quieted by the cast, silently:
+        position = record["position_m"].astype(np.float64)   # it is refused later as non-finite
     return TargetSample(t=t, target_id=int(record["target_id"]), joint=int(record["joint"]),
-                        position=record["position_m"].astype(np.float64), radius=float(record["radius_m"]),
+                        position=position, radius=float(record["radius_m"]),
                         start=int(record["start_ms"]) / 1000.0, duration=int(record["duration_ms"]) / 1000.0,
                         clear=bool(record["flags"] & TARGET_CLEAR))
 
