@@ -597,3 +597,17 @@ def test_a_target_is_decoded_as_sent_so_the_board_can_say_why_it_refuses_it():
     cleared.clear = True
     [got] = FrameReader().feed(encode_target(cleared, seq=2))
     assert got.clear and got.target_id == 3
+
+
+def test_a_signalling_nan_in_a_target_is_decoded_without_a_warning():
+    """Bytes from the wire are untrusted and must not make the board print: a float32 signalling NaN
+    (0x7f800001) in a TARGET's position decodes quietly to NaN (refused later as non-finite)."""
+    import warnings
+    from firmware_bridge.wire.messages import TARGET_RECORD, decode_target
+    raw = bytearray(np.zeros((), TARGET_RECORD).tobytes())
+    at = TARGET_RECORD.fields["position_m"][1]
+    raw[at:at + 4] = bytes.fromhex("0100807f")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = decode_target(bytes(raw))
+    assert np.isnan(got.position[0])
