@@ -149,6 +149,33 @@ def test_a_frame_makes_no_arrays_at_any_n_and_a_switch_none_either(take):
     assert large[switched].max() <= 2048
 
 
+@pytest.mark.skipif(not __import__("edge.native").native.load(), reason="the compiled core is the board's frame")
+def test_a_refined_frame_makes_no_arrays_either(take):
+    """A frame that refines a live target two steps (edge.refine: its batches, FK, the C step, the
+    refined row's decode) makes no arrays: its memory peaks within 256 bytes of a frame without one
+    (here +191: a few small Python objects, the live terms' list and such); the refiner's latents,
+    batches and scratch are all preallocated (a temporary as large as the batch's 30 x 30 steps, 3.7
+    KB, fails this; one small enough to be freed before the frame's peak would not show)."""
+    from edge.skeleton import JOINT
+    frames = [take.signals.slice(t, t + 1) for t in range(take.frames)]
+    runs = {}
+    for live in (False, True):
+        pipe = Pipeline(samples=8, refine={"steps": 2})
+        for t in range(150):
+            pipe.step(frames[t % len(frames)])
+        if live:
+            pipe.refiner.add_target("l_toe", pipe.out.positions[JOINT["l_toe"]] + [0.0, 0.4, 0.2], first=0,
+                                    last=1 << 40)
+        tracemalloc.start()
+        try:
+            runs[live] = frame_memory(pipe, frames[150:] + frames[:150], 300)[0]
+        finally:
+            tracemalloc.stop()
+        assert (pipe.refiner.applied >= 290) == live
+    assert np.median(runs[True]) - np.median(runs[False]) <= 256
+    assert np.percentile(runs[True], 99) <= 2048
+
+
 # ------------------------------------------------------------------ adaptive N
 
 # int8 quantizes the decoder's activations per call, over the whole batch: a row's output depends on
