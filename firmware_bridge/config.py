@@ -28,7 +28,7 @@
 
     [refine]                          # latent refinement of the shown sample (edge.refine)
     enabled = true                    # the headset's TARGET messages need it; without a live target it does nothing
-    steps = 2                         # Gauss-Newton steps a frame (K)
+    steps = 2                         # Gauss-Newton steps a frame (K), the most: adaptive lowers it with N
     terms = ["targets", "keep", "floor"]   # also "imus" or "imus-tilt"
 
 Every mistake is reported at start-up with the file, the key and what to write instead.

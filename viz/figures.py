@@ -310,7 +310,8 @@ def health_timeline(health, path, title="Tracker health"):
     ax.set_title(title, fontsize=10.5, loc="left")
     ax.grid(axis="x", color=canvas.GRID)
     ax.set_axisbelow(True)
-    ax.legend(fontsize=7.5, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    if ax.get_legend_handles_labels()[1]:       # a clean run has nothing to explain
+        ax.legend(fontsize=7.5, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     return canvas.save_png(fig, path)
 
 
