@@ -241,7 +241,7 @@ class Refiner:
             self.term(name).weight = w
         self._reach = self.term("targets")              # TargetReach, or None when it is not among the terms
         self.ctx = RefineContext()
-        self._keep_for = None           # the live-target list ctx.keep was made for
+        self._live = None               # this frame's live targets (TargetReach.live), as KeepPose's mask was made for
         # The compiled step (ep_refine_step): compiled = (the C library, the pipeline's core context, a
         # function giving this frame's ring slot). It takes TargetReach, KeepPose and FloorContact;
         # a frame with the IMU term live takes the numpy step.
@@ -343,7 +343,7 @@ class Refiner:
         ctx.frame, ctx.seg_m, ctx.seg_flag, ctx.lock_pos, ctx.lock_weight = frame, seg_m, seg_flag, lock_pos, lock_weight
         reach = self._reach
         live = reach.live(frame) if reach is not None else ()
-        if live is not self._keep_for:          # a window opened or closed, or the targets changed
+        if live is not self._live:          # a window opened or closed, or the targets changed
             if reach is not None and any(g.last < frame for g in reach.targets):
                 reach.forget(frame)
                 live = reach.live(frame)
@@ -351,7 +351,7 @@ class Refiner:
             for g in live:                      # KeepPose holds all but the live targets' limbs
                 ctx.keep[LIMB_OF.get(g.joint, [g.joint])] = False
             ctx.kept = int(ctx.keep.sum())
-            self._keep_for = live
+            self._live = live
         terms = self.live_terms(ctx)
         if all(t.guard for t in terms) or self.steps == 0:   # nothing to reach for (the guards alone would
             return self._let_go(latent, prior_latent, hidden, features)   # only hold), or no steps to spend
@@ -392,10 +392,6 @@ class Refiner:
         self._c_max_targets = MAX_TARGETS
         self._c_on = False          # this frame's terms are all the compiled step's
         self._c_live = self._c_settings = None      # what the arguments were last filled for
-        # The shown row's foot locks, read in place from FootLock's state [N,2,3] and [N,2] (float64):
-        # (lock_pos address, bytes a row, weight address, bytes a row).
-        locks = self._c[1].contents.locks
-        self._lock_addr = (locks.lock_pos, 2 * 3 * 8, locks.weight, 2 * 8)
 
     def _prepare_compiled(self, terms):
         """This frame's live terms into the compiled step's arguments; False if it cannot take them. The
@@ -404,7 +400,7 @@ class Refiner:
         if self._c is None or any(t.name not in COMPILED_TERMS for t in terms):
             return False
         a, c, ctx = self._c_args, self._c_buf, self.ctx
-        live = self._keep_for
+        live = self._live
         if len(live) > self._c_max_targets:
             return False
         if live is not self._c_live:
@@ -424,8 +420,7 @@ class Refiner:
                 a.keep_on, a.keep_w = 1, math.sqrt(t.weight)
             elif t.name == "floor":
                 a.floor_on, a.floor_w, a.planted_w = 1, math.sqrt(t.weight), math.sqrt(t.planted)
-                a.lock_pos = self._lock_addr[0] + self._row * self._lock_addr[1]
-                a.lock_weight = self._lock_addr[2] + self._row * self._lock_addr[3]
+                a.lock_row = self._row          # the C step reads the row's locks from the core's FootLock state
         return True
 
     def step(self, z=None, z_prev=None, zp=None):

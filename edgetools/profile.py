@@ -265,9 +265,15 @@ def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None, steps=No
     return stats, pipe
 
 
+def _timeline(values):
+    """[[frame, value], ...] at frame 0 and wherever the value changes."""
+    import numpy as np
+    changes = np.flatnonzero(np.diff(values)) + 1
+    return [[0, int(values[0])]] + [[int(i), int(values[i])] for i in changes]
+
+
 def contention_report(resp, live_n, period, hog, governor, live_k):
     """Deadline misses and N (and K) before, during and after the hog, and when they changed."""
-    import numpy as np
     late = resp > period
     phases = {"whole": slice(0, len(resp))}
     if hog:
@@ -282,10 +288,7 @@ def contention_report(resp, live_n, period, hog, governor, live_k):
                                    "samples_min": int(n.min()), "samples_max": int(n.max()),
                                    "samples_last": int(n[-1]), "refine_steps_min": int(live_k[sl].min()),
                                    "refine_steps_last": int(live_k[sl][-1]), "frame_ms": _pct(resp[sl] * 1e3)}
-    steps = np.flatnonzero(np.diff(live_n)) + 1
-    out["samples_timeline"] = [[0, int(live_n[0])]] + [[int(i), int(live_n[i])] for i in steps]
-    steps = np.flatnonzero(np.diff(live_k)) + 1
-    out["refine_steps_timeline"] = [[0, int(live_k[0])]] + [[int(i), int(live_k[i])] for i in steps]
+    out["samples_timeline"], out["refine_steps_timeline"] = _timeline(live_n), _timeline(live_k)
     out["frame_ms_per_frame"] = [round(float(x), 2) for x in resp * 1e3]     # for `edge report`
     out["period_ms"] = 1e3 * period
     if hog:
@@ -322,8 +325,8 @@ def worker(cfg):
             for _attempt in range(2):          # a failed probe is repeated once: one busy second is not a verdict
                 st, _ = paced_run(cfg, n, cfg["probe_frames"], f"probe N={n:<3d} K={k}", steps=k)
                 st["fits"] = fits(st)
-                probes.append({k: st[k] for k in ("samples", "refine_steps", "frames", "deadline_misses", "frame_ms",
-                                                  "cpu_ms", "fits")})
+                probes.append({key: st[key] for key in ("samples", "refine_steps", "frames", "deadline_misses",
+                                                        "frame_ms", "cpu_ms", "fits")})
                 if st["fits"]:
                     break
             if not st["fits"]:
@@ -340,7 +343,8 @@ def worker(cfg):
     while True:
         n, k = chosen
         st, pipe = paced_run(cfg, n, cfg["frames"], f"run N={n:<3d} K={k}", adaptive, hog, steps=k)
-        attempts.append({k: st[k] for k in ("samples", "refine_steps", "frames", "deadline_misses", "frame_ms", "cpu_ms")})
+        attempts.append({key: st[key] for key in ("samples", "refine_steps", "frames", "deadline_misses", "frame_ms",
+                                                  "cpu_ms")})
         # Adaptive or contended runs are reported as they went: stepping down would hide the verdict.
         if (st["deadline_misses"] == 0 or cfg["samples"] != "auto" or chosen == ladder[0] or len(attempts) >= 3
                 or adaptive or hog):

@@ -205,7 +205,7 @@ def build_jacobian(folder, tmp, entries, report, log, decoder_int8=True):
     (`decoder_int8`; a choice made from timings here would flip with a busy machine); its time against
     fp32 on the refiner's 32 rows (best of 5 turns) goes in the report. Returns the file the int8
     runtime opens; the int8 file joins `entries`."""
-    src, name = folder / JACOBIAN, JACOBIAN.replace(".onnx", ".int8.onnx")
+    src, name = folder / JACOBIAN, int8_name(Path(JACOBIAN).stem)
     quantize_dynamic_model(src, tmp / name)
     turns = {"fp32": [], "int8": []}
     for _ in range(5):
@@ -233,7 +233,7 @@ def build_jacobian_only(folder, log=print):
     with tempfile.TemporaryDirectory(prefix="quantize-") as tmp:
         precisions = read_manifest(folder).get("precisions", {}).get("int8", {})
         runtime = build_jacobian(folder, Path(tmp), entries, report, log,
-                                 decoder_int8=precisions.get("decoder", "decoder.int8.onnx") == "decoder.int8.onnx")
+                                 decoder_int8=precisions.get("decoder", int8_name("decoder")) == int8_name("decoder"))
     add_to_manifest(folder, entries, {"int8": {**precisions, "jacobian": runtime}})
     report["files"] = {k: read_manifest(folder)["files"][k] for k in entries}
     return report

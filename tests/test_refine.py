@@ -171,6 +171,30 @@ def test_without_a_live_constraint_the_refiner_changes_nothing(take, samples):
     assert np.array_equal(got, want)
 
 
+@pytest.mark.skipif(not __import__("edge.native").native.load(), reason="needs the compiled core")
+def test_the_compiled_step_holds_the_shown_rows_planted_feet(take):
+    """With sample 3 shown at N=8, the compiled step reads row 3's foot locks from FootLock's state (as
+    the numpy step reads the row's views): a lock moved 7 cm on that row alone costs both the same."""
+    pipe = Pipeline(samples=8, precision="fp32", refine={"steps": 1, "terms": ["targets", "keep", "floor"]})
+    goal, _ = lifted_toe_target(take, 60)
+    pipe.reset()
+    pipe.switcher.current = 3
+    pipe.refiner.add_target(L_TOE, goal, radius=0.02, first=40, last=60)
+    for t in range(56):
+        pipe.step(take.signals.slice(t, t + 1))
+    r, feet = pipe.refiner, pipe.feet
+    assert pipe.switcher.current == 3 and r._c_on
+    feet.weight[:] = 0.0                          # only the shown row's locks hold
+    feet.weight[3] = 1.0
+    feet.lock_pos[3] += [0.05, 0.0, 0.05]
+    z0 = pipe.decoder.latent[3].astype(np.float64)
+    zp = pipe.latents[3].astype(np.float64)
+    cost_c = r.step(z0.copy(), z0, zp)
+    r._c_on = False
+    cost_n = r.step(z0.copy(), z0, zp)
+    assert abs(cost_c - cost_n) <= 1e-6 * cost_n
+
+
 def test_at_zero_steps_a_live_target_moves_no_latent_and_a_moved_one_is_let_go(take):
     """The governor's K = 0 rung (Pipeline.set_refine_steps): the target stays live but the latent is
     the sample's own again within a few frames; at K = 2 it had moved."""

@@ -113,7 +113,7 @@ RefineArgs = _struct("RefineArgs", "postproc.c's refine_args: what ep_refine_ste
                      [("rot6d", _P), ("rot6d_stride", _I), ("L", _I), ("eps", _D), ("pos", _P), ("r", _P), ("A", _P),
                       ("g", _P), ("jt", _P), ("max_m", _I), ("n_targets", _I), ("target_joint", _P), ("target_pos", _P),
                       ("target_radius", _P), ("target_w", _P), ("keep_on", _I), ("keep", _P), ("keep_w", _D),
-                      ("floor_on", _I), ("floor_w", _D), ("planted_w", _D), ("lock_pos", _P), ("lock_weight", _P),
+                      ("floor_on", _I), ("floor_w", _D), ("planted_w", _D), ("lock_row", _I),
                       ("prior", _D), ("continuity", _D), ("damping", _D), ("max_step", _D)])
 Selection = _struct("Selection", "postproc.c's selection: what ep_frame_costs reads besides the core context.",
                     [("ae_out", _P), ("ae_rot_dim", _I), ("leg_rows", _P), ("legs", _P), ("leg_err", _P),

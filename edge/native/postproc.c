@@ -242,7 +242,7 @@ typedef struct {
  * scratch pos [R,J,3], r [R, max_m], A [L,L], g [L], jt [L, max_m] (the Jacobian); the live terms: n_targets targets (joint, point
  * [3], radius, sqrt weight incl. the window's pull), KeepPose (keep [J] 0/1 and its sqrt weight, when
  * keep_on), FloorContact (sqrt weights of the floor and the planted feet; the shown sample's locks
- * lock_pos [2,3] and lock_weight [2], when floor_on); and the step's prior, continuity, damping and
+ * FootLock's lock_pos [2,3] and weight [2] of row lock_row, when floor_on); and the step's prior, continuity, damping and
  * largest step. */
 typedef struct {
     const float *rot6d;
@@ -257,7 +257,7 @@ typedef struct {
     double keep_w;
     int floor_on;
     double floor_w, planted_w;
-    const double *lock_pos, *lock_weight;
+    int lock_row;
     double prior, continuity, damping, max_step;
 } refine_args;
 
@@ -1209,10 +1209,11 @@ static int refine_residuals(const core_context *x, const refine_args *a, const d
             double under = P[j * 3 + 1] - (f < 2 ? FLOOR_TOE : FLOOR_ANKLE);
             r[m++] = a->floor_w * (under < 0.0 ? under : 0.0);
         }
+        const double *lock_pos = x->locks.lock_pos + (int64_t)a->lock_row * 6, *lock_weight = x->locks.weight + (int64_t)a->lock_row * 2;
         for (int f = 0; f < 2; f++) {
             int j = (int)sk->ankles[f];
             for (int c = 0; c < 3; c++)
-                r[m++] = (P[j * 3 + c] - a->lock_pos[f * 3 + c]) * (a->planted_w * a->lock_weight[f]);
+                r[m++] = (P[j * 3 + c] - lock_pos[f * 3 + c]) * (a->planted_w * lock_weight[f]);
         }
     }
     return m;
