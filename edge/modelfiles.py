@@ -58,3 +58,27 @@ def load_manifest(folder=DEFAULT_DIR, need=("decoder.onnx", "autoencoder.onnx"))
                              f"says {files[name]['sha256'][:12]}...; restore it from git or re-export")
         manifest["paths"][name] = str(path)
     return manifest
+
+
+def read_manifest(folder):
+    path = Path(folder) / MANIFEST
+    if not path.exists():
+        raise ModelError(f"no {MANIFEST} in {folder}: export the fp32 models first (python -m models.export)")
+    return json.loads(path.read_text())
+
+
+def add_to_manifest(folder, entries, precisions=None):
+    """Add or replace `entries` ({file name: extra fields}) in the manifest, keeping every other file entry
+    and all metadata as they are. sha256 and bytes are computed here. `precisions` ({precision: {model:
+    file}}) says which file each runtime precision opens. Written atomically."""
+    folder = Path(folder)
+    manifest = read_manifest(folder)
+    for name, extra in entries.items():
+        p = folder / name
+        manifest["files"][name] = {"sha256": sha256(p), "bytes": p.stat().st_size, **extra}
+    if precisions:
+        manifest.setdefault("precisions", {}).update(precisions)
+    tmp = folder / (MANIFEST + ".tmp")
+    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
+    os.replace(tmp, folder / MANIFEST)
+    return manifest

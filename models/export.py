@@ -15,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-from edge.modelfiles import JACOBIAN, sha256, write_manifest
+from edge.modelfiles import JACOBIAN, add_to_manifest, write_manifest
 from edge.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS
 from models.nets import CVAE, HIDDEN, LATENT, AEStep, DecoderStep, JacobianStep, PoseAE
 
@@ -78,13 +78,9 @@ def export_all(ckpt, out):
 def add_jacobian(ckpt, out):
     """Export only the refiner's batch into a folder whose other models are already there, and list it
     in their manifest (the other files and their digests stay as they are)."""
-    out = Path(out)
     cvae, _, _ = load_checkpoint(ckpt)
-    export_jacobian(cvae, out / JACOBIAN)
-    manifest = json.loads((out / "manifest.json").read_text())
-    manifest["files"][JACOBIAN] = {"sha256": sha256(out / JACOBIAN), "bytes": (out / JACOBIAN).stat().st_size,
-                                   "source_checkpoint": "checkpoints/cvae.pt"}
-    (out / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    export_jacobian(cvae, Path(out) / JACOBIAN)
+    add_to_manifest(out, {JACOBIAN: {"source_checkpoint": "checkpoints/cvae.pt"}})
 
 
 def main():

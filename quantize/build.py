@@ -12,7 +12,6 @@ Each candidate is measured against fp32 on held-out `val` windows (closed-loop d
 FK joint positions; autoencoder plausibility scores) and the most accurate is kept; the decoder also
 has to be no slower than fp32 at N=100. Without the mocap data only `dynamic` can be built.
 """
-import json
 import os
 import shutil
 import tempfile
@@ -21,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from edge.inference import make_session
-from edge.modelfiles import JACOBIAN, MANIFEST, ModelError, sha256
+from edge.modelfiles import JACOBIAN, ModelError, add_to_manifest, read_manifest, sha256
 from quantize.common import (MODELS, autoencoder_call_us, decoder_call_us, fp32_name, head_anchored_positions,
                              int8_name, jacobian_call_us, latents_for, mocap_windows, rollout)
 
@@ -155,30 +154,6 @@ def measure_autoencoder(path, ref_path, val, threshold):
 
 
 # ---------------------------------------------------------------------------------------------- manifest
-
-def read_manifest(folder):
-    path = Path(folder) / MANIFEST
-    if not path.exists():
-        raise ModelError(f"no {MANIFEST} in {folder}: export the fp32 models first (python -m models.export)")
-    return json.loads(path.read_text())
-
-
-def add_to_manifest(folder, entries, precisions=None):
-    """Add or replace `entries` ({file name: extra fields}) in the manifest, keeping every other file entry
-    and all metadata as they are. sha256 and bytes are computed here. `precisions` ({precision: {model:
-    file}}) says which file each runtime precision opens. Written atomically."""
-    folder = Path(folder)
-    manifest = read_manifest(folder)
-    for name, extra in entries.items():
-        p = folder / name
-        manifest["files"][name] = {"sha256": sha256(p), "bytes": p.stat().st_size, **extra}
-    if precisions:
-        manifest.setdefault("precisions", {}).update(precisions)
-    tmp = folder / (MANIFEST + ".tmp")
-    tmp.write_text(json.dumps(manifest, indent=2) + "\n")
-    os.replace(tmp, folder / MANIFEST)
-    return manifest
-
 
 def check_sources(folder):
     """The fp32 files must match the manifest (the int8 builds record which fp32 file they came from)."""
