@@ -71,6 +71,16 @@ def test_the_jacobian_graph_decodes_each_latent_as_the_decoder_does(take):
     np.testing.assert_allclose(batch.rot6d, one.rot6d, rtol=0, atol=1e-5)
 
 
+def test_a_wrong_graph_as_the_jacobian_fails_at_start_up_with_the_fix():
+    """A file in the Jacobian's place that is not JacobianStep (here the decoder step: three outputs) is
+    refused when the refiner is built, saying how to make the right one."""
+    from edge.inference import open_models
+    from edge.modelfiles import ModelError
+    m, decoder, _ = open_models(precision="fp32")
+    with pytest.raises(ModelError, match="jacobian-only"):
+        JacobianBatch(decoder, 32, m["latent"], m["hidden"], m["features"])
+
+
 def test_models_without_the_jacobian_graph_refine_with_the_decoder(tmp_path):
     """An older model folder (no decoder_jacobian.onnx in its manifest) still refines, on the decoder's graph."""
     import json
