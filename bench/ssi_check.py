@@ -1,18 +1,20 @@
 """Measure SSI against its targets on the validation split, in one run (the SSI-that-earns-its-samples issue).
 
     python bench/ssi_check.py --data ../shared/mocap [--samples 32] [--runs 3] [--out out/ssi_check]
-                              [--models DIR] [--baseline DIR] [--skip-study]
+                              [--models DIR] [--baseline DIR] [--skip-study] [--seeds 0,1,2]
 
-Runs edge eval at N=1, at N with SSI and at N with --no-ssi (same seed; two at a time), with --baseline
-the same N with SSI for another model folder (its diversity beside ours), and the high-kick and
-low-kick studies at N = 1, 10, 100; then prints each target with the measured figures. Evals already in
---out are reused. Takes about an hour on 2 cores.
+Runs edge eval at N=1, at N with SSI (once per --seeds draw of the latents) and at N with --no-ssi (two at
+a time), with --baseline the same N with SSI for another model folder (its diversity beside ours), and the
+high-kick and low-kick studies at N = 1, 10, 100; then prints each target with the measured figures.
+Evals already in --out are reused. About 5 minutes on 2 cores (--skip-study: 3).
 """
 import argparse
 import json
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+
+import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
@@ -25,7 +27,7 @@ def _eval(job):
     path, kw = job
     if Path(path).exists():
         return json.loads(Path(path).read_text())
-    r = evaluate([kw.pop("data")], "val", seed=0, log=lambda *a: None, **kw)
+    r = evaluate([kw.pop("data")], "val", seed=kw.pop("seed", 0), log=lambda *a: None, **kw)
     r.pop("per_clip", None)
     Path(path).write_text(json.dumps(r, indent=2) + "\n")
     return r
@@ -55,12 +57,16 @@ def main():
     ap.add_argument("--baseline", help="another model folder, for the diversity figures side by side")
     ap.add_argument("--precision", choices=("fp32", "int8"), default=DEFAULT_PRECISION)
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--seeds", default="0,1,2", help="draws of the N samples' latents the SSI run is repeated with "
+                    "(the draw moves mpjpe by up to 3 %%); the first one's run is the one printed in full")
     a = ap.parse_args()
+    seeds = [int(x) for x in a.seeds.split(",")]
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     kw = {"data": a.data, "models": a.models, "precision": a.precision}
     jobs = {"n1": (out / "eval_n1.json", {**kw, "samples": 1}),
-            "ssi": (out / "eval_ssi.json", {**kw, "samples": a.samples}),
+            "ssi": (out / "eval_ssi.json", {**kw, "samples": a.samples, "seed": seeds[0]}),
+            **{f"ssi_seed{k}": (out / f"eval_ssi_seed{k}.json", {**kw, "samples": a.samples, "seed": k}) for k in seeds[1:]},
             "no_ssi": (out / "eval_no_ssi.json", {**kw, "samples": a.samples, "no_ssi": True}),
             "n1_no_ssi": (out / "eval_n1.json", {**kw, "samples": 1})}
     jobs.pop("n1_no_ssi")
@@ -73,6 +79,7 @@ def main():
         ev = dict(zip(jobs, ex.map(_eval, jobs.values()), strict=True))
         st = dict(zip(studies, ex.map(_study, studies.values()), strict=True))
     n1, ssi, base = ev["n1"], ev["ssi"], ev["no_ssi"]
+    drawn = [ssi] + [ev[f"ssi_seed{k}"] for k in seeds[1:]]
     gt = ssi["ground_truth"]
     rows = []
     for name, r in (("N=1", n1), (f"N={a.samples}", ssi)):
@@ -81,6 +88,10 @@ def main():
                  (f"float_rate <= 2 % ({name})", r["float_rate"], 0.02)]
     rows += [(f"physical sum SSI <= 0.4 x no-SSI (N={a.samples})", physical(ssi), 0.4 * physical(base)),
              ("mpjpe_cm SSI <= 1.03 x N=1", ssi["mpjpe_cm"], 1.03 * n1["mpjpe_cm"]),
+             (f"mpjpe_cm SSI, mean of seeds {a.seeds}, <= 1.02 x N=1", np.mean([r["mpjpe_cm"] for r in drawn]),
+              1.02 * n1["mpjpe_cm"]),
+             (f"physical sum SSI, mean of seeds {a.seeds}, <= 0.4 x no-SSI", np.mean([physical(r) for r in drawn]),
+              0.4 * physical(base)),
              ("foot_skate_cm_s SSI <= N=1", ssi["foot_skate_cm_s"], n1["foot_skate_cm_s"]),
              ("oracle / average-sample lower-body error <= 0.7", ssi["diversity"]["oracle_to_average_lower"], 0.7)]
     tj = ssi["transition_jerk"]
@@ -107,7 +118,7 @@ def main():
     print("\ntargets:")
     for name, value, limit in rows:
         print(f"  {'met ' if value <= limit else 'MISS'}  {name:52} {value:.4g} (limit {limit:.4g})")
-    (out / "targets.json").write_text(json.dumps([{"target": n, "value": v, "limit": lim, "met": v <= lim}
+    (out / "targets.json").write_text(json.dumps([{"target": n, "value": float(v), "limit": float(lim), "met": bool(v <= lim)}
                                                   for n, v, lim in rows], indent=2) + "\n")
 
 

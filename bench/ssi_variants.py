@@ -4,7 +4,8 @@ weighs the foot slide it causes. Each runs edge eval at N=32 on an even spread o
     python bench/ssi_variants.py --data ../shared/mocap [--clips 60] [--out out/ssi_variants] [VARIANT ...]
 
 Variants (default: all):
-  base            the shipped pipeline (i.i.d. normal latents, sample 0 at the prior mean)
+  base            the shipped pipeline (i.i.d. normal latents at the manifest's latent_scale, sample 0
+                  at the prior mean)
   scale-1.5       latents drawn with 1.5x the prior's spread (scale-2 with 2x)
   orthogonal      latent directions orthonormal in blocks of the latent size, norms as drawn
   slide-cost-W    a criterion: W x the horizontal distance from each sample's ankles to the shown
@@ -71,7 +72,7 @@ def variant_pipeline(variant):
             super().__init__(*a, **k)
             N, dim = self.latents.shape
             if N > 1 and kind in ("scale", "kick-scale"):
-                self.latents[1:] *= w
+                self.latents[1:] *= w / self.latent_scale      # w x the prior's spread, whatever the manifest's
             elif N > 1 and kind == "orthogonal":
                 rng = np.random.default_rng(k.get("seed", 0))
                 self.latents[1:] = orthogonal_latents(rng, N - 1, dim, np.linalg.norm(self.latents[1:], axis=1))

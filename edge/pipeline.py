@@ -33,6 +33,7 @@ from edge.features import NUM_POINT_FEATURES, body_points, features, heading, im
 from edge.imus import IMU_JOINTS, NUM_IMUS
 from edge.ik import FootLock, apply_limb_ik
 from edge.inference import DEFAULT_PRECISION, Autoencoder, Decoder, open_jacobian, open_models
+from edge.modelfiles import ModelError
 from edge.physics import floor_lift, lowest_point, support
 from edge.plausibility import PlausibilityScorer
 from edge.signals import EYE_OFFSET, GRIP_OFFSET, Signals
@@ -61,6 +62,16 @@ class Pose:
     contacts: np.ndarray = field(default_factory=lambda: np.zeros(2))
     sample: int = 0
     transition: bool = False
+
+
+def latent_scale(selection):
+    """The spread of the SSI samples' latents, as a multiple of the prior's (a manifest's or --selection's
+    `latent_scale`; 1 when it has none). Anything but a number in (0, 4] is refused with the fix."""
+    x = selection.get("latent_scale", 1.0)
+    if isinstance(x, bool) or not isinstance(x, (int, float)) or not 0.0 < x <= 4.0:
+        raise ModelError(f"selection latent_scale must be a number in (0, 4], got {x!r}: fix the model manifest's "
+                         "\"selection\" (1.0 draws the samples at the prior's own spread)")
+    return float(x)
 
 
 def fk_with_segments(local, world, pos, seg_m, seg_flag):
@@ -153,14 +164,17 @@ class Pipeline:
         self.threshold = m["plausibility_threshold_m"]
         self.scorer = PlausibilityScorer(self.autoencoder, self.threshold, use_native)
         self.criteria = Composite(criteria if criteria is not None else self.default_criteria(m, use_native, selection))
-        self.switch_margin = float((selection or m.get("selection", {})).get("switch_margin", 0.0))
+        chosen = selection or m.get("selection", {})
+        self.switch_margin = float(chosen.get("switch_margin", 0.0))
 
         # N=1 is the plain CVAE at the prior mean; more samples draw fixed latents once (SSI 3.2), and
         # sample 0, the one shown first, stays the prior mean: SSI moves away from what N=1 shows only
-        # when that is an outlier.
+        # when that is an outlier. The draws are the prior's at `latent_scale` times its spread (a
+        # sampling temperature, chosen on val with the selection weights: see the manifest).
+        self.latent_scale = latent_scale(chosen)
         self.latents = np.zeros((N, m["latent"]), np.float32)
         if N > 1:
-            self.latents[1:] = np.random.default_rng(seed).standard_normal((N - 1, m["latent"]))
+            self.latents[1:] = self.latent_scale * np.random.default_rng(seed).standard_normal((N - 1, m["latent"]))
         self.decoder.latent[:N] = self.latents
         self.buffer = LookaheadBuffer(lookahead + 1, N, m["hidden"], m["features"], self.decoder.rot6d.shape[1],
                                       NUM_JOINTS)

@@ -53,3 +53,23 @@ def test_composite_weights_add_up():
     a = TargetHit("r_toe", lambda f: np.zeros(3), weight=2.0)
     b = TargetHit("r_toe", lambda f: np.zeros(3), weight=0.5)
     assert np.allclose(Composite([a, b]).cost(ctx_with(pos)), [0, 2.5])
+
+
+def test_ssi_samples_are_drawn_at_the_manifests_latent_scale_and_a_bad_one_is_refused():
+    """The samples' latents are the prior's draws at the manifest's latent_scale (0.7 for v0.3), sample 0
+    stays the prior mean, an explicit selection's scale wins, and a scale that is not a number in
+    (0, 4] fails at start-up with the fix."""
+    import pytest
+    from edge.modelfiles import ModelError, load_manifest
+    from edge.pipeline import Pipeline
+    scale = load_manifest(need=())["selection"]["latent_scale"]
+    draws = np.random.default_rng(0).standard_normal((7, 30))
+    pipe = Pipeline(samples=8, seed=0)
+    assert scale == pipe.latent_scale != 1.0
+    np.testing.assert_array_equal(pipe.latents[0], 0.0)
+    np.testing.assert_allclose(pipe.latents[1:], scale * draws, rtol=1e-6)
+    wide = Pipeline(samples=8, seed=0, selection={"plausibility": 1.0, "latent_scale": 1.0})
+    np.testing.assert_allclose(wide.latents[1:], draws, rtol=1e-6)
+    for bad in (0.0, -1.0, 9.0, float("nan"), "0.7", True):
+        with pytest.raises(ModelError, match="latent_scale"):
+            Pipeline(samples=2, selection={"plausibility": 1.0, "latent_scale": bad})
