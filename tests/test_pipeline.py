@@ -152,8 +152,9 @@ def test_a_frame_makes_no_arrays_at_any_n_and_a_switch_none_either(take):
 @pytest.mark.skipif(not __import__("edge.native").native.load(), reason="the compiled core is the board's frame")
 def test_a_refined_frame_makes_no_arrays_either(take):
     """A frame that refines a live target two steps (edge.refine: its batches, FK, the C step, the
-    refined row's decode) makes no arrays: its memory peaks within 256 bytes of a frame without one
-    (here +191: a few small Python objects, the live terms' list and such); the refiner's latents,
+    refined row's decode) makes no arrays: its memory peaks within 512 bytes of a frame without one
+    (here +191 to +368, as the plain frame's own peak moves: a few small Python objects, the live terms'
+    list and such); the refiner's latents,
     batches and scratch are all preallocated (a temporary as large as the batch's 30 x 30 steps, 3.7
     KB, fails this; one small enough to be freed before the frame's peak would not show)."""
     from edge.skeleton import JOINT
@@ -172,7 +173,7 @@ def test_a_refined_frame_makes_no_arrays_either(take):
         finally:
             tracemalloc.stop()
         assert (pipe.refiner.applied >= 290) == live
-    assert np.median(runs[True]) - np.median(runs[False]) <= 256
+    assert np.median(runs[True]) - np.median(runs[False]) <= 512
     assert np.percentile(runs[True], 99) <= 2048
 
 
