@@ -231,6 +231,7 @@ def build(folder, data=None, methods=("dynamic", "static"), log=print):
         val = mocap_windows(data, "val", VAL_WINDOWS, VAL_FRAMES, seed=12, n_features=manifest["features"])
     report = {"methods_tried": list(methods), "selection": {}, "candidates": {}}
     entries, runtime = {}, {}
+    earlier = manifest.get("precisions", {}).get("int8", {})      # the runtime files a previous build chose
     call_us = {"decoder": decoder_call_us, "autoencoder": autoencoder_call_us}
     with tempfile.TemporaryDirectory(prefix="quantize-") as tmp:
         tmp = Path(tmp)
@@ -270,13 +271,16 @@ def build(folder, data=None, methods=("dynamic", "static"), log=print):
                 chosen, why = "dynamic", "no calibration data: dynamic is the only candidate"
             # The int8 runtime uses this int8 file unless it is clearly slower than fp32 here: a 7-layer
             # MLP as small as the autoencoder is all per-node overhead, and int8 adds quantize nodes.
-            # Timed in turns, best of 5 turns each, so a busy machine does not flip the choice.
+            # Timed in turns, best of 5 turns each. A rebuild keeps the folder's earlier choice unless
+            # the times clearly say otherwise (hysteresis: int8 at <= 1.0x fp32 over an fp32 choice,
+            # fp32 at > 1.2x over an int8 one), so a busy machine near the 1.1x line does not flip it.
             turns = {k: [] for k in ("fp32", "int8")}
             for _ in range(5):
                 turns["fp32"].append(call_us[model](src, 100, frames=150, warmup=20)["p50"])
                 turns["int8"].append(call_us[model](tmp / f"{model}.{chosen}.onnx", 100, frames=150, warmup=20)["p50"])
             best = {k: min(v) for k, v in turns.items()}
-            runtime[model] = int8_name(model) if best["int8"] <= 1.1 * best["fp32"] else fp32_name(model)
+            line = {int8_name(model): 1.2, fp32_name(model): 1.0}.get(earlier.get(model), 1.1)
+            runtime[model] = int8_name(model) if best["int8"] <= line * best["fp32"] else fp32_name(model)
             report["selection"][model + "_runtime"] = {
                 "file": runtime[model],
                 "why": f"int8 {best['int8']:.1f} us vs fp32 {best['fp32']:.1f} us per call at N=100 (best of 5 turns)"}

@@ -120,6 +120,32 @@ def test_quantize_adds_int8_entries_keeps_everything_else_and_reruns_identically
     assert again == after                                      # deterministic: re-running changes nothing
 
 
+def test_a_rebuild_keeps_the_earlier_runtime_choice_unless_the_times_clearly_disagree(model_copy, monkeypatch):
+    """int8 at 1.15x fp32 is near the 1.1x line: a rebuild keeps whichever file the folder ran before
+    (an fp32 choice flips to int8 only at <= 1.0x, an int8 one to fp32 only above 1.2x), so a busy
+    machine cannot flip it between two runs; at 1.3x the int8 choice does go."""
+    import quantize.build as qb
+    ratio = {"x": 1.15}
+    fake = lambda path, rows, frames=0, warmup=0: {"p50": 100.0 * (ratio["x"] if ".int8" in str(path) or      # noqa: E731
+                                                                   "dynamic" in str(path) else 1.0)}
+    monkeypatch.setattr(qb, "autoencoder_call_us", fake)
+    monkeypatch.setattr(qb, "decoder_call_us", fake)
+
+    def rebuild_after(choice):
+        m = json.loads((model_copy / "manifest.json").read_text())
+        m.setdefault("precisions", {}).setdefault("int8", {})["autoencoder"] = choice
+        (model_copy / "manifest.json").write_text(json.dumps(m))
+        qb.build(model_copy, data=None, methods=("dynamic",), log=lambda *_: None)
+        return json.loads((model_copy / "manifest.json").read_text())["precisions"]["int8"]["autoencoder"]
+
+    assert rebuild_after("autoencoder.onnx") == "autoencoder.onnx"
+    assert rebuild_after("autoencoder.int8.onnx") == "autoencoder.int8.onnx"
+    ratio["x"] = 1.3
+    assert rebuild_after("autoencoder.int8.onnx") == "autoencoder.onnx"
+    ratio["x"] = 0.95
+    assert rebuild_after("autoencoder.onnx") == "autoencoder.int8.onnx"
+
+
 def test_after_an_fp32_reexport_int8_is_refused_until_quantize_runs_again(model_copy):
     from quantize.build import build
     build(model_copy, data=None, methods=("dynamic",), log=lambda *_: None)
