@@ -266,3 +266,19 @@ def test_the_compiled_step_is_the_numpy_step(take, imus):
     assert abs(cost_c - cost_n) <= 1e-6 * max(cost_n, 1e-12)
     assert np.abs(compiled - z0).max() > 1e-3
     assert np.abs(compiled - numpy_).max() <= 0.01 * np.abs(numpy_ - z0).max()
+
+
+def test_the_compiled_batch_fill_is_numpys_to_the_bit(take):
+    """ep_refine_fill (the refiner's own latent into the batch's first L + 1 rows, then its steps along
+    each axis) writes the bits Refiner._fill_batch writes: z rounded to float32, steps added in float32."""
+    pipe = Pipeline(samples=1, refine={"steps": 1})
+    r = pipe.refiner
+    assert r._c is not None
+    L = r.L
+    r.z[:] = np.random.default_rng(3).standard_normal(L) * 1.7
+    r._c[0].ep_refine_fill(*r._fill_args)
+    compiled = r.batch.latent[:L + 1].copy()
+    r.batch.latent[:] = 0.0
+    r._fill_batch(r.z, r._steps)
+    np.testing.assert_array_equal(compiled, r.batch.latent[:L + 1])
+    assert np.abs(np.diag(compiled[1:] - compiled[0])).min() > 0      # each row steps along its axis

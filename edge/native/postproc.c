@@ -1219,6 +1219,15 @@ static int refine_residuals(const core_context *x, const refine_args *a, const d
     return m;
 }
 
+/* edge.refine.Refiner._fill_batch(z, steps) before the batch's decode: its first L + 1 latent rows
+ * [L+1, L] float32 are z rounded to float32, then + steps [L, L] (float32) from row 1 on, added in float32
+ * as numpy adds them (the same bits). */
+void ep_refine_fill(int L, const double *z, const float *steps, float *latent) {
+    for (int k = 0; k < L; k++) latent[k] = (float)z[k];
+    for (int r = 1; r <= L; r++)
+        for (int k = 0; k < L; k++) latent[r * L + k] = latent[k] + steps[(r - 1) * L + k];
+}
+
 /* edge.refine.Refiner.step after the batch's decode: FK of the R = L + 2 rows against ring slot
  * `slot`'s inputs (with the worn IMUs' segments), the live terms' residuals of each, the forward-
  * difference Jacobian J [L,m] = (r_k - r_0) / eps, and one Levenberg-Marquardt step on z [L] in place:
