@@ -28,8 +28,9 @@ in turn (--probe-frames real-time frames each, under the same limit; a probe tha
 repeated once) and chooses the highest rung whose p99 frame time leaves 20 % headroom (--headroom):
 p99 <= 0.8 x 1000/H ms (quota enforced; the quota's effect is in the measured time) or p99 CPU time
 <= 0.8 x Q x 1000/H ms (not enforced). It then runs --frames frames there, the run whose numbers are
-reported; if that run misses deadlines it steps down one rung and runs again (every attempt is kept
-in the JSON). Deploy with the chosen N as [runtime] samples and K as [refine] steps.
+reported; if that run misses deadlines it is run once more at the same rung (one stall of the machine
+is not a verdict), and after a second miss it steps down one rung and runs again (every attempt is
+kept in the JSON, at most four). Deploy with the chosen N as [runtime] samples and K as [refine] steps.
 
 Contention (--hog-at S [--hog-seconds D] [--hog-procs K]): K busy processes start S seconds into the
 measured run, on the worker's core but outside its cgroup, and stop D seconds later. With
@@ -299,6 +300,20 @@ def contention_report(resp, live_n, period, hog, governor, live_k):
     return out
 
 
+def next_run(ladder, runs):
+    """The rung the measured run goes to after `runs` (the measured runs so far, in order), or None when
+    the last one stands: it met every deadline, it is the ladder's first rung, or four runs were made.
+    A run that missed is made once more at the same rung before stepping down one: one stall of the
+    machine is not a verdict on N (as a failed probe is repeated once)."""
+    last = runs[-1]
+    rung = (last["samples"], last["refine_steps"])
+    if last["deadline_misses"] == 0 or rung == ladder[0] or len(runs) >= 4:
+        return None
+    if len(runs) < 2 or (runs[-2]["samples"], runs[-2]["refine_steps"]) != rung:
+        return rung
+    return ladder[ladder.index(rung) - 1]
+
+
 def worker(cfg):
     import numpy as np  # noqa: F401  (imported before the clock starts)
     hz = cfg["hz"]
@@ -346,10 +361,12 @@ def worker(cfg):
         attempts.append({key: st[key] for key in ("samples", "refine_steps", "frames", "deadline_misses", "frame_ms",
                                                   "cpu_ms")})
         # Adaptive or contended runs are reported as they went: stepping down would hide the verdict.
-        if (st["deadline_misses"] == 0 or cfg["samples"] != "auto" or chosen == ladder[0] or len(attempts) >= 3
-                or adaptive or hog):
+        if cfg["samples"] != "auto" or adaptive or hog:
             break
-        chosen = ladder[ladder.index(chosen) - 1]
+        after = next_run(ladder, attempts)
+        if after is None:
+            break
+        chosen = after
     stages = {"sync": st["stages_in_loop_ms"]["sync"], "pipeline_step": st["stages_in_loop_ms"]["pipeline_step"],
               "output_encoding": st["stages_in_loop_ms"]["output_encoding"]}
     stages.update(st["stages_cpu_ms"])

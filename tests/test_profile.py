@@ -142,3 +142,23 @@ def test_a_hog_run_reports_each_phase_and_leaves_no_busy_process_behind(tmp_path
     assert sum(c["phases"][p]["deadline_misses"] for p in ("before", "during", "after")) == r["deadline_misses"]
     assert c["samples_timeline"][0] == [0, 8] and "governor" in c
     assert hog_processes() == []
+
+
+def test_a_measured_run_that_misses_is_run_again_at_its_rung_before_stepping_down():
+    """One late frame (a stall of the machine) does not cost a rung: the run is made once more at the
+    same (N, K), and only a second miss there steps down one rung; a clean run, the first rung or the
+    fourth run ends it."""
+    from edge.governor import rungs
+    ladder = rungs(128, 2)
+    top, below = ladder[-1], ladder[-2]
+
+    def runs(*rows):
+        return [{"samples": n, "refine_steps": k, "deadline_misses": m} for (n, k), m in rows]
+
+    assert profile.next_run(ladder, runs((top, 0))) is None
+    assert profile.next_run(ladder, runs((top, 1))) == top
+    assert profile.next_run(ladder, runs((top, 1), (top, 0))) is None
+    assert profile.next_run(ladder, runs((top, 1), (top, 2))) == below
+    assert profile.next_run(ladder, runs((top, 1), (top, 2), (below, 1))) == below
+    assert profile.next_run(ladder, runs((top, 1), (top, 2), (below, 1), (below, 1))) is None
+    assert profile.next_run(ladder, runs((ladder[0], 5))) is None
