@@ -28,9 +28,9 @@ in turn (--probe-frames real-time frames each, under the same limit; a probe tha
 repeated once) and chooses the highest rung whose p99 frame time leaves 20 % headroom (--headroom):
 p99 <= 0.8 x 1000/H ms (quota enforced; the quota's effect is in the measured time) or p99 CPU time
 <= 0.8 x Q x 1000/H ms (not enforced). It then runs --frames frames there, the run whose numbers are
-reported; if that run misses deadlines it is run once more at the same rung (one stall of the machine
-is not a verdict), and after a second miss it steps down one rung and runs again (every attempt is
-kept in the JSON, at most four). Deploy with the chosen N as [runtime] samples and K as [refine] steps.
+reported; if that run misses deadlines it steps down one rung and runs again, except that a run with
+one or two late frames (a stall of the machine is not a verdict on N) is first made once more at the
+same rung (every attempt is kept in the JSON, at most six). Deploy with the chosen N as [runtime] samples and K as [refine] steps.
 
 Contention (--hog-at S [--hog-seconds D] [--hog-procs K]): K busy processes start S seconds into the
 measured run, on the worker's core but outside its cgroup, and stop D seconds later. With
@@ -300,16 +300,21 @@ def contention_report(resp, live_n, period, hog, governor, live_k):
     return out
 
 
-def next_run(ladder, runs):
+STALLS = 2      # late frames in a measured run that can be the machine's own stalls, not N's cost
+
+
+def next_run(ladder, runs, most=6):
     """The rung the measured run goes to after `runs` (the measured runs so far, in order), or None when
-    the last one stands: it met every deadline, it is the ladder's first rung, or four runs were made.
-    A run that missed is made once more at the same rung before stepping down one: one stall of the
-    machine is not a verdict on N (as a failed probe is repeated once)."""
+    the last one stands: it met every deadline, it is the ladder's first rung, or `most` runs were made.
+    A run with at most STALLS late frames is made once more at the same rung before stepping down: one
+    stall of the machine is not a verdict on N (as a failed probe is repeated once). More late frames,
+    or a second miss at the rung, step down one rung."""
     last = runs[-1]
     rung = (last["samples"], last["refine_steps"])
-    if last["deadline_misses"] == 0 or rung == ladder[0] or len(runs) >= 4:
+    if last["deadline_misses"] == 0 or rung == ladder[0] or len(runs) >= most:
         return None
-    if len(runs) < 2 or (runs[-2]["samples"], runs[-2]["refine_steps"]) != rung:
+    again = len(runs) >= 2 and (runs[-2]["samples"], runs[-2]["refine_steps"]) == rung
+    if last["deadline_misses"] <= STALLS and not again:
         return rung
     return ladder[ladder.index(rung) - 1]
 

@@ -145,9 +145,9 @@ def test_a_hog_run_reports_each_phase_and_leaves_no_busy_process_behind(tmp_path
 
 
 def test_a_measured_run_that_misses_is_run_again_at_its_rung_before_stepping_down():
-    """One late frame (a stall of the machine) does not cost a rung: the run is made once more at the
-    same (N, K), and only a second miss there steps down one rung; a clean run, the first rung or the
-    fourth run ends it."""
+    """One or two late frames (a stall of the machine) do not cost a rung: the run is made once more at
+    the same (N, K), and a second miss there steps down one rung; more late frames step down at once; a
+    clean run, the first rung or the sixth run ends it."""
     from edge.governor import rungs
     ladder = rungs(128, 2)
     top, below = ladder[-1], ladder[-2]
@@ -160,5 +160,7 @@ def test_a_measured_run_that_misses_is_run_again_at_its_rung_before_stepping_dow
     assert profile.next_run(ladder, runs((top, 1), (top, 0))) is None
     assert profile.next_run(ladder, runs((top, 1), (top, 2))) == below
     assert profile.next_run(ladder, runs((top, 1), (top, 2), (below, 1))) == below
-    assert profile.next_run(ladder, runs((top, 1), (top, 2), (below, 1), (below, 1))) is None
+    assert profile.next_run(ladder, runs((top, 1), (top, 2), (below, 1), (below, 1))) == ladder[-3]
+    assert profile.next_run(ladder, runs((top, 3))) == below              # overloaded, not a stall
+    assert profile.next_run(ladder, runs(*[(ladder[-1 - k], 9) for k in range(6)])) is None    # six runs
     assert profile.next_run(ladder, runs((ladder[0], 5))) is None
