@@ -103,6 +103,24 @@ def test_limb_ik_matches_numpy_on_reachable_unreachable_and_straight_chains():
         np.testing.assert_allclose(g[:8], r[:8], rtol=0, atol=1e-6)
 
 
+def test_matrix_to_quaternion_is_numpys_to_the_bit():
+    """ep_from_matrix (the pose stream's quaternions) gives quat.from_matrix's bits: rotations of every
+    kind, each of Shepperd's four branches, matrices that are not quite rotations, zeros and NaN."""
+    lib = native.load()
+    rng = np.random.default_rng(1)
+    m = quat.to_matrix(quat.normalize(rng.standard_normal((20000, 4))))
+    m[:500] *= 1.0 + 1e-3 * rng.standard_normal((500, 3, 3))
+    m[500:510], m[510:520] = np.nan, 0.0
+    m[520:530] = np.diag([-1.0, -1.0, 1.0])
+    m[530:540] = np.diag([1.0, -1.0, -1.0])
+    m = np.ascontiguousarray(m)
+    got = np.empty((len(m), 4))
+    lib.ep_from_matrix(len(m), native.addr(m), native.addr(got))
+    want = quat.from_matrix(m)
+    np.testing.assert_array_equal(got, want)            # NaN where numpy has NaN
+    assert np.isnan(got[500:510]).all() and np.isfinite(got[510:]).all()
+
+
 def test_plausibility_score_matches_numpy_and_reuses_its_buffers():
     manifest, _, ae_session = open_models()
     B = 24

@@ -153,6 +153,7 @@ _SIGNATURES = {
     "ep_frame_costs": [ctypes.POINTER(CoreContext), ctypes.POINTER(Selection), _I, _I, _D, _D, _I, _D],
     "ep_refine_step": [ctypes.POINTER(CoreContext), ctypes.POINTER(RefineArgs), _I, _P, _P, _P],
     "ep_refine_fill": [_I, _P, _P, _P],
+    "ep_from_matrix": [_I, _P, _P],
     "ep_emit": [ctypes.POINTER(CoreContext), _I, _I],
     "ep_frame_inputs": [ctypes.POINTER(CoreContext), _I, _I, _I, _I, _I, _D, _P],
     "ep_max_joints": [],

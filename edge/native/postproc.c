@@ -1219,6 +1219,11 @@ static int refine_residuals(const core_context *x, const refine_args *a, const d
     return m;
 }
 
+/* edge.quat.from_matrix of n row-major matrices m [n,3,3] into q [n,4]: the pose stream's rotations. */
+void ep_from_matrix(int n, const double *m, double *q) {
+    for (int i = 0; i < n; i++) quat_from_matrix(m + i * 9, q + i * 4);
+}
+
 /* edge.refine.Refiner._fill_batch(z, steps) before the batch's decode: its first L + 1 latent rows
  * [L+1, L] float32 are z rounded to float32, then + steps [L, L] (float32) from row 1 on, added in float32
  * as numpy adds them (the same bits). */

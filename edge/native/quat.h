@@ -7,6 +7,7 @@
  *   quat_to_matrix       edge.quat.to_matrix
  *   quat_cross           edge.quat.cross (of 3-vectors)
  *   quat_matrix_from_6d  edge.quat.matrix_from_6d (of the two columns u, v)
+ *   quat_from_matrix     edge.quat.from_matrix
  *   mat3_mul, mat3_vec, vec3_dot    a @ b, m @ v, a . b (numpy's operators)
  *
  * The SIMD forms that run LANES samples side by side are lane_* in postproc.c. */
@@ -82,6 +83,32 @@ static inline void quat_matrix_from_6d(const double *u, const double *v_in, doub
         out[i * 3 + 1] = y[i];
         out[i * 3 + 2] = z[i];
     }
+}
+
+/* edge.quat.from_matrix of one row-major m: Shepperd's method (the branch numpy's masks pick), then
+ * normalised, in numpy's order of operations. x < lo ? lo : x is np.maximum's (a NaN stays NaN). */
+static inline void quat_from_matrix(const double *m, double *q) {
+    double tr = m[0] + m[4] + m[8], s;
+    if (tr > 0) {
+        s = tr + 1.0;
+        s = sqrt(s < 1e-12 ? 1e-12 : s) * 2;
+        q[0] = 0.25 * s; q[1] = (m[7] - m[5]) / s; q[2] = (m[2] - m[6]) / s; q[3] = (m[3] - m[1]) / s;
+    } else if (m[0] > m[4] && m[0] > m[8]) {
+        s = 1.0 + m[0] - m[4] - m[8];
+        s = sqrt(s < 1e-12 ? 1e-12 : s) * 2;
+        q[0] = (m[7] - m[5]) / s; q[1] = 0.25 * s; q[2] = (m[1] + m[3]) / s; q[3] = (m[2] + m[6]) / s;
+    } else if (m[4] > m[8]) {
+        s = 1.0 + m[4] - m[0] - m[8];
+        s = sqrt(s < 1e-12 ? 1e-12 : s) * 2;
+        q[0] = (m[2] - m[6]) / s; q[1] = (m[1] + m[3]) / s; q[2] = 0.25 * s; q[3] = (m[5] + m[7]) / s;
+    } else {
+        s = 1.0 + m[8] - m[0] - m[4];
+        s = sqrt(s < 1e-12 ? 1e-12 : s) * 2;
+        q[0] = (m[3] - m[1]) / s; q[1] = (m[2] + m[6]) / s; q[2] = (m[5] + m[7]) / s; q[3] = 0.25 * s;
+    }
+    double n = sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    n = n < 1e-8 ? 1e-8 : n;
+    for (int i = 0; i < 4; i++) q[i] /= n;
 }
 
 #endif
