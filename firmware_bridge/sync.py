@@ -38,15 +38,22 @@ class ClockOffset:
     def __init__(self, window=200):
         self.window = np.full(window, np.inf)
         self.n = 0
+        self._min = np.inf          # the window's minimum, kept as values come and go
 
     def update(self, device_t, received_t):
-        self.window[self.n % len(self.window)] = received_t - device_t
+        k = self.n % len(self.window)
+        leaving, arriving = self.window[k], received_t - device_t
+        self.window[k] = arriving
         self.n += 1
+        if arriving <= self._min:
+            self._min = arriving
+        elif leaving == self._min or arriving != arriving or self._min != self._min:
+            self._min = float(self.window.min())    # the minimum left, or a NaN came or is there: look again
         return self.offset
 
     @property
     def offset(self):
-        return float(self.window.min()) if self.n else 0.0
+        return float(self._min) if self.n else 0.0
 
 
 class Stream:
@@ -91,19 +98,20 @@ class Stream:
 
     def sample(self, t):
         """Interpolated value at board time t: (value, age of the newest sample used) or (None, inf)."""
-        valid = np.isfinite(self.t)
-        if not valid.any():
-            return None, np.inf
-        ts = np.where(valid, self.t, np.inf)
+        # The newest kept time at or before t, and the oldest after it. Empty slots (-inf) and any
+        # non-finite time fall out of both: they are neither <= t nor > t with a finite value.
+        ts = self.t
         before = np.where(ts <= t, ts, -np.inf)
         after = np.where(ts > t, ts, np.inf)
-        i0 = int(np.argmax(before))
-        i1 = int(np.argmin(after))
-        if not np.isfinite(before[i0]):              # t is older than everything kept: use the oldest
-            return self.v[i1].copy(), 0.0
-        if not np.isfinite(after[i1]):               # t is past the newest: hold it
-            return self.v[i0].copy(), t - ts[i0]
-        w = (t - ts[i0]) / (ts[i1] - ts[i0])
+        i0, i1 = int(before.argmax()), int(after.argmin())
+        t0, t1 = float(before[i0]), float(after[i1])
+        if t0 == -np.inf:
+            if t1 == np.inf:                         # nothing kept
+                return None, np.inf
+            return self.v[i1].copy(), 0.0            # t is older than everything kept: use the oldest
+        if t1 == np.inf:                             # t is past the newest: hold it
+            return self.v[i0].copy(), t - t0
+        w = (t - t0) / (t1 - t0)
         return interpolate(self.v[i0], self.v[i1], w), 0.0
 
 
@@ -111,10 +119,11 @@ def interpolate(a, b, w):
     """Linear for positions, slerp for the quaternion of a packed [pos3, quat4] vector. Samples a few
     milliseconds apart differ by a few degrees, where normalised lerp equals slerp to ~1e-6 rad."""
     q0, q1 = a[3:7], b[3:7]
-    if np.dot(q0, q1) < 0:
-        q1 = -q1
+    d = float(np.dot(q0, q1))
+    if d < 0:
+        q1, d = -q1, -d                             # dot(q0, -q1) is exactly -dot(q0, q1)
     out = a + w * (b - a)
-    if np.dot(q0, q1) > 0.995:                      # closer than ~11 degrees
+    if d > 0.995:                                   # closer than ~11 degrees
         q = q0 + w * (q1 - q0)
         out[3:7] = q / np.sqrt(np.dot(q, q))
     else:

@@ -117,3 +117,21 @@ def test_non_finite_samples_are_ignored():
     sync.add_headset(bad, received=0.0)
     sig, health = sync.frame(0.1)
     assert sig is None and health.lost["head"]
+
+
+def test_the_clock_offset_is_the_windows_minimum_as_values_come_and_go():
+    """ClockOffset keeps its window's minimum as samples arrive and leave (a minimum that leaves is
+    looked for again); it is always window.min(), through repeats of the minimum and a NaN."""
+    rng = np.random.default_rng(0)
+    for size in (3, 7, 50):
+        c = ClockOffset(window=size)
+        for i in range(2000):
+            device, received = rng.uniform(0, 100), rng.uniform(0, 100)
+            if i % 97 == 0:
+                received = device + 5.0                     # the same offset again
+            if i == 500:
+                received = np.nan                           # held for one window, then gone
+            got = c.update(device, received)
+            want = float(c.window.min())
+            assert got == want or (np.isnan(got) and np.isnan(want)), (size, i)
+        assert np.isfinite(c.offset)
