@@ -25,7 +25,8 @@ profile measures the worst case, a target live every frame (--refine-steps K, de
 steps, as [refine] steps; 0: no target and N alone). --samples auto probes the governor's rungs
 (edge.governor.rungs, cheapest first: (1,0), (1,1), (2,1), ..., (32,1), (32,2), (48,2), ... (128,2))
 in turn (--probe-frames real-time frames each, under the same limit; a probe that does not fit is
-repeated once) and chooses the highest rung whose p99 frame time leaves 20 % headroom (--headroom):
+repeated once; one late frame in a probe is taken for a stall) and chooses the highest rung whose p99
+frame time leaves 20 % headroom (--headroom):
 p99 <= 0.8 x 1000/H ms (quota enforced; the quota's effect is in the measured time) or p99 CPU time
 <= 0.8 x Q x 1000/H ms (not enforced). It then runs --frames frames there, the run whose numbers are
 reported; if that run misses deadlines it steps down one rung and runs again, except that a run with
@@ -305,6 +306,15 @@ def contention_report(resp, live_n, period, hog, governor, live_k):
 
 
 STALLS = 2      # late frames in a measured run that can be the machine's own stalls, not N's cost
+PROBE_STALLS = 1    # the same for a probe (a fifth of a measured run's frames)
+
+
+def probe_fits(st, budget):
+    """Whether a probe's rung fits: its p99 (frame time, or CPU time where the quota is modelled) within
+    the budget, and at most PROBE_STALLS late frames (one stall of the machine is not a verdict: the
+    measured run that follows is, and steps down if it misses)."""
+    v = st["frame_ms"]["p99"] if budget["metric"].startswith("frame") else st["cpu_ms"]["p99"]
+    return v <= budget["ms"] and st["deadline_misses"] <= PROBE_STALLS
 
 
 def next_run(ladder, runs, most=6):
@@ -337,8 +347,7 @@ def worker(cfg):
                   "ms": head * q * frame_budget_ms}
 
     def fits(st):
-        v = st["frame_ms"]["p99"] if budget["metric"].startswith("frame") else st["cpu_ms"]["p99"]
-        return v <= budget["ms"] and st["deadline_misses"] == 0
+        return probe_fits(st, budget)
 
     # The (N, K) rungs the governor moves along (edge.governor.rungs), cheapest first.
     ladder = rungs(cfg["max_samples"], cfg.get("refine_steps", 0))

@@ -164,3 +164,15 @@ def test_a_measured_run_that_misses_is_run_again_at_its_rung_before_stepping_dow
     assert profile.next_run(ladder, runs((top, 3))) == below              # overloaded, not a stall
     assert profile.next_run(ladder, runs(*[(ladder[-1 - k], 9) for k in range(6)])) is None    # six runs
     assert profile.next_run(ladder, runs((ladder[0], 5))) is None
+
+
+def test_a_probe_fits_within_the_budget_with_at_most_one_late_frame():
+    """A probe fits when its p99 is within the budget and at most one frame was late (a stall of the
+    machine; the measured run decides); a second late frame, or a p99 over budget, does not fit."""
+    budget = {"metric": "frame_ms.p99 (release to done, quota in effect)", "ms": 13.3}
+    probe = lambda p99, late: {"frame_ms": {"p99": p99}, "cpu_ms": {"p99": 1.0}, "deadline_misses": late}  # noqa: E731
+    assert profile.probe_fits(probe(9.0, 0), budget) and profile.probe_fits(probe(9.0, 1), budget)
+    assert not profile.probe_fits(probe(9.0, 2), budget)
+    assert not profile.probe_fits(probe(14.0, 0), budget)
+    modelled = {"metric": "cpu_ms.p99 against the quota share (modelled, quota not enforced)", "ms": 3.3}
+    assert profile.probe_fits(probe(99.0, 0), modelled) and not profile.probe_fits({**probe(1.0, 0), "cpu_ms": {"p99": 4.0}}, modelled)
