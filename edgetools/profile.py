@@ -31,7 +31,8 @@ p99 <= 0.8 x 1000/H ms (quota enforced; the quota's effect is in the measured ti
 <= 0.8 x Q x 1000/H ms (not enforced). It then runs --frames frames there, the run whose numbers are
 reported; if that run misses deadlines it steps down one rung and runs again, except that a run with
 one or two late frames (a stall of the machine is not a verdict on N) is first made once more at the
-same rung (every attempt is kept in the JSON, at most six). Deploy with the chosen N as [runtime] samples and K as [refine] steps.
+same rung (every attempt is kept in the JSON, at most six). Deploy with the chosen N as [runtime]
+samples and K as [refine] steps.
 
 Contention (--hog-at S [--hog-seconds D] [--hog-procs K]): K busy processes start S seconds into the
 measured run, on the worker's core but outside its cgroup, and stop D seconds later. With
@@ -346,9 +347,6 @@ def worker(cfg):
         budget = {"metric": "cpu_ms.p99 against the quota share (modelled, quota not enforced)",
                   "ms": head * q * frame_budget_ms}
 
-    def fits(st):
-        return probe_fits(st, budget)
-
     # The (N, K) rungs the governor moves along (edge.governor.rungs), cheapest first.
     ladder = rungs(cfg["max_samples"], cfg.get("refine_steps", 0))
     probes = []
@@ -357,7 +355,7 @@ def worker(cfg):
         for n, k in ladder:
             for _attempt in range(2):          # a failed probe is repeated once: one busy second is not a verdict
                 st, _ = paced_run(cfg, n, cfg["probe_frames"], f"probe N={n:<3d} K={k}", steps=k)
-                st["fits"] = fits(st)
+                st["fits"] = probe_fits(st, budget)
                 probes.append({key: st[key] for key in ("samples", "refine_steps", "frames", "deadline_misses",
                                                         "frame_ms", "cpu_ms", "fits")})
                 if st["fits"]:
