@@ -84,7 +84,9 @@ def test_the_profile_measures_frames_with_a_live_target_refined_k_steps(tmp_path
     """--refine-steps K: every measured frame refines the shown sample against a target (a headset's
     TARGET at its worst), so the N chosen leaves room for it; 0 measures without."""
     with_target = run(tmp_path, "--samples", "2", "--frames", "30", "--no-cgroup", "--refine-steps", "1")
-    assert with_target["refine_steps"] == 1 and with_target["refined_frames"] == 30
+    # every measured frame that ran (a frame whose deadline passed before it could start is skipped)
+    ran = 30 - with_target["skipped_frames"]
+    assert with_target["refine_steps"] == 1 and with_target["refined_frames"] == ran >= 20
     without = run(tmp_path, "--samples", "2", "--frames", "30", "--no-cgroup", "--refine-steps", "0")
     assert without["refine_steps"] == 0 and without["refined_frames"] == 0
 
