@@ -163,8 +163,8 @@ class Pipeline:
         self.autoencoder = Autoencoder(ae_session, N)
         self.threshold = m["plausibility_threshold_m"]
         self.scorer = PlausibilityScorer(self.autoencoder, self.threshold, use_native)
-        self.criteria = Composite(criteria if criteria is not None else self.default_criteria(m, use_native, selection))
-        chosen = selection or m.get("selection", {})
+        chosen = selection or m.get("selection", {})        # the selection's settings: given, or the model's
+        self.criteria = Composite(criteria if criteria is not None else self.default_criteria(chosen, use_native))
         self.switch_margin = float(chosen.get("switch_margin", 0.0))
 
         # N=1 is the plain CVAE at the prior mean; more samples draw fixed latents once (SSI 3.2), and
@@ -249,11 +249,11 @@ class Pipeline:
         self.reset()
 
 
-    def default_criteria(self, manifest, use_native=True, selection=None):
+    def default_criteria(self, selection, use_native=True):
         """SSI's default selection cost: the autoencoder's plausibility score, plus the physical one
-        (edge.criteria.PhysicalPlausibility) at the weights chosen on val for this model (the manifest's
-        `selection`, or these; a model without one uses the autoencoder alone)."""
-        w = selection or manifest.get("selection", {"plausibility": 1.0})
+        (edge.criteria.PhysicalPlausibility) at the weights of `selection` (the manifest's, chosen on val
+        for this model, or one given; without a "physical" entry the autoencoder alone, at weight 1)."""
+        w = selection
         out = [Plausibility(self.scorer, w.get("plausibility", 1.0))]
         if w.get("physical"):
             p = w["physical"]

@@ -28,7 +28,7 @@ which takes Unity's left (-1, 0, 0) to forward (0, 0, 1).
 """
 import numpy as np
 
-from edge import quat
+from edge import native
 
 MIRROR_X = np.array([-1.0, 1.0, 1.0])
 # S R S elementwise: entry (i, j) is multiplied by s_i * s_j.
@@ -50,4 +50,4 @@ def to_unity_matrix(m):
 
 def to_unity_quaternion(m):
     """Rotation matrices [...,3,3] in our frame -> Unity quaternions [...,4] ordered (x, y, z, w)."""
-    return quat.from_matrix(m)[..., UNITY_XYZW_ORDER] * UNITY_XYZW_SIGNS
+    return native.from_matrix(m)[..., UNITY_XYZW_ORDER] * UNITY_XYZW_SIGNS
