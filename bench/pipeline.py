@@ -4,6 +4,7 @@
     python bench/pipeline.py --compare [--samples 1,10,32,100] [--frames 600] [--blocks 10] [--json OUT]
     python bench/pipeline.py --trackers [--samples 100] [--frames 3000] [--blocks 30] [--json OUT]
     python bench/pipeline.py --against REV [--samples 1,32,100] [--frames 600] [--blocks 10] [--precision int8]
+    python bench/pipeline.py --models-against DIR [--samples 1,16] [--frames 600] [--blocks 10] [--precision int8]
     python bench/pipeline.py --refine [--samples 1,32] [--frames 600] [--blocks 10] [--precision int8]
 
 Plain run: the pipeline with --precision models, then its bare decoder call; medians and p99 in
@@ -32,6 +33,9 @@ temporary folder, and each tree runs in a worker process of its own (its own cod
 pinned to the same core and taking turns block by block in alternating order, so only one runs at a
 time and machine noise hits both alike. Printed per N: each side's pipeline and decoder p50 / p99,
 pipeline / decoder, and this tree / REV with the range of the per-block ratios.
+
+--models-against DIR times this tree's code on two model folders, the shipped models/ and DIR (a
+candidate of another size), the same way as --against: one worker each, pinned, taking turns.
 
 --refine times latent refinement (edge.refine) against what it is built from: one refinement step
 (the batch's decode of the latent, its 30 steps and the sample's own latent on the Jacobian graph,
@@ -277,18 +281,26 @@ def refine_bench(a, frames, ns):
 
 
 def against(a, ns):
-    """This tree's pipeline against revision a.against's, each in its own worker, interleaved."""
+    """This tree's pipeline against revision a.against's (or against the models in a.models_against),
+    each in its own worker, interleaved."""
     import subprocess
     import tarfile
     import tempfile
     here = Path(__file__).resolve().parent.parent
     with tempfile.TemporaryDirectory() as tmp:
-        arch = subprocess.run(["git", "archive", a.against], cwd=here, check=True, capture_output=True).stdout
-        with tarfile.open(fileobj=__import__("io").BytesIO(arch)) as tar:
-            tar.extractall(tmp, filter="data")
-        rev = subprocess.run(["git", "rev-parse", "--short", a.against], cwd=here, check=True, capture_output=True,
-                             text=True).stdout.strip()
-        trees = {"this": here, rev: Path(tmp)}
+        models = {}
+        if a.models_against:
+            rev = "cand"
+            trees = {"this": here, rev: here}
+            models = {rev: str(Path(a.models_against).resolve())}
+            a.against = a.models_against
+        else:
+            arch = subprocess.run(["git", "archive", a.against], cwd=here, check=True, capture_output=True).stdout
+            with tarfile.open(fileobj=__import__("io").BytesIO(arch)) as tar:
+                tar.extractall(tmp, filter="data")
+            rev = subprocess.run(["git", "rev-parse", "--short", a.against], cwd=here, check=True, capture_output=True,
+                                 text=True).stdout.strip()
+            trees = {"this": here, rev: Path(tmp)}
         # Each side reads its own tree's bundled sample: an older tree may not read a newer sample file
         # (e598c25's Signals has no extra IMUs). Said when the two differ.
         samples = {side: tree / "samples" / SAMPLE.name if (tree / "samples" / SAMPLE.name).exists() else SAMPLE
@@ -306,7 +318,7 @@ def against(a, ns):
                 env = dict(os.environ, PYTHONPATH=str(tree))
                 procs[side] = subprocess.Popen(
                     [sys.executable, str(Path(__file__).resolve().parent / "pipeline_worker.py"), str(n), a.precision,
-                     str(samples[side]), str(WARMUP)], cwd=tree, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                     str(samples[side]), str(WARMUP)] + ([models[side]] if side in models else []), cwd=tree, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                     text=True)
             for p in procs.values():
                 json.loads(p.stdout.readline())     # warmed
@@ -347,17 +359,18 @@ def main():
     ap.add_argument("--trackers", action="store_true", help="all seven extra IMUs against none, interleaved")
     ap.add_argument("--blocks", type=int, default=10, help="--compare/--trackers: blocks the timed calls are split into")
     ap.add_argument("--against", metavar="REV", help="another git revision's pipeline, interleaved with this tree's")
+    ap.add_argument("--models-against", metavar="DIR", help="this tree's pipeline on DIR's models, interleaved with models/")
     ap.add_argument("--refine", action="store_true", help="a refinement step against an N=31 decoder call; the frame at K")
     ap.add_argument("--json")
     a = ap.parse_args()
-    if (a.compare or a.trackers or a.against or a.refine) and not 1 <= a.blocks <= a.frames:
+    if (a.compare or a.trackers or a.against or a.models_against or a.refine) and not 1 <= a.blocks <= a.frames:
         ap.error("--blocks must be 1..--frames")
     try:
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
     except (AttributeError, OSError):
         pass
     ns = [int(x) for x in a.samples.split(",")]
-    if a.against:
+    if a.against or a.models_against:
         report = against(a, ns)
     else:
         take = from_sample(SAMPLE)

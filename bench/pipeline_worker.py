@@ -1,9 +1,9 @@
 """One side of `bench/pipeline.py --against`: a pipeline of whichever tree is first on PYTHONPATH, timed
 on request, so two revisions' code can be timed in turns from one parent process.
 
-    PYTHONPATH=TREE python bench/pipeline_worker.py N PRECISION SAMPLE.npz WARMUP
+    PYTHONPATH=TREE python bench/pipeline_worker.py N PRECISION SAMPLE.npz WARMUP [MODELS]
 
-Builds Pipeline(samples=N, precision=PRECISION) fed SAMPLE's frames, warms it with WARMUP frames and
+Builds Pipeline(samples=N, precision=PRECISION) (on the models in MODELS when given) fed SAMPLE's frames, warms it with WARMUP frames and
 prints {"rows": ...}; then each stdin line 'pipeline K' or 'decoder K' times K pipeline steps (the
 frames going on where the last block stopped) or K bare decoder calls, and answers with their
 durations in microseconds as one JSON line. Imports only what both old and new trees have (back to
@@ -15,6 +15,7 @@ import sys
 
 def main():
     n, precision, sample, warmup = int(sys.argv[1]), sys.argv[2], sys.argv[3], int(sys.argv[4])
+    models = sys.argv[5] if len(sys.argv) > 5 else None
     from edge.pipeline import Pipeline
     from edge.timing import time_calls      # in every revision since the compiled core (e598c25)
     try:
@@ -23,7 +24,8 @@ def main():
         from edge.takes import from_sample
     take = from_sample(sample)
     frames = [take.signals.slice(t, t + 1) for t in range(take.frames)]
-    pipe = Pipeline(samples=n, precision=precision)
+    pipe = Pipeline(samples=n, precision=precision) if models is None else \
+        Pipeline(models=models, samples=n, precision=precision)
     for t in range(warmup):
         pipe.step(frames[t % len(frames)])
     t = warmup

@@ -73,6 +73,11 @@ class ClipSet:
 
 
 def build(root, split, sources=None, cache_dir=".cache", workers=2):
+    """A split's clips as a ClipSet: from a training pack (models.pack) when `root` is one, else from the
+    mocap folder through a cache of its retargeted clips."""
+    from models.pack import is_pack, load_pack
+    if is_pack(root):
+        return load_pack(root, split, sources)
     paths = clip_paths(root, split, sources)
     key = hashlib.sha1(("v3|" + "|".join(map(str, paths))).encode()).hexdigest()[:12]
     cache = Path(cache_dir) / f"clips-{split}-{key}.npz"

@@ -17,7 +17,7 @@ import torch
 
 from edge.modelfiles import JACOBIAN, add_to_manifest, write_manifest
 from edge.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS
-from models.nets import CVAE, HIDDEN, LATENT, AEStep, DecoderStep, JacobianStep, PoseAE
+from models.nets import CVAE, LATENT, AEStep, DecoderStep, JacobianStep, PoseAE
 
 
 def load_checkpoint(ckpt):
@@ -25,7 +25,7 @@ def load_checkpoint(ckpt):
     meta = json.loads((ckpt / "meta.json").read_text())
     state = torch.load(ckpt / "cvae.pt", weights_only=True)
     cvae = CVAE(posterior=meta.get("posterior_encoder", False), learned_prior=meta.get("learned_prior", False),
-                n_features=state["norm.mean"].shape[0])
+                n_features=state["norm.mean"].shape[0], hidden=state["dec_gru.weight_hh_l0"].shape[1])
     ae = PoseAE()
     cvae.load_state_dict(state)
     ae.load_state_dict(torch.load(ckpt / "ae.pt", weights_only=True))
@@ -35,7 +35,7 @@ def load_checkpoint(ckpt):
 def export_decoder(cvae, path):
     step = DecoderStep(cvae).eval()
     n = 4
-    args = (torch.zeros(n, cvae.n_features), torch.zeros(n, LATENT), torch.zeros(n, HIDDEN))
+    args = (torch.zeros(n, cvae.n_features), torch.zeros(n, LATENT), torch.zeros(n, cvae.hidden))
     torch.onnx.export(step, args, str(path), dynamo=False, external_data=False, opset_version=17,
                       input_names=["features", "latent", "hidden"],
                       output_names=["rot6d", "contacts", "hidden_out"],
@@ -44,7 +44,7 @@ def export_decoder(cvae, path):
 
 def export_jacobian(cvae, path):
     """The refiner's batch (models.nets.JacobianStep): one frame's features and GRU state, R latents."""
-    args = (torch.zeros(1, cvae.n_features), torch.zeros(4, LATENT), torch.zeros(1, HIDDEN))
+    args = (torch.zeros(1, cvae.n_features), torch.zeros(4, LATENT), torch.zeros(1, cvae.hidden))
     torch.onnx.export(JacobianStep(cvae).eval(), args, str(path), dynamo=False, external_data=False, opset_version=17,
                       input_names=["features", "latent", "hidden"], output_names=["rot6d"],
                       dynamic_axes={"latent": {0: "R"}, "rot6d": {0: "R"}})
@@ -63,7 +63,7 @@ def export_all(ckpt, out):
     export_autoencoder(ae, out / "autoencoder.onnx")
     export_jacobian(cvae, out / JACOBIAN)
     info = {
-        "fps": 60.0, "latent": LATENT, "hidden": HIDDEN, "features": cvae.n_features,
+        "fps": 60.0, "latent": LATENT, "hidden": cvae.hidden, "features": cvae.n_features,
         "joint_names": list(JOINT_NAMES), "parents": PARENTS.tolist(),
         "plausibility_threshold_m": meta["plausibility_threshold_m"],
         "training": {k: v for k, v in meta.items() if k != "plausibility_threshold_m"},

@@ -6,7 +6,7 @@ from edge.features import NUM_FEATURES
 from edge.skeleton import LEVELS, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS
 
 LATENT = 30
-HIDDEN = 128
+HIDDEN = 128          # v0.3's GRU width; CVAE(hidden=...) picks another (the checkpoint and manifest carry it)
 ROT_OUT = NUM_PREDICTED * 6
 # 6D of the identity, so an untrained head starts at the rest pose.
 _IDENTITY_6D = torch.tensor([1.0, 0, 0, 0, 1.0, 0]).repeat(NUM_PREDICTED)
@@ -50,7 +50,8 @@ class Normalizer(nn.Module):
 
 
 class CVAE(nn.Module):
-    """Encoder: FC 24->128, GRU 128, mu/logvar 30. Decoder: FC 54->128, GRU 128, ReLU, rotation and contact heads.
+    """Encoder: FC F->H, GRU H, mu/logvar 30. Decoder: FC 30+F->H, GRU H, ReLU, rotation and contact heads
+    (H = `hidden`, 128 in v0.3).
 
     posterior=True lets the encoder also see the target pose (63 head-relative joint coordinates):
     the recognition network q(z | x, y) of a conditional VAE (Sohn et al. 2015). The paper's encoder
@@ -64,22 +65,23 @@ class CVAE(nn.Module):
     given the trackers (wide for legs during a kick, narrow when standing).
     """
 
-    def __init__(self, posterior=False, learned_prior=False, n_features=NUM_FEATURES):
+    def __init__(self, posterior=False, learned_prior=False, n_features=NUM_FEATURES, hidden=HIDDEN):
         super().__init__()
         self.posterior, self.learned_prior, self.n_features = posterior, learned_prior, n_features
+        self.hidden = H = hidden
         F = n_features          # 24 for the models before the extra IMUs, 24 + 49 since (edge.features)
-        self.prior = nn.Sequential(nn.Linear(F + HIDDEN, HIDDEN), nn.ReLU(),
-                                   nn.Linear(HIDDEN, 2 * LATENT)) if learned_prior else None
+        self.prior = nn.Sequential(nn.Linear(F + H, H), nn.ReLU(),
+                                   nn.Linear(H, 2 * LATENT)) if learned_prior else None
         self.norm = Normalizer(F)
         self.target_norm = Normalizer(NUM_JOINTS * 3) if posterior else None
-        self.enc_fc = nn.Linear(F + (NUM_JOINTS * 3 if posterior else 0), HIDDEN)
-        self.enc_gru = nn.GRU(HIDDEN, HIDDEN)
-        self.mu = nn.Linear(HIDDEN, LATENT)
-        self.logvar = nn.Linear(HIDDEN, LATENT)
-        self.dec_fc = nn.Linear(LATENT + F, HIDDEN)
-        self.dec_gru = nn.GRU(HIDDEN, HIDDEN)
-        self.rot_head = nn.Linear(HIDDEN, ROT_OUT)
-        self.contact_head = nn.Linear(HIDDEN, 2)
+        self.enc_fc = nn.Linear(F + (NUM_JOINTS * 3 if posterior else 0), H)
+        self.enc_gru = nn.GRU(H, H)
+        self.mu = nn.Linear(H, LATENT)
+        self.logvar = nn.Linear(H, LATENT)
+        self.dec_fc = nn.Linear(LATENT + F, H)
+        self.dec_gru = nn.GRU(H, H)
+        self.rot_head = nn.Linear(H, ROT_OUT)
+        self.contact_head = nn.Linear(H, 2)
 
     def encode(self, x, target=None):
         inp = self.norm(x)
@@ -119,7 +121,7 @@ class CVAE(nn.Module):
         """Frame-by-frame decoding at epsilon = 0, as N=1 runs: z_t = 0, or mu_p(x_t, h_{t-1})."""
         if not self.learned_prior:
             return self.decode(x, torch.zeros(x.shape[:-1] + (LATENT,), device=x.device))
-        h = torch.zeros((1,) + x.shape[1:-1] + (HIDDEN,))
+        h = torch.zeros((1,) + x.shape[1:-1] + (self.hidden,))
         xn, rots, cons = self.norm(x), [], []
         for t in range(len(x)):
             z, _ = self.prior_params(xn[t:t + 1], h)
@@ -145,7 +147,8 @@ class DecoderStep(nn.Module):
 
     def __init__(self, cvae: CVAE):
         super().__init__()
-        H, g = HIDDEN, cvae.dec_gru
+        self.hidden = H = cvae.hidden
+        g = cvae.dec_gru
         self.prior = cvae.prior
         self.norm = cvae.norm           # the learned prior still reads normalised features
         mean, std = cvae.norm.mean.double(), cvae.norm.std.double()     # folded in float64, stored as float32
@@ -164,7 +167,7 @@ class DecoderStep(nn.Module):
             latent = out[:, :LATENT] + torch.exp(0.5 * out[:, LATENT:].clamp(-8, 3)) * latent
         x = torch.relu(self.fc(torch.cat([latent, features], dim=-1)))
         ru = torch.sigmoid(self.gates_ru(torch.cat([x, hidden], dim=-1)))
-        r, u = ru[:, :HIDDEN], ru[:, HIDDEN:]
+        r, u = ru[:, :self.hidden], ru[:, self.hidden:]
         n = torch.tanh(self.cand_x(x) + r * self.cand_h(hidden))
         h = n + u * (hidden - n)
         y = torch.relu(h)
@@ -182,7 +185,8 @@ class JacobianStep(nn.Module):
 
     def __init__(self, cvae: CVAE):
         super().__init__()
-        d, H = DecoderStep(cvae), HIDDEN
+        d = DecoderStep(cvae)
+        self.hidden = H = d.hidden
         self.prior, self.norm = d.prior, d.norm
         w, b = d.fc.weight.detach(), d.fc.bias.detach()
         self.fc_latent = _linear(w[:, :LATENT], torch.zeros(H))
@@ -198,7 +202,7 @@ class JacobianStep(nn.Module):
             latent = out[:, :LATENT] + torch.exp(0.5 * out[:, LATENT:].clamp(-8, 3)) * latent
         x = torch.relu(self.fc_latent(latent) + self.fc_features(features))          # [R,H] + [1,H]
         ru = torch.sigmoid(self.gates_x(x) + self.gates_h(hidden))
-        r, u = ru[:, :HIDDEN], ru[:, HIDDEN:]
+        r, u = ru[:, :self.hidden], ru[:, self.hidden:]
         n = torch.tanh(self.cand_x(x) + r * self.cand_h(hidden))
         h = n + u * (hidden - n)
         return self.rot_head(torch.relu(h))

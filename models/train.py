@@ -1,7 +1,9 @@
 """Train the pose autoencoder and the CVAE on the `train` split, select on `val`, export ONNX.
 
     python -m models.train --data ../shared/mocap [--sources cmu daz hdm05] [--minutes 100] [--device cuda]
+    python -m models.train --data .cache/pack/edgepose-pack.npz ...   # the training pack (models.pack)
     torchrun --nproc_per_node=2 -m models.train ...      # the same recipe on several GPUs (PyTorch DDP)
+    scripts/train-device                                 # one fixed-budget run on an accelerator, from the pack
 
 Seeded, with a progress bar and a log (models/train_log.txt). The decoder reads the 4-point features
 and the seven extra IMUs (edge.features), trained on random sensor sets with drop-outs and IMU noise
@@ -20,7 +22,9 @@ encoder also sees the pose) and --learned-prior (a conditional prior p(z | track
 import argparse
 import json
 import multiprocessing as mp
+import hashlib
 import os
+import platform
 import time
 from pathlib import Path
 
@@ -33,14 +37,17 @@ from edge.physics import INTERSECT_M, LEG_SEGMENTS
 from edgetools.synth import DeviceNoise
 from edge.skeleton import ANKLES, HEAD, LOWER_BODY, NUM_PREDICTED, TOES
 from models import dataset as ds
-from models.nets import CVAE, LATENT, PoseAE, fk_positions, matrix_from_6d
+from models.nets import CVAE, HIDDEN, LATENT, PoseAE, fk_positions, matrix_from_6d
 
 LOSS = {"w_pos": 1000.0, "lambda_kl": 5.0, "gamma_bce": 0.1, "w_rot": 0.1, "w_floor": 1000.0, "w_clear": 0.0}
 
 
-def _producer(q, root, sources, window, batch, seed, vigorous=0.0):
+_TRAIN = None      # the train ClipSet, set before the producers fork so that they share it
+
+
+def _producer(q, window, batch, seed, vigorous=0.0):
     torch.set_num_threads(1)
-    cs = ds.build(root, "train", sources)
+    cs = _TRAIN
     starts = ds.window_starts(cs, window)
     # --vigorous: that share of every batch from windows that lift a toe (kicks are rare in the data)
     lifted = ds.vigorous_starts(cs, starts, window) if vigorous > 0 else starts
@@ -50,6 +57,10 @@ def _producer(q, root, sources, window, batch, seed, vigorous=0.0):
     while True:
         picks = np.concatenate([rng.choice(starts, batch - n_lifted), rng.choice(lifted, n_lifted)])
         q.put(ds.make_batch(cs, picks, window, rng, noise, imu_noise))
+
+
+def _sha256(path):
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def to_t(b, device="cpu"):
@@ -256,8 +267,18 @@ def main(argv=None):
     ap.add_argument("--kl", type=float, default=LOSS["lambda_kl"], help="KL weight lambda (--best-of 0)")
     ap.add_argument("--init", help="start the CVAE from this checkpoint folder (e.g. models/checkpoints) and "
                                    "reuse its autoencoder instead of training one")
+    ap.add_argument("--resume", help="continue a run from its folder (--ckpt of that run): its last weights, "
+                                     "optimizer state and autoencoder; the learning-rate schedule starts again")
+    ap.add_argument("--ae-from", help="take the autoencoder and its threshold from this checkpoint folder "
+                                      "(e.g. models/checkpoints) instead of training one")
+    ap.add_argument("--hidden", type=int, default=HIDDEN, help="GRU width of the CVAE (v0.3: 128)")
+    ap.add_argument("--workers", type=int, default=1, help="batch-making processes (numpy, one core each)")
+    ap.add_argument("--reuse", type=int, default=1,
+                    help="a batch may serve up to this many steps (each with fresh latents) when the next is not "
+                         "ready yet: an accelerator need not wait for the CPUs")
     ap.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
     ap.add_argument("--val-every", type=int, default=400)
+    ap.add_argument("--val-windows", type=int, default=128, help="windows in each of the 4 validation batches of a kind")
     ap.add_argument("--out", default="models")
     ap.add_argument("--ckpt", default=".cache/train")
     ap.add_argument("--no-export", action="store_true", help="stop after saving the checkpoint")
@@ -279,7 +300,11 @@ def main(argv=None):
             logf.flush()
 
     torch.manual_seed(a.seed)
-    torch.set_num_threads(max(1, (os.cpu_count() or 2) // world))
+    # on an accelerator the main process only feeds it: leave the cores to the batch makers
+    torch.set_num_threads(2 if device.type == "cuda" else max(1, (os.cpu_count() or 2) // world))
+    if device.type == "cuda":
+        torch.backends.cuda.matmul.allow_tf32 = True
+        torch.backends.cudnn.allow_tf32 = True
     LOSS["lambda_kl"], LOSS["w_floor"], LOSS["w_clear"] = a.kl, a.floor, a.clearance
     log(f"args: {vars(a)}  loss: {LOSS}  device: {device}  processes: {world}")
     cs_train = ds.build(a.data, "train", a.sources)
@@ -287,11 +312,13 @@ def main(argv=None):
     log(f"train: {len(cs_train.names)} clips, {len(cs_train.root) / 3600:.1f} min; val: {len(cs_val.names)} clips, "
         f"{len(cs_val.root) / 3600:.1f} min (60 Hz)")
 
+    global _TRAIN
+    _TRAIN = cs_train
     ctx = mp.get_context("fork")
-    q = ctx.Queue(maxsize=8)
-    procs = [ctx.Process(target=_producer, args=(q, a.data, a.sources, a.window, a.batch, a.seed + 1 + 1000 * rank,
-                                                       a.vigorous),
-                         daemon=True)]
+    q = ctx.Queue(maxsize=max(8, 2 * a.workers))
+    procs = [ctx.Process(target=_producer, args=(q, a.window, a.batch, a.seed + 1 + 1000 * rank + 100_000 * w,
+                                                 a.vigorous), daemon=True)
+             for w in range(a.workers)]
     for p in procs:
         p.start()
     if world > 1:       # after the fork: the batch producer must not inherit the process group's threads
@@ -299,12 +326,13 @@ def main(argv=None):
         dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
 
     t0 = time.time()
-    if a.init:
+    ae_from = a.ae_from or a.resume or a.init
+    if ae_from:
         import shutil
-        if lead:
-            shutil.copy(Path(a.init) / "ae.pt", ckpt / "ae.pt")
-        threshold = json.loads((Path(a.init) / "meta.json").read_text())["plausibility_threshold_m"]
-        log(f"autoencoder and threshold from {a.init}")
+        if lead and Path(ae_from).resolve() != ckpt.resolve():
+            shutil.copy(Path(ae_from) / "ae.pt", ckpt / "ae.pt")
+        threshold = json.loads((Path(ae_from) / "meta.json").read_text())["plausibility_threshold_m"]
+        log(f"autoencoder and threshold from {ae_from}")
     elif lead:
         ae, threshold = train_ae(cs_train, cs_val, a.ae_steps, a.seed, log)
         torch.save(ae.state_dict(), ckpt / "ae.pt")
@@ -319,15 +347,20 @@ def main(argv=None):
         vrng = np.random.default_rng(1234)
         vstarts = ds.window_starts(cs_val, 240)
         for kind in ("none", "imus"):
-            val_batches[kind] = [to_t(ds.make_batch(cs_val, vrng.choice(vstarts, 128), 240, vrng, DeviceNoise(),
+            val_batches[kind] = [to_t(ds.make_batch(cs_val, vrng.choice(vstarts, a.val_windows), 240, vrng, DeviceNoise(),
                                                     ImuNoise(), with_imus=kind == "imus"), device) for _ in range(4)]
 
     a.posterior = a.posterior or a.learned_prior
-    model = CVAE(posterior=a.posterior, learned_prior=a.learned_prior)
-    if a.init:
-        model.load_state_dict(torch.load(Path(a.init) / "cvae.pt", weights_only=True))
+    model = CVAE(posterior=a.posterior, learned_prior=a.learned_prior, hidden=a.hidden)
+    start_from = Path(a.resume) / "cvae_last.pt" if a.resume else Path(a.init) / "cvae.pt" if a.init else None
+    if start_from:
+        state = torch.load(start_from, weights_only=True)
+        width = state["dec_gru.weight_hh_l0"].shape[1]
+        if width != a.hidden:
+            raise SystemExit(f"{start_from} is a --hidden {width} model; pass --hidden {width}")
+        model.load_state_dict(state)
     fit = [to_t(q.get()) for _ in range(8)]
-    if not a.init:
+    if not start_from:
         model.norm.fit(torch.cat([b["features"] for b in fit]))
     if a.posterior:
         model.target_norm.fit(torch.cat([b["gt_rel"].flatten(-2) for b in fit]))
@@ -337,12 +370,35 @@ def main(argv=None):
         step = torch.nn.parallel.DistributedDataParallel(step, find_unused_parameters=True)
         torch.save({k: v.cpu() for k, v in model.state_dict().items()}, ckpt / f"initial_rank{rank}.pt")
     opt = torch.optim.Adam(model.parameters(), lr=a.lr)
+    done_before = 0
+    if a.resume:
+        resumed = torch.load(Path(a.resume) / "train_state.pt", weights_only=True)
+        opt.load_state_dict(resumed["optimizer"])
+        done_before = int(resumed["iterations"])
+        log(f"resumed from {a.resume} after {done_before} steps")
     budget = a.minutes * 60
     best, best_it, it = float("inf"), -1, 0
+
+    data_sha256 = _sha256(a.data) if Path(a.data).is_file() else None
+
+    def write_meta(it):
+        meta = {"plausibility_threshold_m": threshold, "iterations": done_before + it, "run_iterations": it,
+                "hidden": a.hidden, "resumed_from": a.resume, "wall_clock_s": time.time() - t1,
+                "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
+                "data": a.data, "data_sha256": data_sha256, "best_iteration": best_it,
+                "val_mpjpe_cm_training": best, "minutes": a.minutes, "sources": a.sources or sorted(ds.SOURCE_FOLDERS),
+                "licences": {s: ds.SOURCE_LICENCES[s] for s in (a.sources or sorted(ds.SOURCE_FOLDERS))},
+                "loss": LOSS, "best_of": a.best_of, "eps": a.eps, "vigorous": a.vigorous, "posterior_encoder": a.posterior,
+                "learned_prior": a.learned_prior, "init": a.init, "batch": a.batch, "window": a.window, "lr": a.lr,
+                "seed": a.seed, "processes": world, "device": str(device), "train_clips": len(cs_train.names),
+                "train_minutes": len(cs_train.root) / 3600, "features": "4-point + 7 IMUs (edge.features)"}
+        (ckpt / "meta.json").write_text(json.dumps(meta, indent=2))
+
     t1 = time.time()
     total = a.steps or int(budget)
     bar = Progress(total, "cvae (steps)" if a.steps else "cvae (s)") if lead else None
     stop = torch.zeros(1)
+    b, uses, waited = None, a.reuse, 0.0
     while True:
         done = it >= a.steps if a.steps else time.time() - t1 >= budget
         if world > 1:      # rank 0's clock decides for everyone, so every process runs the same steps
@@ -353,8 +409,12 @@ def main(argv=None):
             break
         frac = it / a.steps if a.steps else (time.time() - t1) / budget
         for g in opt.param_groups:
-            g["lr"] = 1e-5 + 0.5 * (a.lr - 1e-5) * (1 + np.cos(np.pi * min(frac, 1.0)))
-        b = to_t(q.get(), device)
+            g["lr"] = float(1e-5 + 0.5 * (a.lr - 1e-5) * (1 + np.cos(np.pi * min(frac, 1.0))))  # a float: weights_only loads
+        t_wait = time.time()
+        if uses >= a.reuse or not q.empty():
+            b, uses = to_t(q.get(), device), 0
+        uses += 1
+        waited += time.time() - t_wait
         model.train()
         loss, t = step(b)
         opt.zero_grad()
@@ -370,12 +430,16 @@ def main(argv=None):
         if lead and (it % a.val_every == 0 or last):
             v = {k: validate(model, vb) for k, vb in val_batches.items()}
             score = float(np.mean(list(v.values())))
-            log(f"it {it} t {time.time() - t1:.0f}s lr {opt.param_groups[0]['lr']:.2e} train mpjpe "
+            log(f"it {it} t {time.time() - t1:.0f}s (data wait {waited:.0f}s) lr {opt.param_groups[0]['lr']:.2e} train mpjpe "
                 f"{t['mpjpe'].item() * 100:.2f} " + " ".join(f"{k} {x.item():.4f}" for k, x in t.items() if k != "mpjpe")
                 + f" | val mpjpe (head-anchored, no IK) none {v['none']:.2f} imus {v['imus']:.2f} cm")
             if score < best:
                 best, best_it = score, it
                 torch.save(model.state_dict(), ckpt / "cvae.pt")
+            # where a later run continues from (--resume), whatever val said
+            torch.save(model.state_dict(), ckpt / "cvae_last.pt")
+            torch.save({"optimizer": opt.state_dict(), "iterations": done_before + it}, ckpt / "train_state.pt")
+            write_meta(it)
     if bar:
         bar.close()
     for p in procs:
@@ -387,14 +451,7 @@ def main(argv=None):
     if not lead:
         return
     log(f"cvae: {it} iterations in {time.time() - t1:.0f} s; best val {best:.2f} cm at it {best_it}")
-    meta = {"plausibility_threshold_m": threshold, "iterations": it, "best_iteration": best_it,
-            "val_mpjpe_cm_training": best, "minutes": a.minutes, "sources": a.sources or sorted(ds.SOURCE_FOLDERS),
-            "licences": {s: ds.SOURCE_LICENCES[s] for s in (a.sources or sorted(ds.SOURCE_FOLDERS))},
-            "loss": LOSS, "best_of": a.best_of, "eps": a.eps, "vigorous": a.vigorous, "posterior_encoder": a.posterior,
-            "learned_prior": a.learned_prior, "init": a.init, "batch": a.batch, "window": a.window, "lr": a.lr,
-            "seed": a.seed, "processes": world, "device": str(device), "train_clips": len(cs_train.names),
-            "train_minutes": len(cs_train.root) / 3600, "features": "4-point + 7 IMUs (edge.features)"}
-    (ckpt / "meta.json").write_text(json.dumps(meta, indent=2))
+    write_meta(it)
     if a.no_export:
         return
     from models.export import export_all

@@ -21,6 +21,14 @@ def int8_name(model):
     return f"{model}.int8.onnx"
 
 
+def hidden_width(session):
+    """The GRU width a decoder-like graph was exported with (its `hidden` input's second axis)."""
+    width = {i.name: i.shape for i in session.get_inputs()}["hidden"][1]
+    if not isinstance(width, int):
+        raise ValueError(f"the decoder graph's hidden input has no fixed width ({width!r}): re-export it")
+    return width
+
+
 def rollout(session, features, latent, hidden=None):
     """Closed-loop decoder rollout: features [T,B,F] (one stream per row), latent [B,Z].
 
@@ -28,7 +36,7 @@ def rollout(session, features, latent, hidden=None):
     [T,B,120], contacts [T,B,2] and the hidden state fed at each step [T,B,H] (the calibration input).
     """
     T, B, _ = features.shape
-    H = session.get_inputs()[2].shape[1] if isinstance(session.get_inputs()[2].shape[1], int) else 128
+    H = hidden_width(session)
     h = np.zeros((B, H), np.float32) if hidden is None else hidden.astype(np.float32)
     latent = np.ascontiguousarray(latent, np.float32)
     rot6d = np.zeros((T, B, 6 * NUM_PREDICTED), np.float32)
@@ -70,7 +78,7 @@ def _decode_call_us(kind, path, rows, frames, warmup):
     """One bare step of a decoder-like runtime class (`kind`: Decoder or JacobianBatch) on `rows` rows of
     random features and latents, through its IOBinding path."""
     session = make_session(path)
-    batch = kind(session, rows, 30, 128, session.get_inputs()[0].shape[1])
+    batch = kind(session, rows, 30, hidden_width(session), session.get_inputs()[0].shape[1])
     rng = np.random.default_rng(0)
     batch.features[:] = rng.standard_normal(batch.features.shape) * 0.3
     batch.latent[:] = rng.standard_normal(batch.latent.shape)
