@@ -2,6 +2,9 @@
 
 Buffers are allocated once and bound with IOBinding, so a frame's inference allocates nothing.
 """
+import sys
+from pathlib import Path
+
 import numpy as np
 
 from edge.modelfiles import JACOBIAN, ModelError, load_manifest
@@ -162,11 +165,37 @@ def model_files(precision, manifest):
     return tuple(chosen.get(m, f"{m}{suffix}.onnx") for m in ("decoder", "autoencoder"))
 
 
+_SAID = set()           # the int8 fall-backs already reported in this process
+
+
 def open_models(folder=None, threads=1, precision=DEFAULT_PRECISION):
-    """Verify the manifest and open both sessions: (manifest, decoder session, autoencoder session)."""
+    """Verify the manifest and open both sessions: (manifest, decoder session, autoencoder session).
+
+    int8 is checked against fp32 on this CPU first (edge.int8check); where it disagrees beyond the
+    model card's bounds, the fp32 files are opened instead and the reason is said once on stderr. The
+    returned manifest says what runs: manifest["files_in_use"] (decoder, autoencoder),
+    manifest["precision"] (the precision in use), manifest["int8_check"]
+    (the check's figures, or None) and manifest["precision_note"] ('' or why int8 is off)."""
+    from edge.int8check import REFERENCE, check_folder
     kw = {} if folder is None else {"folder": folder}
-    names = model_files(precision, load_manifest(need=(), **kw))
-    manifest = load_manifest(need=names, **kw)
+    listed = load_manifest(need=(), **kw)
+    names = model_files(precision, listed)
+    check, note = None, ""
+    if precision == "int8":
+        fp32 = model_files("fp32", listed)
+        extra = fp32 + ((REFERENCE,) if REFERENCE in listed["files"] else ())
+        manifest = load_manifest(need=tuple(dict.fromkeys(names + extra)), **kw)
+        check = check_folder(manifest, Path(manifest["paths"][names[0]]).parent, names, fp32)
+        if check is not None and not check.ok:
+            note = f"int8 off on this CPU: {check.why}"
+            names, precision = fp32, "fp32"
+            if note not in _SAID:
+                _SAID.add(note)
+                print(f"edgepose: {note}; running the fp32 models", file=sys.stderr)
+    else:
+        manifest = load_manifest(need=names, **kw)
+    manifest.update(precision=precision, int8_check=check and check.as_dict(), precision_note=note,
+                    files_in_use=list(names))
     return manifest, make_session(manifest["paths"][names[0]], threads), make_session(manifest["paths"][names[1]], threads)
 
 

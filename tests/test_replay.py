@@ -236,10 +236,12 @@ def test_listener_raises_and_only_the_command_exits():
 
 def test_a_read_that_blocks_50_ms_every_200_ms_never_holds_the_tick():
     """slow-i2c: the waist BNO055's block read stalls for 50 ms of real time every 200 ms. With a reader
-    thread per source (the board's way) no tick misses its deadline; with the tick thread reading the
-    sources itself, the same replay misses deadlines (real time, real sleeps). The full check,
-    3,600 ticks at N=32: `edge replay samples/cmu_09_12_walk.npz --faults slow-i2c --samples 32
-    --seconds 60 --json out/slow_i2c.json`."""
+    thread per source (the board's way) the tick thread never waits in a read (no poll takes a frame
+    period); with the tick thread reading the sources itself, the same replay's polls wait out the
+    stalls and its ticks miss their deadlines (real time, real sleeps). What is counted is what the
+    code controls, the tick thread's time in its polls, not the deadlines a busy machine can miss on
+    its own. The full check, 3,600 ticks at N=32: `edge replay samples/cmu_09_12_walk.npz --faults
+    slow-i2c --samples 32 --seconds 60 --json out/slow_i2c.json`."""
     from edgetools.sim.session import fault_profile
     f = fault_profile("slow-i2c")
     take = from_sample(SAMPLE)
@@ -248,9 +250,9 @@ def test_a_read_that_blocks_50_ms_every_200_ms_never_holds_the_tick():
     inline = replay(synthesize(take, ("serial", "i2c", "can"), f, 0), "realtime", samples=8,
                     lookahead=LOOKAHEAD, seconds=4.0, faults=f, threaded=False)
     assert threaded["reader_threads"] >= 3 and inline["reader_threads"] == 0
-    # 240 ticks: a busy CI machine wakes the harness late now and then (a clean replay shows the same
-    # one or two); the stalls themselves cost the threaded service nothing.
-    assert threaded["deadline_misses"] <= 3, threaded["deadline_misses"]
+    # about 20 stalls in 4 s; a poll that only takes from queues is preempted for a frame hardly ever
+    assert threaded["polls_held"] <= 1, threaded["polls_held"]
+    assert inline["polls_held"] >= 10, inline["polls_held"]
     assert inline["deadline_misses"] >= 10          # about one in twelve ticks waits 50 ms for the chip
 
 

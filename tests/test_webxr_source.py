@@ -354,3 +354,25 @@ def test_edge_run_with_a_webxr_headset_prints_the_page_code_and_status(tmp_path)
     pairing = err.split("pairing code ", 1)[1][:6]
     assert pairing.isdigit() and "edge run | in 0 out 0" in err
     assert f"webxr: waiting for a headset | code {pairing}" in err
+
+
+def test_a_finished_run_keeps_the_links_accounts_and_its_last_status_line_says_what_they_did(tmp_path):
+    """service.run returns (and `edge run --json` writes) after the links close: the webxr link's pairing,
+    wrong codes and frames are still in the summary, and the last status line is the links' last state,
+    not 'waiting' for a headset that was connected until the end."""
+    cfg = config_mod.from_dict({"headset": {"url": f"webxr://127.0.0.1:0?state={tmp_path}&tls=0"},
+                                "runtime": {"samples": 1, "adaptive": False, "precision": "fp32"}}, "run")
+    out = io.StringIO()
+    svc = Service(cfg, status=out, threaded=False)
+    source = svc.headset.source
+    wrong = f"{(int(source.code) + 1) % 10 ** 6:06d}"
+    assert closed_with(hello(socket_to(source), code=wrong), wire_close("WRONG_CODE"))
+    ws, _ = pair(source)
+    answer_pings(ws, until=lambda: source.clock_offset_ms is not None, seconds=2.0)
+    summary = svc.run(seconds=0.3)
+    ws.close()
+    link = summary["headset_link"]
+    assert link["pairing_code"] == source.code and link == summary["links"][cfg.headset]["link"]
+    assert summary["links"][cfg.headset]["counts"]["wrong_code"] == 1
+    last = out.getvalue().splitlines()[-1]
+    assert "waiting" not in last and "webxr: waiting for a headset" not in last and "webxr:" in last
