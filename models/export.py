@@ -23,12 +23,12 @@ from models.nets import CVAE, LATENT, AEStep, DecoderStep, JacobianStep, PoseAE
 def load_checkpoint(ckpt):
     ckpt = Path(ckpt)
     meta = json.loads((ckpt / "meta.json").read_text())
-    state = torch.load(ckpt / "cvae.pt", weights_only=True)
+    state = torch.load(ckpt / "cvae.pt", weights_only=True, map_location="cpu")
     cvae = CVAE(posterior=meta.get("posterior_encoder", False), learned_prior=meta.get("learned_prior", False),
                 n_features=state["norm.mean"].shape[0], hidden=state["dec_gru.weight_hh_l0"].shape[1])
     ae = PoseAE()
     cvae.load_state_dict(state)
-    ae.load_state_dict(torch.load(ckpt / "ae.pt", weights_only=True))
+    ae.load_state_dict(torch.load(ckpt / "ae.pt", weights_only=True, map_location="cpu"))
     return cvae.eval(), ae.eval(), meta
 
 
@@ -68,6 +68,11 @@ def export_all(ckpt, out):
         "plausibility_threshold_m": meta["plausibility_threshold_m"],
         "training": {k: v for k, v in meta.items() if k != "plausibility_threshold_m"},
     }
+    # the runtime's SSI selection settings (bench/tune_selection.py) belong to the folder, not the weights:
+    # a re-export keeps them (their `chosen_on` says which model they were chosen on)
+    earlier = out / "manifest.json"
+    if earlier.exists() and "selection" in json.loads(earlier.read_text()):
+        info["selection"] = json.loads(earlier.read_text())["selection"]
     write_manifest(out, ["decoder.onnx", "autoencoder.onnx", JACOBIAN], info)
     # Keep the PyTorch weights beside the ONNX files: the parity tests compare the two.
     (out / "checkpoints").mkdir(exist_ok=True)

@@ -63,6 +63,11 @@ def _sha256(path):
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
+def cpu_state(model):
+    """The weights as CPU tensors: a checkpoint made on an accelerator loads anywhere."""
+    return {k: v.detach().cpu() for k, v in model.state_dict().items()}
+
+
 def to_t(b, device="cpu"):
     return {k: torch.from_numpy(np.ascontiguousarray(v)).to(device) for k, v in b.items()}
 
@@ -354,7 +359,7 @@ def main(argv=None):
     model = CVAE(posterior=a.posterior, learned_prior=a.learned_prior, hidden=a.hidden)
     start_from = Path(a.resume) / "cvae_last.pt" if a.resume else Path(a.init) / "cvae.pt" if a.init else None
     if start_from:
-        state = torch.load(start_from, weights_only=True)
+        state = torch.load(start_from, weights_only=True, map_location="cpu")
         width = state["dec_gru.weight_hh_l0"].shape[1]
         if width != a.hidden:
             raise SystemExit(f"{start_from} is a --hidden {width} model; pass --hidden {width}")
@@ -372,7 +377,7 @@ def main(argv=None):
     opt = torch.optim.Adam(model.parameters(), lr=a.lr)
     done_before = 0
     if a.resume:
-        resumed = torch.load(Path(a.resume) / "train_state.pt", weights_only=True)
+        resumed = torch.load(Path(a.resume) / "train_state.pt", weights_only=True, map_location=device)
         opt.load_state_dict(resumed["optimizer"])
         done_before = int(resumed["iterations"])
         log(f"resumed from {a.resume} after {done_before} steps")
@@ -435,9 +440,9 @@ def main(argv=None):
                 + f" | val mpjpe (head-anchored, no IK) none {v['none']:.2f} imus {v['imus']:.2f} cm")
             if score < best:
                 best, best_it = score, it
-                torch.save(model.state_dict(), ckpt / "cvae.pt")
+                torch.save(cpu_state(model), ckpt / "cvae.pt")
             # where a later run continues from (--resume), whatever val said
-            torch.save(model.state_dict(), ckpt / "cvae_last.pt")
+            torch.save(cpu_state(model), ckpt / "cvae_last.pt")
             torch.save({"optimizer": opt.state_dict(), "iterations": done_before + it}, ckpt / "train_state.pt")
             write_meta(it)
     if bar:

@@ -88,9 +88,13 @@ NOT_RUNNABLE = {
         f"{BOARD}, and runs until Ctrl-C; tests/test_cli.py runs edge run on a pty headset",
     "edge listen /dev/ttyUSB0": "a USB serial adapter on the pose stream; tests/test_cli.py runs edge listen on a pty",
     ".venv/bin/pip install -e .[train]": "installs PyTorch; CI does it (EDGEPOSE_EXTRAS=train ./scripts/test)",
-    ".venv/bin/python -m models.train --data ../shared/mocap --minutes 95": TRAIN,
-    ".venv/bin/python -m models.train --data ../shared/mocap --init .cache/train --best-of 16 --eps 0.02 "
-    "--clearance 10000 --lr 5e-4 --minutes 100": TRAIN,
+    ".venv/bin/python -m models.pack": "reads all of ../shared/mocap (80 s) and writes the 27 MiB pack; "
+                                       "tests/test_train_device.py builds and checks a pack of four clips",
+    "scripts/train-device --minutes 7 --sizes 192,256": "needs an accelerator (the device tool) and the "
+                                                       "pack; tests/test_train_device.py runs it on CPU at a tiny size",
+    "scripts/train-device --minutes 4 --sizes 256 --resume DIR -- --lr 3e-4":
+        "needs an accelerator and an earlier run; tests/test_train_device.py resumes a tiny CPU run",
+    ".venv/bin/python -m models.train --data .cache/pack/edgepose-pack.npz --hidden 256 --minutes 95": TRAIN,
     ".venv/bin/python -m models.train --data ../shared/mocap --sources cmu daz": TRAIN,
     ".venv/bin/python -m models.train --data ../shared/mocap --device cuda": "needs a CUDA GPU; " + TRAIN,
     ".venv/bin/torchrun --nproc_per_node=4 -m models.train --data DATA": "needs 4 GPUs; " + TRAIN,

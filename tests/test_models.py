@@ -105,7 +105,7 @@ def test_written_out_gru_cell_matches_torch_gru(torch):
     z = torch.randn(1, 3, 30).repeat(200, 1, 1)
     with torch.no_grad():
         rot_seq, con_seq, _ = cvae.decode(feats, z)
-        h = torch.zeros(3, 128)
+        h = torch.zeros(3, cvae.hidden)
         for t in range(200):
             rot, con, h = step(feats[t], z[t], h)
             assert torch.allclose(rot, rot_seq[t], atol=1e-4)

@@ -67,7 +67,8 @@ def test_the_jacobian_graph_decodes_each_latent_as_the_decoder_does(take):
     batch.features[:], batch.hidden[0][:], batch.latent[:] = dec.features[0], dec.state[0], latents
     one.step()
     batch.step()
-    assert np.abs(one.rot6d - one.rot6d[0]).max() > 0.05, "the latents must make different poses"
+    # the comparison means something only if the latents make different poses (far above its 1e-5)
+    assert np.abs(one.rot6d - one.rot6d[0]).max() > 0.02, "the latents must make different poses"
     np.testing.assert_allclose(batch.rot6d, one.rot6d, rtol=0, atol=1e-5)
 
 
@@ -185,7 +186,8 @@ def test_without_a_live_constraint_the_refiner_changes_nothing(take, samples):
 def test_the_compiled_step_holds_the_shown_rows_planted_feet(take):
     """With sample 3 shown at N=8, the compiled step reads row 3's foot locks from FootLock's state (as
     the numpy step reads the row's views): a lock moved 7 cm on that row alone costs both the same."""
-    pipe = Pipeline(samples=8, precision="fp32", refine={"steps": 1, "terms": ["targets", "keep", "floor"]})
+    # ssi=False: the shown row stays 3 (a switch would move the step to another row)
+    pipe = Pipeline(samples=8, precision="fp32", ssi=False, refine={"steps": 1, "terms": ["targets", "keep", "floor"]})
     goal, _ = lifted_toe_target(take, 60)
     pipe.reset()
     pipe.switcher.current = 3

@@ -356,3 +356,39 @@ def contention_timeline(frame_ms, samples_timeline, period_ms, hog, path, title=
     bottom.set_ylabel("samples N")
     bottom.set_xlabel("time (s)")
     return canvas.save_png(fig, path)
+
+
+# --------------------------------------------------------------------------------------------------
+# Training
+
+
+def read_train_log(path):
+    """models.train's log -> (steps, val none cm, val imus cm) arrays, steps counted from the first run
+    when a log holds a resumed run ('resumed from ... after K steps' shifts what follows by K)."""
+    import re
+    steps, none, imus, base = [], [], [], 0
+    for line in open(path):
+        if m := re.search(r"resumed from .* after (\d+) steps", line):
+            base = int(m.group(1))
+        elif m := re.match(r"it (\d+) .*val mpjpe .* none ([\d.]+) imus ([\d.]+)", line):
+            steps.append(base + int(m.group(1)))
+            none.append(float(m.group(2)))
+            imus.append(float(m.group(3)))
+    return np.array(steps), np.array(none), np.array(imus)
+
+
+def learning_curves(runs, path, title="Validation error against training steps"):
+    """runs: {label: train_log path}. Val MPJPE (head-anchored, no IK, prior mean) against Adam steps,
+    no IMUs solid and random IMU sets dashed, one colour a run."""
+    fig = canvas.new_figure(7.0, 3.6)
+    ax = fig.add_axes([0.1, 0.15, 0.86, 0.74])
+    for (label, log), colour in zip(runs.items(), _sample_colours(len(runs)), strict=True):
+        steps, none, imus = read_train_log(log)
+        ax.plot(steps, none, "-o", color=colour, markersize=3, label=f"{label}: no extra IMUs")
+        ax.plot(steps, imus, "--o", color=colour, markersize=3, label=f"{label}: random IMU sets")
+    ax.set_xlabel("Adam steps")
+    ax.set_ylabel("val MPJPE, cm (no IK)")
+    ax.set_title(title, fontsize=10.5, loc="left")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    return canvas.save_png(fig, path)

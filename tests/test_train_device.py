@@ -1,0 +1,87 @@
+"""The training pack and the accelerator run's script, on CPU at a tiny size, so that the one real run
+on a lent machine is not spent on a typo: a pack of a few real clips holds the frames training reads
+(30 fps clips made again from their own frames), and scripts/train-device trains two widths side by
+side from it, writes what comes back from the device tool (a tar per width and one to resume from) and
+continues from those. Needs torch and ../shared/mocap."""
+import csv
+import os
+import subprocess
+import sys
+import tarfile
+
+import numpy as np
+import pytest
+
+from tests.conftest import ROOT
+
+# a 30 fps Bandai clip and a 60 fps CMU one for train, one of each kind for val (all over 4 s: the
+# validation windows are 240 frames)
+CLIPS = {"train": ["bandai_namco_ccbync/dataset-1/dataset-1_bye_feminine_001.bvh", "cmu_amc2bvh/02/02_01.bvh"],
+         "val": ["bandai_namco_ccbync/dataset-2/dataset-2_walk_elderly_004.bvh", "cmu_amc2bvh/09/09_12.bvh"]}
+
+
+@pytest.fixture(scope="module")
+def tiny_mocap(mocap, tmp_path_factory):
+    """A mocap folder of four real clips (links to ../shared/mocap) with its own MANIFEST.tsv."""
+    root = tmp_path_factory.mktemp("mocap")
+    with open(mocap / "MANIFEST.tsv", newline="") as f:
+        rows = {r["file"]: r for r in csv.DictReader(f, delimiter="\t")}
+    keep = [dict(rows[c], split=split) for split, clips in CLIPS.items() for c in clips]
+    with open(root / "MANIFEST.tsv", "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(keep[0]), delimiter="\t")
+        w.writeheader()
+        w.writerows(keep)
+    for r in keep:
+        (root / r["file"]).parent.mkdir(parents=True, exist_ok=True)
+        os.symlink(mocap / r["file"], root / r["file"])
+    return root
+
+
+@pytest.fixture(scope="module")
+def tiny_pack(tiny_mocap, tmp_path_factory):
+    from models.pack import build_pack
+    out = tmp_path_factory.mktemp("pack") / "pack.npz"
+    info = build_pack(tiny_mocap, out)
+    return out, info
+
+
+def test_the_pack_holds_the_frames_training_reads(tiny_mocap, tiny_pack):
+    from models import dataset as ds
+    path, info = tiny_pack
+    assert info["splits"]["train"]["stored_frames"] < info["splits"]["train"]["frames_60hz"]   # 30 fps kept as 30
+    assert info["error_mm"]["train"]["max"] < 1.0 and info["error_mm"]["val"]["max"] < 1.0
+    for split in ("train", "val"):
+        want, got = ds.build(tiny_mocap, split), ds.build(path, split)
+        assert np.array_equal(want.starts, got.starts) and np.array_equal(want.contacts, got.contacts)
+        # every quaternion to Q13 rounding (the interpolated 30 fps frames included), every root to 0.1 mm
+        dots = np.abs(np.sum(want.rotations.astype(np.float64) * got.rotations, axis=-1))
+        assert np.degrees(2 * np.arccos(np.clip(dots, -1, 1))).max() < 0.05
+        assert np.abs(want.root - got.root).max() < 1e-4
+    only_cmu = ds.build(path, "train", ["cmu"])
+    assert [n.split("/")[0] for n in only_cmu.names] == ["cmu_amc2bvh"]
+
+
+def test_train_device_trains_two_widths_and_resumes_from_what_it_brought_back(torch, tiny_pack, tmp_path):
+    pack, _ = tiny_pack
+    env = dict(os.environ, PYTHON=sys.executable, OUT=str(tmp_path / "run1"))
+    tiny = ["--", "--batch", "4", "--steps", "3", "--val-every", "2", "--val-windows", "2"]
+    cmd = [str(ROOT / "scripts" / "train-device"), "--device", "cpu", "--sizes", "16,24", "--pack", str(pack)]
+    r = subprocess.run(cmd + tiny, env=env, capture_output=True, text=True, timeout=240)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    resume = tmp_path / "resume"
+    for h in (16, 24):
+        for name, members in ((f"h{h}.tar", {"cvae.pt", "ae.pt", "meta.json", "train_log.txt"}),
+                              (f"h{h}-resume.tar", {"cvae_last.pt", "train_state.pt"})):
+            with tarfile.open(tmp_path / "run1" / name) as tar:
+                assert set(tar.getnames()) == members
+                tar.extractall(resume / f"h{h}", filter="data")
+        state = torch.load(resume / f"h{h}" / "cvae.pt", weights_only=True)
+        assert state["dec_gru.weight_hh_l0"].shape == (3 * h, h)
+    env["OUT"] = str(tmp_path / "run2")
+    r = subprocess.run(cmd + ["--resume", str(resume)] + tiny, env=env, capture_output=True, text=True, timeout=240)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    assert "resumed from" in r.stdout and "after 3 steps" in r.stdout
+    with tarfile.open(tmp_path / "run2" / "h24.tar") as tar:
+        import json
+        meta = json.load(tar.extractfile("meta.json"))
+    assert meta["iterations"] == 6 and meta["hidden"] == 24 and meta["data_sha256"]
