@@ -146,12 +146,14 @@ def evaluate(paths, split=None, samples=1, no_ssi=False, precision=DEFAULT_PRECI
                                     parents=PARENTS, fps=take.fps, gt_pos=take.gt_pos[:T].astype(np.float32),
                                     pred_pos=pred.astype(np.float32), contacts=run.contacts.astype(np.float32),
                                     sample=run.sample, transition=run.transition, cost=run.cost,
+                                    implausible=np.concatenate([np.zeros(w, bool), bad]),
                                     switches=np.array([s[:2] for s in pipe.switches], np.int64).reshape(-1, 2),
                                     threshold=pipe.threshold, warmup_frames=w)
             bar.update(postfix=f"mpjpe {metrics.summarize(parts)['mpjpe_cm']:.2f} cm")
     if not parts:
         raise SystemExit("edge eval: no clip could be evaluated: " + "; ".join(skipped))
-    result = {"clips": len(parts), "samples": samples, "ssi": pipe.ssi, "precision": precision, "ik": ik,
+    result = {"clips": len(parts), "samples": samples, "ssi": pipe.ssi, "precision": precision,
+              "precision_in_use": pipe.precision, "precision_note": pipe.precision_note, "ik": ik,
               "trackers": ["waist", *trackers], "faults": faults, "decoder_features": pipe.n_features,
               "imu_segments": pipe.segments, "heading_observer": pipe.heading is not None, "selection": [(c.name, c.weight) for c in pipe.criteria.criteria],
               "lookahead_frames": pipe.lookahead, "ssi_switches": switches, "transition_frames": switch_frames,
