@@ -103,9 +103,12 @@ class Hog:
         def leave_group():
             if cgroup_root:
                 Path(cgroup_root, "cgroup.procs").write_text(str(os.getpid()))
-        # Spins until the worker goes away, even if it is killed before it can stop them.
-        code = "import os, sys; p = os.getppid(); sys.stdin.read(1)\nwhile os.getppid() == p:\n    sum(range(10000))"
-        self.procs = [subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, preexec_fn=leave_group)
+        # Spins until the worker goes away, even if it is killed before it can stop them. The worker's pid
+        # is passed in, not read in the child: a worker that died while the child was starting would
+        # otherwise leave it spinning under its new parent for good.
+        code = "import os, sys; p = int(sys.argv[1]); sys.stdin.read(1)\nwhile os.getppid() == p:\n    sum(range(10000))"
+        self.procs = [subprocess.Popen([sys.executable, "-c", code, str(os.getpid())], stdin=subprocess.PIPE,
+                                       preexec_fn=leave_group)
                       for _ in range(procs)]
 
     def start(self):
