@@ -108,8 +108,17 @@ def model_copy(tmp_path):
     return tmp_path
 
 
-def test_quantize_adds_int8_entries_keeps_everything_else_and_reruns_identically(model_copy):
+def test_quantize_adds_int8_entries_keeps_everything_else_and_reruns_identically(model_copy, monkeypatch):
+    """The files and the manifest, not the timings: those are fixed here (int8 decoder 0.5x fp32, int8
+    autoencoder 1.5x), because v0.4's int8 autoencoder times at about 1.2x fp32 here, on the hysteresis
+    line, and a busy machine moved it across between two builds (6 runs of this test under load, one
+    flip). The runtime choice's rule has its own test below."""
+    import quantize.build as qb
     from quantize.build import build
+    fixed = lambda path, rows, frames=0, warmup=0: {"p50": 100.0 * (       # noqa: E731
+        (0.5 if "decoder" in str(path) else 1.5) if ".int8" in str(path) or "dynamic" in str(path) else 1.0)}
+    monkeypatch.setattr(qb, "autoencoder_call_us", fixed)
+    monkeypatch.setattr(qb, "decoder_call_us", fixed)
     before = json.loads((model_copy / "manifest.json").read_text())
     build(model_copy, data=None, methods=("dynamic",), log=lambda *_: None)
     after = json.loads((model_copy / "manifest.json").read_text())
