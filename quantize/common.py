@@ -5,9 +5,9 @@ numpy + onnxruntime only (the mocap windows come from models.dataset, which need
 
 import numpy as np
 
-from edge import quat
+from edge.int8check import head_anchored_positions  # noqa: F401  (re-exported: quantize.build, tests)
 from edge.inference import Autoencoder, Decoder, JacobianBatch, make_session
-from edge.skeleton import HEAD, NUM_JOINTS, NUM_PREDICTED, fk
+from edge.skeleton import NUM_PREDICTED
 from edge.timing import time_calls
 
 MODELS = ("decoder", "autoencoder")
@@ -48,22 +48,6 @@ def rollout(session, features, latent, hidden=None):
                                      "hidden": h})
         rot6d[t], contacts[t] = r, c
     return rot6d, contacts, hidden_in
-
-
-def local_rotations(rot6d, root_rot):
-    """rot6d [...,120] and the root (waist) rotation [...,3,3] -> local rotations [...,J,3,3] (float64)."""
-    lead = rot6d.shape[:-1]
-    loc = np.zeros(lead + (NUM_JOINTS, 3, 3))
-    loc[..., 0, :, :] = root_rot
-    loc[..., 1:, :, :] = quat.matrix_from_6d(rot6d.reshape(lead + (NUM_PREDICTED, 6)).astype(np.float64))
-    return loc
-
-
-def head_anchored_positions(rot6d, root_rot):
-    """FK of the network's rotations with the head joint at the origin (the training metric's frame)."""
-    loc = local_rotations(rot6d, root_rot)
-    _, pos = fk(loc, np.zeros(loc.shape[:-3] + (3,)))
-    return pos - pos[..., HEAD:HEAD + 1, :]
 
 
 def _call_us(call, frames, warmup):
