@@ -49,7 +49,7 @@ class PhysicalPlausibility:
     ep_physical_cost computes the same when it is there."""
     name = "physical"
 
-    def __init__(self, weight=1.0, floor=1.0, legs=1.0, support=1.0, use_native=True):
+    def __init__(self, weight=1.0, floor=1.0, legs=1.0, support=1.0, use_native=True, clearance=INTERSECT_M):
         self._native = native.load() if use_native else None
         self._segs = np.ascontiguousarray(LEG_SEGMENTS.reshape(-1), np.int64)
         self._feet = np.ascontiguousarray(np.concatenate([FEET, ANKLES]), np.int64)
@@ -57,9 +57,12 @@ class PhysicalPlausibility:
         # The compiled core's copy of the settings (None without it); the term weights below write through.
         self.params = None
         if self._native:
-            self.params = native.PhysicalParams(native.addr(self._segs), native.addr(self._feet), INTERSECT_M, FLOAT_M,
+            self.params = native.PhysicalParams(native.addr(self._segs), native.addr(self._feet), clearance, FLOAT_M,
                                                 TOE_HEIGHT, ANKLE_HEIGHT, floor, legs, support)
         self.weight, self.floor, self.legs, self.support = weight, floor, legs, support
+        # Legs closer than `clearance` cost: above INTERSECT_M, a sample pays before its legs cross (with
+        # no look-ahead, the switch then starts before the fault shows instead of after).
+        self.clearance = clearance
 
     # The three terms' weights, kept in the compiled core's params as they change (a tuning run sets them).
     floor = property(lambda self: self._floor, lambda self, w: self._set("floor", w))
@@ -81,7 +84,7 @@ class PhysicalPlausibility:
             self._native.ep_physical_cost(N, NUM_JOINTS, a(pos), a(contacts), a(lift), ctypes.byref(self.params),
                                           a(self._out))
             return self._out[:N]
-        legs = np.maximum(INTERSECT_M - leg_gap(pos), 0.0)
+        legs = np.maximum(self.clearance - leg_gap(pos), 0.0)
         support = ((contacts > 0.5) * np.maximum(foot_height(pos) - FLOAT_M, 0.0)).sum(-1)
         return self.floor * lift.sum(-1) + self.legs * legs + self.support * support
 

@@ -34,7 +34,7 @@ from edge.imus import IMU_JOINTS, NUM_IMUS
 from edge.ik import FootLock, apply_limb_ik
 from edge.inference import DEFAULT_PRECISION, Autoencoder, Decoder, open_jacobian, open_models
 from edge.modelfiles import ModelError
-from edge.physics import floor_lift, lowest_point, support
+from edge.physics import INTERSECT_M, floor_lift, lowest_point, support
 from edge.plausibility import PlausibilityScorer
 from edge.signals import EYE_OFFSET, GRIP_OFFSET, Signals
 from edge.ssi import LookaheadBuffer, Switcher, switch_to, transition_weight
@@ -141,7 +141,9 @@ class Pipeline:
                  use_native=True, segments=True, selection=None, refine=None, heading=True):
         if not 1 <= samples <= 128:
             raise ValueError(f"samples must be 1..128, got {samples}")
-        lookahead = (10 if samples > 1 else 0) if lookahead is None else lookahead
+        # The newest frame's pose by default: tau frames of look-ahead put the body tau / fps behind the
+        # person (167 ms at tau = 10, 60 Hz), which is for offline use (recording, edge eval --lookahead).
+        lookahead = 0 if lookahead is None else lookahead
         if lookahead < 0 or transition < 1:
             raise ValueError("lookahead must be >= 0 and transition >= 1 frames")
         N = samples
@@ -168,6 +170,13 @@ class Pipeline:
         chosen = selection or m.get("selection", {})        # the selection's settings: given, or the model's
         self.criteria = Composite(criteria if criteria is not None else self.default_criteria(chosen, use_native))
         self.switch_margin = float(chosen.get("switch_margin", 0.0))
+        # Homing: a shown sample other than sample 0 (the prior mean, the most accurate on average) moves
+        # back to it once sample 0 has cost no more than the shown one (+ home_margin) for home_after
+        # frames in a row: SSI leaves the mean to get out of a fault and returns when the fault is past.
+        # Part of the selection the model's criteria were tuned with: off when the caller brings its own.
+        self.home_after = int(chosen.get("home_after", 0)) if criteria is None else 0
+        self.home_margin = float(chosen.get("home_margin", 0.0))
+        self._home_run = 0
 
         # N=1 is the plain CVAE at the prior mean; more samples draw fixed latents once (SSI 3.2), and
         # sample 0, the one shown first, stays the prior mean: SSI moves away from what N=1 shows only
@@ -260,7 +269,8 @@ class Pipeline:
         if w.get("physical"):
             p = w["physical"]
             out.append(PhysicalPlausibility(p.get("weight", 1.0), p.get("floor", 1.0), p.get("legs", 1.0),
-                                            p.get("support", 1.0), use_native))
+                                            p.get("support", 1.0), use_native,
+                                            p.get("clearance", INTERSECT_M)))
         return out
 
     @property
@@ -293,6 +303,7 @@ class Pipeline:
         self.buffer.override[:] = False
         self.t = -1
         self.switcher.reset()
+        self._home_run = 0
         self.state_resets = 0       # decoder rows whose GRU state or output went non-finite (see _heal)
         self.inputs_held = 0        # frames whose signals were non-finite or out of range (see step)
         if self.heading is not None:
@@ -358,6 +369,8 @@ class Pipeline:
             n = self.path.judge(s, N, c) if fused else self._judge(sig, s, N, c, keep_world)
         if timing:
             mark[4] = time.thread_time_ns()
+        if n < 0 and ask and self.home_after and sw.current != 0:
+            n = self._homeward(s, sw.current)
         if self._pending is not None:
             self._apply_samples(t, s)
         elif n >= 0:
@@ -368,6 +381,14 @@ class Pipeline:
         if timing:
             mark[6] = time.thread_time_ns()
         return pose
+
+    def _homeward(self, s, c):
+        """0 when the shown sample c should move back to sample 0 (see home_after), else -1."""
+        cost = self.buffer.cost[s]
+        self._home_run = self._home_run + 1 if cost[0] <= cost[c] + self.home_margin else 0
+        if self._home_run < self.home_after:
+            return -1
+        return 0
 
     def _refine(self, s, N, c):
         """edge.refine on the shown sample's row of this frame: its latent moves (and stays moved for
@@ -503,6 +524,7 @@ class Pipeline:
         c = self.switcher.current
         if self.refiner is not None:        # the sample left behind goes back to its own latent
             self.decoder.latent[c] = self.latents[c]
+        self._home_run = 0
         s0 = self.switcher.start(n, t)
         self._recompute_transition(c, n, s0, self.transition, t)
 

@@ -36,7 +36,7 @@ def main(argv=None):
     ev.add_argument("--faults", choices=("disconnect",), help="DragPoser's faulty-sensor protocol on the extra trackers")
     ev.add_argument("--no-segments", action="store_true",
                     help="leave the worn IMUs' segments to the decoder (by default each takes its IMU's rotation)")
-    ev.add_argument("--lookahead", type=int, default=None, help="SSI look-ahead tau in frames (default 10 for N>1, 0 for N=1)")
+    ev.add_argument("--lookahead", type=int, default=None, help="SSI look-ahead tau in frames (default 0: the newest frame, as the board sends it; 10 was the paper's, 167 ms behind at 60 Hz)")
     add_refine_flags(ev)
     ev.add_argument("--no-heading", action="store_true",
                     help="leave the extra IMUs' heading offset and drift uncorrected (edge.heading runs by default)")
@@ -93,7 +93,7 @@ def main(argv=None):
     rp.add_argument("--samples", default="16", help="N, or auto (adaptive N up to 32)")
     rp.add_argument("--adaptive", action="store_true",
                     help="let the deadline watchdog lower and raise N, as edge run does (--samples is the most)")
-    rp.add_argument("--lookahead", type=int, default=10)
+    rp.add_argument("--lookahead", type=int, default=0, help="SSI look-ahead in frames (default 0: the board's)")
     rp.add_argument("--precision", choices=("fp32", "int8"), default=DEFAULT_PRECISION)
     rp.add_argument("--seconds", type=float, default=None)
     rp.add_argument("--trackers", default=None,

@@ -19,7 +19,8 @@
     samples = 16                      # latent samples N (1..128); with adaptive N, the most it runs
     adaptive = true                   # lower N when frames run late, raise it again when there is slack
     precision = "int8"                # or "fp32"
-    lookahead = 10                    # SSI look-ahead in frames
+    lookahead = 0                     # SSI look-ahead in frames: 0 sends the newest frame; each frame more
+                                      # puts the body 1/hz later (10 at 60 Hz: 167 ms), for recording only
     hz = 60
     lost_after_ms = 250
     sync_latency_ms = 20              # interpolate this far in the past (>= one headset period)
@@ -70,7 +71,7 @@ class Config:
     samples: int = 16
     adaptive: bool = True
     precision: str = DEFAULT_PRECISION
-    lookahead: int = 10
+    lookahead: int = 0
     hz: float = 60.0
     lost_after: float = 0.25
     sync_latency: float = 0.02

@@ -62,6 +62,8 @@ class Stream:
     def __init__(self, width, capacity=32):
         self.t = np.full(capacity, -np.inf)
         self.v = np.zeros((capacity, width))
+        self.rx = np.full(capacity, -np.inf)      # when each kept sample reached the board (its clock)
+        self.used_rx = -np.inf                    # ... that of the newest sample the last sample() used
         self.clock = ClockOffset()
         self.last_device_t = -np.inf
         self.last_received_t = -np.inf
@@ -87,6 +89,7 @@ class Stream:
             return
         self.t[oldest] = t
         self.v[oldest] = values
+        self.rx[oldest] = received_t
 
     @property
     def newest(self):
@@ -107,10 +110,14 @@ class Stream:
         t0, t1 = float(before[i0]), float(after[i1])
         if t0 == -np.inf:
             if t1 == np.inf:                         # nothing kept
+                self.used_rx = -np.inf
                 return None, np.inf
+            self.used_rx = float(self.rx[i1])
             return self.v[i1].copy(), 0.0            # t is older than everything kept: use the oldest
         if t1 == np.inf:                             # t is past the newest: hold it
+            self.used_rx = float(self.rx[i0])
             return self.v[i0].copy(), t - t0
+        self.used_rx = float(self.rx[i1])
         w = (t - t0) / (t1 - t0)
         return interpolate(self.v[i0], self.v[i1], w), 0.0
 
@@ -138,6 +145,7 @@ class Health:
     dropped: int
     backwards: int
     ages: dict = None       # tracker name -> seconds since its newest sample (inf: never heard)
+    newest_rx: float = -np.inf  # when the newest sample this frame used reached the board (a live source's)
 
 
 class FrameSynchronizer:
@@ -226,7 +234,8 @@ class FrameSynchronizer:
                       quat.normalize(np.stack([hands[0][3:7], hands[1][3:7]]))[None],
                       quat.normalize(waist[None, 3:7]), np.zeros((1, 3)), self._imu_rot[None].copy(), self.imu_flag[None].copy())
         streams = self.streams.values()
-        return sig, Health(lost, sum(s.dropped for s in streams), sum(s.backwards for s in streams), ages)
+        newest_rx = max((s.used_rx for name, s in self.streams.items() if not lost[name]), default=-np.inf)
+        return sig, Health(lost, sum(s.dropped for s in streams), sum(s.backwards for s in streams), ages, newest_rx)
 
     def _follow_head(self, held, head):
         """A lost waist keeps its tilt but turns with the headset, from the heading offset it had when lost."""

@@ -1,5 +1,5 @@
 """The golden replay: a fixed 900-frame session through the board service, at N=1 and at N=8 with SSI,
-in fp32, gives the pose stream byte for byte as recorded (tests/golden/). A restructuring must not
+in fp32, at the board's default look-ahead (none: each tick sends its own frame), gives the pose stream byte for byte as recorded (tests/golden/). A restructuring must not
 change one byte; a change that means to (a new model, a new wire field) records them again:
 
     .venv/bin/python tests/test_golden.py --record
@@ -22,6 +22,7 @@ GOLDEN = Path(__file__).parent / "golden"
 SESSION = ROOT / "samples" / "cmu_09_12_walk.session.npz"
 SECONDS = 15.0                  # 900 model ticks at 60 Hz
 SAMPLES = (1, 8)
+LOOKAHEAD = 0                   # the board's default ([runtime] lookahead)
 PINNED = [SESSION, ROOT / "models" / "decoder.onnx", ROOT / "models" / "autoencoder.onnx",
           ROOT / "models" / "manifest.json"]
 
@@ -35,7 +36,7 @@ def pose_stream(samples):
     from edgetools.sim.replay import replay
     from edgetools.sim.session import Session
     log = io.BytesIO()
-    result = replay(Session.load(str(SESSION)), "max", samples=samples, lookahead=10, seconds=SECONDS,
+    result = replay(Session.load(str(SESSION)), "max", samples=samples, lookahead=LOOKAHEAD, seconds=SECONDS,
                     precision="fp32", pose_log=log)
     assert result["errors"] == [], result["errors"]
     return log.getvalue(), result
@@ -71,7 +72,7 @@ def test_pose_stream_is_byte_identical_to_the_recording(samples):
 
 def record():
     GOLDEN.mkdir(exist_ok=True)
-    meta = {"session": SESSION.name, "seconds": SECONDS, "precision": "fp32", "lookahead": 10,
+    meta = {"session": SESSION.name, "seconds": SECONDS, "precision": "fp32", "lookahead": LOOKAHEAD,
             "sha256": {p.name: sha256(p) for p in PINNED}, "frames_out": {}, "ssi_switches": {}}
     for n in SAMPLES:
         stream, result = pose_stream(n)

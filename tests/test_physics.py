@@ -69,6 +69,20 @@ def test_physical_criterion_prefers_the_clean_sample_and_the_core_agrees_with_nu
     assert clean.max() < 0.01
 
 
+def test_a_wider_clearance_charges_legs_that_come_close_before_they_cross_on_both_paths():
+    """selection.physical.clearance: legs 12 cm apart cost nothing at the metric's 10 cm and 1 cm at 13 cm
+    (the switch can start before they cross), in the compiled core and in numpy alike."""
+    pos = np.repeat(STANDING[None], 2, 0)
+    pos[1, [JOINT["l_hip"], JOINT["l_knee"], JOINT["l_ankle"], JOINT["l_toe"]], 0] -= 0.06    # 18 -> 12 cm
+    assert leg_gap(pos[1]) == pytest.approx(0.12)
+    ctx = FrameContext(0, np.ascontiguousarray(pos), None, None, contacts=np.zeros((2, 2), np.float32),
+                       floor_lift=np.zeros((2, 2)))
+    for native in (True, False):
+        assert np.allclose(PhysicalPlausibility(use_native=native).cost(ctx), 0.0)
+        wide = PhysicalPlausibility(use_native=native, clearance=0.13).cost(ctx)
+        assert wide[0] == 0.0 and wide[1] == pytest.approx(0.01), f"native={native}"
+
+
 def test_a_foot_in_the_air_is_not_reported_in_contact_whatever_the_decoder_says():
     pose = STANDING.copy()
     assert np.allclose(supported_contacts(np.array([1.0, 0.8]), pose), [1.0, 0.8])      # both on the floor

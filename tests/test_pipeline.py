@@ -28,6 +28,43 @@ def test_output_latency_is_exactly_tau_frames(take, tau):
     assert [p.frame for p in rest] == list(range(40 - tau, 40))
 
 
+def test_by_default_the_board_sends_frame_t_at_tick_t(take):
+    """Present-frame output is the default, for the pipeline and for the board's config: each tick sends
+    the pose of the frame it was given, at every N (look-ahead is an offline option)."""
+    from firmware_bridge import config as config_mod
+    cfg = config_mod.from_dict({"headset": {"url": "serial:///dev/null?role=headset"},
+                                "runtime": {"samples": 8}}, "default")
+    assert cfg.lookahead == 0
+    pipe = Pipeline(samples=cfg.samples, lookahead=cfg.lookahead)
+    for t in range(40):
+        assert pipe.step(take.signals.slice(t, t + 1)).frame == t
+    assert Pipeline(samples=8).lookahead == 0 and pipe.flush() == []
+
+
+def test_a_switch_at_tau_0_is_eased_forward_from_the_shown_pose(take):
+    """With no look-ahead a move starts at the frame it is detected and eases from the pose already shown:
+    the first frame of a move is its source sample's own (weight ~0), not a jump."""
+    pipe, out, own_new = run_forced_switch(take, lookahead=0, at=40, frames=80)
+    t, s0, c, n = pipe.switches[0]
+    assert s0 == t == 40
+    assert out[s0][2] and not out[s0 + pipe.transition][2]          # frames s0..s0+T-1 are the move
+    jump = lambda f: np.linalg.norm(out[f][0] - out[f - 1][0], axis=-1).max()     # noqa: E731
+    before = max(jump(f) for f in range(s0 - 10, s0))
+    assert jump(s0) <= 1.5 * before, f"the move's first frame jumped {jump(s0):.3f} m (motion before: {before:.3f})"
+
+
+def test_the_shown_sample_goes_home_to_the_prior_mean_once_that_costs_no_more(take):
+    """Homing (selection.home_after): after a move away from sample 0, the output moves back to it with
+    the same eased move once sample 0 has cost no more than the shown sample for home_after frames in a
+    row (counted from when a new move may start: the last one has been sent)."""
+    pipe = Pipeline(samples=6, lookahead=0, criteria=[], precision="fp32")
+    pipe.criteria.criteria.append(ForcedSwitch(pipe, at=40))      # to sample 3 at 40; all costs 0 after
+    pipe.home_after = 10
+    for t in range(100):
+        pipe.step(take.signals.slice(t, t + 1))
+    assert list(pipe.switches) == [(40, 40, 0, 3), (59, 59, 3, 0)] and pipe.current == 0
+
+
 def test_single_sample_is_the_prior_mean_and_never_switches(take):
     pipe = Pipeline(samples=1)
     assert np.all(pipe.latents == 0) and pipe.lookahead == 0 and not pipe.ssi
@@ -69,7 +106,7 @@ def run_forced_switch(take, lookahead, at, frames, transition=10):
         pose = pipe.step(take.signals.slice(t, t + 1))
         if pose is not None:
             out[pose.frame] = (pose.positions.copy(), pose.sample, pose.transition)
-        if t == at:
+        if t == at and lookahead > 0:
             own_new = pipe.pose_from_buffer(at - 1, 3)[0]
     return pipe, out, own_new
 

@@ -296,3 +296,46 @@ def test_a_headsets_targets_reach_the_refiner_and_bad_ones_are_refused_with_a_re
     assert s["targets_live"] == 1 and s["refined_frames"] > 10
     assert "targets 1 live, 3 refused" in status.getvalue()
     assert len(frames) > 50
+
+
+@pytest.mark.parametrize("lookahead", [0, 3])
+def test_pose_age_and_motion_to_pose_lag_come_from_the_samples_arrival_and_the_look_ahead(lookahead):
+    """A scripted run on a scripted clock: headset and waist samples reach the board at known times, the
+    board ticks 7 ms after each arrival, and its clock says 2 ms more when the pose has left. The age is
+    from the newest sample a tick used arriving to its pose leaving (9 ms); the lag adds the look-ahead
+    the frame waited for (3 frames: 50 ms at 60 Hz)."""
+    take = from_sample(SAMPLE)
+    master, slave, path = pty_pair()
+    cfg = config_mod.from_dict({"headset": {"url": f"serial://{path}?role=headset"},
+                                "runtime": {"samples": 2, "lookahead": lookahead, "adaptive": False,
+                                            "precision": "fp32", "sync_latency_ms": 0}}, "scripted")
+    now = [0.0]
+    svc = Service(cfg, clock=lambda: now[0], status=None, threaded=False)
+    svc.pipeline.step = wrap_step(svc.pipeline.step, now, 0.002)      # the pipeline "takes" 2 ms
+    sig = take.signals
+    try:
+        for k in range(60):
+            arrived = 10.0 + k / 60.0
+            svc.sync.add_headset(HeadsetSample(arrived, sig.head_pos[k], sig.head_rot[k], sig.hand_pos[k],
+                                               sig.hand_rot[k]), received=arrived)
+            svc.sync.add_tracker(TrackerSample("waist", arrived, sig.waist_rot[k], sig.waist_acc[k]), received=arrived)
+            now[0] = arrived + 0.007
+            svc.tick(now[0])
+        s = svc.summary()
+    finally:
+        svc.close()
+        os.close(master)
+        os.close(slave)
+    assert s["frames_out"] == 60 - lookahead
+    age, lag = s["pose_age_ms"], s["motion_to_pose_lag_ms"]
+    assert age["poses"] == 60 - lookahead and 9.0 <= age["p50"] <= 9.1 and 9.0 <= age["max"] <= 9.1
+    held = 1000.0 * lookahead / 60.0
+    assert held + 9.0 <= lag["p50"] <= held + 9.1 and held + 9.0 <= lag["p99"] <= held + 9.1
+
+
+def wrap_step(step, now, seconds):
+    def timed(sig):
+        pose = step(sig)
+        now[0] += seconds
+        return pose
+    return timed

@@ -382,3 +382,42 @@ def test_a_finished_run_keeps_the_links_accounts_and_its_last_status_line_says_w
     assert summary["links"][cfg.headset]["counts"]["wrong_code"] == 1
     last = out.getvalue().splitlines()[-1]
     assert "waiting" not in last and "webxr: waiting for a headset" not in last and "webxr:" in last
+
+
+@pytest.mark.parametrize("lookahead", [0, 10])
+def test_the_body_tells_the_page_the_lag_its_user_sees_look_ahead_included(tmp_path, lookahead):
+    """Each XR_BODY carries the page time the body stands for: the newest headset pose the board had,
+    less the look-ahead its frame was held for. The page's panel shows now minus that, so at tau = 10
+    it says 167 ms more than the round trip, and at tau = 0 the round trip itself."""
+    cfg = config_mod.from_dict({"headset": {"url": f"webxr://127.0.0.1:0?state={tmp_path}&tls=0"},
+                                "runtime": {"samples": 2, "lookahead": lookahead, "adaptive": False,
+                                            "precision": "fp32"}}, "lag")
+    svc = Service(cfg, status=None, threaded=False)
+    source = svc.headset.source
+    ws, _ = pair(source)
+    answer_pings(ws, until=lambda: source.clock_offset_ms is not None, seconds=2.0)
+    sent, bodies = [], []
+    payload = headset_payload()
+    try:
+        for k in range(30):
+            sent.append(page_now(source))
+            ws.send(wire.encode_xr_pose(k, sent[-1], payload))
+            time.sleep(0.004)
+            svc.step(time.monotonic())
+            while True:
+                try:
+                    message = ws.recv(timeout=0.01)
+                except TimeoutError:
+                    break
+                if isinstance(message, bytes) and message[0] == wire.XR_BODY:
+                    bodies.append(wire.XR_BODY_HEADER.unpack_from(message)[3])
+                elif isinstance(message, bytes) and message[0] == wire.CLOCK_PING:
+                    ws.send(struct.pack("<Bdd", wire.CLOCK_PONG, struct.unpack("<Bd", message)[1],
+                                        time.monotonic() * 1000))
+    finally:
+        ws.close()
+        svc.close()
+    held_ms = 1000.0 * lookahead / 60.0
+    assert len(bodies) >= 10
+    for stands_for in bodies:       # each is one of the poses the page sent, less the look-ahead
+        assert min(abs(stands_for + held_ms - t) for t in sent) < 1e-6

@@ -80,7 +80,7 @@ def tap_pose_stream(service):
     return read_fd, write_fd
 
 
-def replay(session, speed="max", samples=16, lookahead=10, seconds=None, faults=None, bvh=None, status=None,
+def replay(session, speed="max", samples=16, lookahead=0, seconds=None, faults=None, bvh=None, status=None,
            models=None, adaptive=False, precision=DEFAULT_PRECISION, pose_log=None, threaded=None, outputs=None,
            calibration="", dump=None, headset=None):
     """Returns the report dict; `pose_log` (a binary file) receives the pose stream's raw bytes.

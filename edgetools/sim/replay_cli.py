@@ -90,8 +90,10 @@ def main(args):
             "deadline_misses", "ssi_switches", "mpjpe_cm", "jitter_m_s3")
     print("\n" + "  ".join(f"{k}={result[k]:.4g}" if isinstance(result.get(k), float) else f"{k}={result.get(k)}"
                            for k in keys), file=sys.stderr)
-    print(f"latency p50 {result['latency_ms']['p50']:.2f} ms p99 {result['latency_ms']['p99']:.2f} ms "
-          f"(+ look-ahead {result['lookahead_ms']:.0f} ms)" + (f"; wrote {' and '.join(written)}" if written else ""),
+    lag, age = result["motion_to_pose_lag_ms"], result["pose_age_ms"]
+    print(f"motion-to-pose lag p50 {lag['p50']:.1f} ms p99 {lag['p99']:.1f} ms (pose age p99 {age['p99']:.1f} ms + "
+          f"look-ahead {result['lookahead_ms']:.0f} ms); host latency p50 {result['latency_ms']['p50']:.2f} ms "
+          f"p99 {result['latency_ms']['p99']:.2f} ms" + (f"; wrote {' and '.join(written)}" if written else ""),
           file=sys.stderr)
     if result["errors"]:        # the run went on, but something broke: say so in the exit code
         print(f"edge replay: {len(result['errors'])} error(s), the first: {result['errors'][0]}", file=sys.stderr)

@@ -24,6 +24,8 @@ def report(session, summary, m, service, ear, opened, errors, faults, speed, dur
                         "reader (processing, serial transfer, decoding); the deliberate delays (SSI look-ahead, and the "
                         "synchroniser interpolating one headset period back) are reported apart",
         "lookahead_ms": 1000.0 * service.pipeline.lookahead / hz,
+        "pose_age_ms": summary["pose_age_ms"], "motion_to_pose_lag_ms": summary["motion_to_pose_lag_ms"],
+        "lag_note": summary["lag_note"],
         "sync_delay_ms": 1000.0 * service.cfg.sync_latency, "ssi_switches": service.pipeline.switch_count,
         "samples": service.pipeline.samples, "samples_max": summary["samples_max"], "precision": service.pipeline.precision,
         "precision_note": service.pipeline.precision_note,

@@ -357,7 +357,10 @@ class WebXRSource(Source):
         if h is None or loop is None:
             return False
         pose_record(frame, self._record)
-        wire.XR_BODY_HEADER.pack_into(self._body, 0, wire.XR_BODY, 0, self._seq, h.newest_page_ms)
+        # The page time the body stands for: the newest XR_POSE the board had, less any look-ahead the
+        # frame was held for, so the page's "lag" is what the user sees (docs/headset.md).
+        wire.XR_BODY_HEADER.pack_into(self._body, 0, wire.XR_BODY, 0, self._seq,
+                                      h.newest_page_ms - 1000.0 * frame.held_s)
         self._seq = (self._seq + 1) & 0xFFFF
         loop.call_soon_threadsafe(self._send_body, h, bytes(self._body))
         return True

@@ -100,6 +100,7 @@ class PoseFrame:
     ssi_flags: int = 0                   # SSI_* bits
     trackers_lost: int = 0               # bit i set: tracker id i is lost
     received: float = 0.0                # host time.monotonic() at reception (receiving side)
+    held_s: float = 0.0                  # how long the board held the frame for SSI look-ahead (not on the wire)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -1,7 +1,7 @@
 """The messages of the WebXR headset link: the board's page <-> the board over one WebSocket (protocol.md s. 9).
 
     page  -> board   XR_POSE   (0x02, binary)  head and both controllers' grip poses, every XR frame
-    board -> page    XR_BODY   (0x03, binary)  the body the board made, echoing the newest XR_POSE's page time
+    board -> page    XR_BODY   (0x03, binary)  the body the board made, with the page time it stands for
     board -> page    CLOCK_PING (0x20, binary) the board's clock; the page answers at once with
     page  -> board   CLOCK_PONG (0x21, binary) that value and the page's clock, so the board maps page time
     page  -> board   HELLO (text JSON)         {"code": "123456"} to pair, or {"token": "..."} once paired

@@ -173,7 +173,7 @@ function statusLines() {
   state.latencyMs = n ? recent[n >> 1] : null;
   const link = state.paired ? "connected" : state.connected ? "pairing..." : "reconnecting...";
   return [`${link}  ${state.rate.toFixed(0)}/s`,
-          `latency ${state.latencyMs === null ? "-" : state.latencyMs.toFixed(0)} ms   N=${state.samples ?? "-"}`];
+          `lag ${state.latencyMs === null ? "-" : state.latencyMs.toFixed(0)} ms   N=${state.samples ?? "-"}`];
 }
 
 $("enter-vr").addEventListener("click", () => enter("immersive-vr").catch((e) => show(`Enter VR failed: ${e.message}`, true)));
