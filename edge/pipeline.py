@@ -8,9 +8,10 @@ from and where poses go. Per frame t:
   -> criteria on frame t (plausibility, targets, obstacles, extra IMUs) -> SSI decision at t
   -> output frame t - tau, its pose made again from what the look-ahead ring buffer keeps.
 
-With the compiled core that is five C calls around the two ONNX Runtime calls (ep_frame_inputs,
-ep_frame_poses, ep_leg_error after the autoencoder, ep_switch_to, ep_emit); the numpy stages in this
-file are the reference they are tested against and the fallback without a compiler.
+With the compiled core and the default criteria that is four C calls around the two ONNX Runtime
+calls (ep_frame_inputs, ep_frame_poses, ep_frame_costs after the autoencoder: the costs and the SSI
+test, ep_emit); the numpy stages in this file are the reference they are tested against and the
+fallback without a compiler.
 
 Two ways through a frame, chosen once: CompiledFrame, the fused C calls the board runs, and
 NumpyFrame, the numpy reference they are tested against (and the fallback without a compiler).
@@ -758,7 +759,7 @@ class NumpyFrame:
 
 
 class CompiledFrame:
-    """The frame the board runs: five C calls (edge/native/postproc.c) around the two ONNX Runtime
+    """The frame the board runs: four C calls (edge/native/postproc.c) around the two ONNX Runtime
     calls, each bit-identical to NumpyFrame's stages up to float rounding (tests/test_native.py).
     The addresses they use are found once here: the skeleton, the scratch rows, FootLock's state,
     the ring buffer, the output pose and the decoder's buffers (native.CoreContext)."""

@@ -33,6 +33,7 @@ import numpy as np
 
 from edge import native
 from edge.imus import IMU_JOINTS
+from edge.physics import FLOOR_ANKLE, FLOOR_TOE     # the lowest a toe and an ankle joint may go (as the IK's floor)
 from edge.skeleton import ANKLES, JOINT, NUM_JOINTS, TOES
 
 # On by default: targets, guarded by KeepPose and FloorContact (guards join when a target moves the
@@ -41,7 +42,6 @@ from edge.skeleton import ANKLES, JOINT, NUM_JOINTS, TOES
 DEFAULT_TERMS = ("targets", "keep", "floor")
 COMPILED_TERMS = ("targets", "keep", "floor")       # what ep_refine_step computes (others: the numpy step)
 MAX_REACH_M = 1.5           # a target farther than this from the pelvis is no reach of the user's
-FLOOR_TOE, FLOOR_ANKLE = 0.0, 0.07      # the lowest a toe and an ankle joint may go (as the IK's floor)
 
 
 @dataclass

@@ -257,3 +257,33 @@ def test_documented_command_runs_and_writes_what_it_names(command, tmp_path):
         assert path.exists(), f"{where}: {command}\n{flag} {value} was not written"
         if flag == "--report" or (flag == "--out" and words[1] == "report"):
             assert (path / "index.html").is_file(), f"{where}: {command}\nno {value}/index.html"
+
+
+# A dotted name of one of the project's packages, as the docs cite modules, classes and functions.
+DOTTED = re.compile(r"(?<![\w./-])((?:edge|edgetools|firmware_bridge|models|quantize|viz)(?:\.[A-Za-z_]\w*)+)")
+
+
+def resolves(name):
+    """Whether `name` is an importable module, or an attribute path under the longest one that is."""
+    import importlib
+    parts = name.split(".")
+    for k in range(len(parts), 0, -1):
+        try:
+            obj = importlib.import_module(".".join(parts[:k]))
+        except ImportError:
+            continue
+        for attr in parts[k:]:
+            if not hasattr(obj, attr):
+                return False
+            obj = getattr(obj, attr)
+        return True
+    return False
+
+
+def test_every_dotted_name_the_docs_cite_exists():
+    """README.md and docs/*.md name the code they describe (`edge.ssi.Switcher`, `edgetools.synth.synthesize`):
+    each such name imports, so a rename or a removal shows in the docs that still cite it."""
+    cited = {(doc.name, m.group(1).rstrip(".")) for doc in DOCS for m in DOTTED.finditer(doc.read_text())}
+    assert len(cited) > 25
+    missing = sorted(f"{doc}: {name}" for doc, name in cited if not resolves(name))
+    assert not missing, "the docs cite names that do not exist:\n" + "\n".join(missing)

@@ -185,6 +185,25 @@ def test_a_source_edit_rebuilds_into_a_new_cached_library(tmp_path, monkeypatch)
     assert second != first and second.exists()
 
 
+def test_the_constants_shared_with_python_live_in_python_and_a_change_rebuilds(tmp_path, monkeypatch):
+    """postproc.c has no copy of the floor limits, rest heights, lock snap and support band: without the
+    -D flags edge.native.build derives from edge.physics it does not compile, and a changed value there
+    is a new library."""
+    import shlex
+    from edge import physics
+    cc = shlex.split(os.environ.get("CC", "cc"))
+    check = cc + ["-fsyntax-only", "-I", str(native.SOURCE.parent), str(native.SOURCE)]
+    bare = subprocess.run(check, capture_output=True, text=True)
+    assert bare.returncode != 0 and "edge.native.build" in bare.stderr
+    defines = [f"-D{k}={float(v)!r}" for k, v in native.shared_constants().items()]
+    assert subprocess.run(check + defines, capture_output=True, text=True).returncode == 0
+    assert native.shared_constants()["FLOOR_ANKLE"] == physics.FLOOR_ANKLE
+    monkeypatch.setenv("EDGEPOSE_CACHE", str(tmp_path))
+    first = native.build()
+    monkeypatch.setattr(physics, "FLOOR_ANKLE", physics.FLOOR_ANKLE + 0.01)
+    assert native.build() != first
+
+
 def test_foot_locks_match_numpy_through_contacts_releases_and_slips():
     from edge.ik import FootLock
     B, T = 16, 300

@@ -52,11 +52,21 @@ def _cpu_tag():
     return os.uname().machine + "\n" + "\n".join(seen)
 
 
+def shared_constants():
+    """The facts postproc.c shares with the Python side, by their names in C: defined once, in edge.physics
+    and edge.skeleton, and compiled in as -D flags (exact: repr of a float reads back as the same double)."""
+    from edge.physics import ANKLE_HEIGHT, FLOOR_ANKLE, FLOOR_TOE, LOCK_SNAP_M, SUPPORT_FULL_M, SUPPORT_NONE_M
+    from edge.skeleton import TOE_HEIGHT
+    return {"FLOOR_ANKLE": FLOOR_ANKLE, "FLOOR_TOE": FLOOR_TOE, "TOE_HEIGHT": TOE_HEIGHT, "ANKLE_HEIGHT": ANKLE_HEIGHT,
+            "LOCK_SNAP": LOCK_SNAP_M, "SUPPORT_FULL": SUPPORT_FULL_M, "SUPPORT_NONE": SUPPORT_NONE_M}
+
+
 def build(force=False):
     """Compile postproc.c (if not cached) and return the library's path."""
     cc = shlex.split(os.environ.get("CC", "cc"))
     src = SOURCE.read_bytes() + b"".join(h.read_bytes() for h in HEADERS)
-    tag = hashlib.sha1(src + repr((cc, CFLAGS, ARCH_FLAGS)).encode() + _cpu_tag().encode()).hexdigest()[:12]
+    defines = tuple(f"-D{name}={float(value)!r}" for name, value in shared_constants().items())
+    tag = hashlib.sha1(src + repr((cc, CFLAGS, ARCH_FLAGS, defines)).encode() + _cpu_tag().encode()).hexdigest()[:12]
     out = _cache_dir() / f"postproc-{tag}.so"
     if out.exists() and not force:
         return out
@@ -67,7 +77,8 @@ def build(force=False):
         for i, arch in enumerate(ARCH_FLAGS):
             try:
                 include = ["-I", str(HEADERS[0].parent)]
-                subprocess.run(cc + list(CFLAGS) + list(arch) + include + ["-o", tmp, str(SOURCE), "-lm"], check=True,
+                subprocess.run(cc + list(CFLAGS) + list(arch) + list(defines) + include + ["-o", tmp, str(SOURCE), "-lm"],
+                               check=True,
                                capture_output=True, text=True, timeout=120)
                 break
             except subprocess.CalledProcessError as e:

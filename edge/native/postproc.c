@@ -40,15 +40,14 @@ typedef double lane[LANES];             /* one value for each of LANES samples *
 /* The largest skeleton the lane functions take (edge.native checks edge.skeleton against it). */
 int ep_max_joints(void) { return MAX_JOINTS; }
 #define MAX_FEATURES 128
-/* edge.pipeline.FLOOR_ANKLE / FLOOR_TOE: the lowest an ankle and a toe joint may go (m above the floor) */
-#define FLOOR_ANKLE 0.07
-#define FLOOR_TOE 0.0
-/* edge.physics: the rest heights of the toe and ankle joints, and FootLock's floor snap */
-#define TOE_HEIGHT 0.02
-#define ANKLE_HEIGHT 0.09
-#define LOCK_SNAP 0.12
-#define SUPPORT_FULL 0.03
-#define SUPPORT_NONE 0.08
+/* Facts shared with the Python side, defined there once and compiled in by edge.native.build as -D flags
+ * (edge.native.shared_constants): edge.physics' FLOOR_ANKLE / FLOOR_TOE (the lowest an ankle and a toe
+ * joint may go, m above the floor), ANKLE_HEIGHT and edge.skeleton's TOE_HEIGHT (the joints' rest
+ * heights), LOCK_SNAP_M (FootLock's floor snap) and SUPPORT_FULL_M / SUPPORT_NONE_M (the support band). */
+#if !defined(FLOOR_ANKLE) || !defined(FLOOR_TOE) || !defined(TOE_HEIGHT) || !defined(ANKLE_HEIGHT) || \
+    !defined(LOCK_SNAP) || !defined(SUPPORT_FULL) || !defined(SUPPORT_NONE)
+#error "build postproc.c with edge.native.build: it defines the constants shared with edge.physics"
+#endif
 
 /* dst[k][l] = src[row_l * stride + k] for k < n: row_l is r0 + l, or the block's last real row in a
  * spare lane (nl real rows). stride 0 gives every lane the same values. */
