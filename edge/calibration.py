@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from edge import quat
-from edge.signals import EYE_OFFSET
+from edge.signals import EYE_OFFSET, Signals
 from edge.skeleton import PELVIS_HEIGHT, PELVIS_TO_HEAD
 
 CANONICAL_EYE_HEIGHT = PELVIS_HEIGHT + PELVIS_TO_HEAD[1] + EYE_OFFSET[1]
@@ -81,6 +81,30 @@ class Calibration:
             if isinstance(e, CalibrationError):
                 raise
             raise CalibrationError(f"{path}: not a valid calibration file ({e}); run edge calibrate again") from None
+
+
+class FrameCalibration:
+    """A Calibration applied to each frame of Signals on the way in: the user scaled onto the canonical
+    body (around the floor origin), the waist and each worn extra IMU turned from its sensor frame onto
+    its body segment (A q M). The extra IMUs' A and M are stacked once, so a frame costs one pair of
+    quaternion products for all of them."""
+
+    def __init__(self, calibration, imus=()):
+        """imus: (tracker name, slot in Signals.imu_rot) of each worn extra IMU."""
+        identity = np.array([1.0, 0.0, 0.0, 0.0])
+        self.calibration = calibration
+        self.slots = np.array([k for _, k in imus], int)
+        self.align = np.array([calibration.align.get(n, identity) for n, _ in imus]).reshape(-1, 4)
+        self.mount = np.array([calibration.mount.get(n, identity) for n, _ in imus]).reshape(-1, 4)
+
+    def __call__(self, sig):
+        cal, k = self.calibration, self.slots
+        s = cal.height_scale
+        imu_rot = sig.imu_rot.copy()
+        if len(k):
+            imu_rot[0, k] = quat.mul(quat.mul(self.align, sig.imu_rot[0, k]), self.mount)
+        return Signals(sig.head_pos * s, sig.head_rot, sig.hand_pos * s, sig.hand_rot,
+                       cal.body_rotation("waist", sig.waist_rot), sig.waist_acc, imu_rot, sig.imu_flag)
 
 
 def calibrate(head_pos, head_rot, trackers):

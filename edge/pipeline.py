@@ -478,6 +478,24 @@ class Pipeline:
         self._pending = None if n == self.samples else n
         return n
 
+    # ------------------------------------------------------------------ targets (edge.refine)
+    @property
+    def takes_targets(self):
+        """Whether a target can move the body: refinement is on with its targets term."""
+        return self.refiner is not None and self.refiner.term("targets") is not None
+
+    def add_target(self, joint, position, radius, start=0, frames=1, key=None):
+        """A point (canonical body, metres) that `joint` should reach within `radius`, live for `frames`
+        frames from `start` frames after the next one; refused with a reason (edge.refine counts it) when
+        it is not finite, not a joint, or beyond reach of the shown body's pelvis."""
+        first = self.t + 1 + start
+        out = self.out
+        self.refiner.add_target(joint, position, radius=radius, first=first, last=first + max(frames - 1, 0),
+                                pelvis=out.positions[0] if out.frame >= 0 else None, key=key)
+
+    def remove_target(self, key):
+        self.refiner.remove_target(key)
+
     def set_refine_steps(self, k):
         """Refinement steps a frame from the next frame on (edge.governor moves N and K together). At
         K = 0 a live target no longer moves the latent (a foot target still pulls the leg IK) and a

@@ -302,7 +302,7 @@ def test_zxy_euler_angles_rebuild_the_rotation_as_rz_rx_ry():
 def write_bvh(path, poses, fps=60.0):
     with BvhWriter(path, fps=fps) as writer:
         for pose in poses:
-            writer.write_frame(pose)
+            writer.send(pose)
     return writer
 
 
@@ -370,11 +370,11 @@ def test_bvh_frame_count_is_right_after_flush_and_after_close(tmp_path):
     poses = synthetic_motion(5)
     writer = BvhWriter(path)
     for pose in poses[:2]:
-        writer.write_frame(pose)
+        writer.send(pose)
     writer.flush()
     assert edge_bvh.load(path).frames == 2          # a reader mid-take sees a valid file
     for pose in poses[2:]:
-        writer.write_frame(pose)
+        writer.send(pose)
     writer.close()
     writer.close()                                  # closing twice is harmless
     assert edge_bvh.load(path).frames == 5
@@ -412,7 +412,7 @@ def test_every_output_carries_the_calibrated_body_size(receiver, tmp_path):
     position = osc.decode_packet(receive(receiver, 2)[0])[0][1]
     assert np.allclose(position, pose.positions[0] * k * [-1, 1, 1], atol=FLOAT32_TOL)
     with BvhWriter(tmp_path / "k.bvh", scale=k) as bvh:
-        bvh.write_frame(pose)
+        bvh.send(pose)
     from edgetools import bvh as bvh_file
     clip = bvh_file.load(tmp_path / "k.bvh")
     named = {n: clip.offsets[i] / 100.0 for i, n in enumerate(clip.names) if n in JOINT}

@@ -339,3 +339,24 @@ def wrap_step(step, now, seconds):
         now[0] += seconds
         return pose
     return timed
+
+
+def test_the_service_calls_only_what_sources_and_outputs_declare():
+    """Outputs are PoseSinks (send, close); a source's optional capabilities are declared on Source with
+    what a transport without them answers, so the service needs no hasattr: a minimal transport has no
+    pose stream (TransportError, counted as an output error), no link summary, no status, no trackers."""
+    from firmware_bridge.outputs import PoseSink
+    from firmware_bridge.outputs.bvh_writer import BvhWriter
+    from firmware_bridge.outputs.vmc import VmcSender
+    from firmware_bridge.outputs.vrchat import VrchatSender
+    from firmware_bridge.transports.base import Source, TransportError
+    assert all(issubclass(cls, PoseSink) for cls in (BvhWriter, VmcSender, VrchatSender))
+
+    class Quiet(Source):
+        def _recv_internal(self, timeout):
+            return None
+
+    quiet = Quiet()
+    assert quiet.link_summary() is None and quiet.status_text() == "" and quiet.trackers() == {}
+    with pytest.raises(TransportError, match="no pose stream"):
+        quiet.send_pose(None)

@@ -7,7 +7,10 @@
     with VmcSender() as vmc, BvhWriter("take.bvh", fps=60) as bvh:
         for pose in poses:                                         # edge.pipeline.Pose
             vmc.send(pose)
-            bvh.write_frame(pose)
+            bvh.send(pose)
+
+Each is a PoseSink: `send(pose)` every frame, `close()` at the end; the board's service drives them all
+through those two calls.
 
 `osc` is the wire format both UDP outputs share. This module holds the one conversion both share:
 edgepose's frame to Unity's.
@@ -26,7 +29,29 @@ Example: the left upper arm swung from pointing left to pointing forward is R = 
 (w, y) = (0.707, -0.707); in Unity it is (x, y, z, w) = (0, 0.707, 0, 0.707) = Quaternion.Euler(0, 90, 0),
 which takes Unity's left (-1, 0, 0) to forward (0, 0, 1).
 """
+from abc import ABC, abstractmethod
+
 import numpy as np
+
+
+class PoseSink(ABC):
+    """A pose output: one call a frame, one at the end. A sink never raises into the tracking loop for
+    a receiver that is absent or slow (it counts and drops); it may raise OSError or ValueError for a
+    local fault (a full disk), which the service counts."""
+
+    @abstractmethod
+    def send(self, pose):
+        """Output one edge.pipeline.Pose."""
+
+    @abstractmethod
+    def close(self):
+        """Finish (a recording's frame count) and release what the sink holds."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
 
 from edge import native
 

@@ -8,16 +8,17 @@ Channels: the root has "Xposition Yposition Zposition Zrotation Xrotation Yrotat
 joint "Zrotation Xrotation Yrotation". BVH channels are intrinsic, in the order listed, so a joint's
 local rotation is R = Rz(z) @ Rx(x) @ Ry(y), angles in degrees; `zxy_euler_degrees` inverts that.
 
-Streaming: the header goes out when the writer opens, one MOTION line per write_frame, and the frame
+Streaming: the header goes out when the writer opens, one MOTION line per send, and the frame
 count (written as a fixed-width placeholder) is filled in by flush() and close().
 
     with BvhWriter("take.bvh", fps=60) as bvh:
         for pose in poses:
-            bvh.write_frame(pose)
+            bvh.send(pose)
 """
 import numpy as np
 
 from edge.skeleton import JOINT_NAMES, NUM_JOINTS, OFFSETS, PARENTS
+from firmware_bridge.outputs import PoseSink
 
 CM_PER_M = 100.0
 ROOT_CHANNELS = "Xposition Yposition Zposition Zrotation Xrotation Yrotation"
@@ -111,7 +112,7 @@ def frame_values(local_rot, root_pos, order, out=None):
     return out
 
 
-class BvhWriter:
+class BvhWriter(PoseSink):
     """Streams Poses into a BVH file; the frame count is right once flush() or close() has run."""
 
     def __init__(self, path, fps=60.0, scale=1.0):
@@ -131,7 +132,7 @@ class BvhWriter:
         self._file.write(frame_count_line(0).encode("ascii"))
         self._file.write(f"Frame Time: {1.0 / self.fps:.8f}\n".encode("ascii"))
 
-    def write_frame(self, pose):
+    def send(self, pose):
         """Append one Pose (local rotations and the root position; world positions follow by FK)."""
         frame_values(pose.rotations, pose.positions[0] * self.scale, self._order, out=self._row)
         self._file.write((self._row_format % tuple(self._row)).encode("ascii"))
@@ -152,9 +153,3 @@ class BvhWriter:
             return
         self.flush()
         self._file.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()

@@ -1,8 +1,10 @@
 """A non-blocking UDP sender shared by the OSC outputs (VMC, VRChat)."""
 import socket
 
+from firmware_bridge.outputs import PoseSink
 
-class UdpSender:
+
+class UdpSender(PoseSink):
     """Sends datagrams to one address. A full send buffer or an absent receiver drops the frame and
     counts it in `stats`; it never raises into, or stalls, the tracking loop."""
 
@@ -22,9 +24,3 @@ class UdpSender:
 
     def close(self):
         self._socket.close()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.close()

@@ -66,6 +66,25 @@ class Source(ABC):
     def state(self):
         return CLOSED if self._closed else ACTIVE
 
+    # Optional capabilities, declared here with what a source without them answers (as python-can's
+    # BusABC declares send_periodic or state): a transport that has one overrides it.
+    def send_pose(self, frame):
+        """Send a PoseFrame back over this link (the headset's pose stream). Raises TransportError on a
+        link that carries none."""
+        raise TransportError(f"{type(self).__name__} carries no pose stream")
+
+    def link_summary(self):
+        """The link's own account (a webxr headset: pairing, wrong codes, refused, frames), or None."""
+        return None
+
+    def status_text(self):
+        """A few words for the service's status line about the link (empty: nothing to add)."""
+        return ""
+
+    def trackers(self):
+        """The trackers this link has heard, by id, with what it knows of each ({}: none it names)."""
+        return {}
+
     def close(self):
         """Release the device (once; closing again does nothing)."""
         if not self._closed:
