@@ -175,6 +175,10 @@ def replay(session, speed="max", samples=16, lookahead=0, seconds=None, faults=N
     unplug = (faults.get("unplug_at", np.inf), faults.get("unplug_at", np.inf) + faults.get("unplug_s", 0))
     last_status = 0.0
     rss = [rss_mb()]
+    if clock.realtime and headset is None:
+        # The session starts now, with the service and its readers up: started when the devices were made,
+        # the first ticks would be due before the loop began (~0.1 s of start-up) and run late, catching up.
+        clock.t0 = time.monotonic()
     try:
         for k in range(1, ticks + 1):
             now = k / hz
