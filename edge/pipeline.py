@@ -546,6 +546,9 @@ class Pipeline:
         self._home_run = 0
         s0 = self.switcher.start(n, t)
         self._recompute_transition(c, n, s0, self.transition, t)
+        # The sample moved to takes the shown one's foot locks: a planted foot stays where the user sees
+        # it, instead of the move's eased goals sliding it to where the other sample had planted it.
+        self.feet.copy_rows(c, n)
 
     def _recompute_transition(self, c, n, s0, T, t):
         """Re-run the buffered frames s0..t along the transition (one batched decoder call); their

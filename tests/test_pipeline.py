@@ -53,6 +53,21 @@ def test_a_switch_at_tau_0_is_eased_forward_from_the_shown_pose(take):
     assert jump(s0) <= 1.5 * before, f"the move's first frame jumped {jump(s0):.3f} m (motion before: {before:.3f})"
 
 
+def test_the_sample_moved_to_takes_the_shown_samples_foot_locks(take):
+    """A switch hands the shown sample's foot locks to the sample it moves to, so a planted foot stays
+    where the user sees it instead of sliding to where the other sample had planted it."""
+    pipe = Pipeline(samples=6, lookahead=0, criteria=[], precision="fp32")
+    pipe.criteria.criteria.append(ForcedSwitch(pipe, at=40))      # from sample 0 to sample 3 at frame 40
+    for t in range(41):
+        pipe.step(take.signals.slice(t, t + 1))
+        if t == 39:
+            differed = not np.array_equal(pipe.feet.lock_pos[3], pipe.feet.lock_pos[0])
+    f = pipe.feet
+    assert differed and list(pipe.switches) == [(40, 40, 0, 3)]
+    assert np.array_equal(f.lock_pos[3], f.lock_pos[0]) and np.array_equal(f.locked[3], f.locked[0])
+    assert np.array_equal(f.weight[3], f.weight[0])
+
+
 def test_the_shown_sample_goes_home_to_the_prior_mean_once_that_costs_no_more(take):
     """Homing (selection.home_after): after a move away from sample 0, the output moves back to it with
     the same eased move once sample 0 has cost no more than the shown sample for home_after frames in a
