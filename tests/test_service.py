@@ -310,7 +310,8 @@ def test_pose_age_and_motion_to_pose_lag_come_from_the_samples_arrival_and_the_l
                                 "runtime": {"samples": 2, "lookahead": lookahead, "adaptive": False,
                                             "precision": "fp32", "sync_latency_ms": 0}}, "scripted")
     now = [0.0]
-    svc = Service(cfg, clock=lambda: now[0], status=None, threaded=False)
+    status = io.StringIO()
+    svc = Service(cfg, clock=lambda: now[0], status=status, threaded=False)
     svc.pipeline.step = wrap_step(svc.pipeline.step, now, 0.002)      # the pipeline "takes" 2 ms
     sig = take.signals
     try:
@@ -322,6 +323,7 @@ def test_pose_age_and_motion_to_pose_lag_come_from_the_samples_arrival_and_the_l
             now[0] = arrived + 0.007
             svc.tick(now[0])
         s = svc.summary()
+        svc.show_status(final=True, summary=s)
     finally:
         svc.close()
         os.close(master)
@@ -331,6 +333,7 @@ def test_pose_age_and_motion_to_pose_lag_come_from_the_samples_arrival_and_the_l
     assert age["poses"] == 60 - lookahead and 9.0 <= age["p50"] <= 9.1 and 9.0 <= age["max"] <= 9.1
     held = 1000.0 * lookahead / 60.0
     assert held + 9.0 <= lag["p50"] <= held + 9.1 and held + 9.0 <= lag["p99"] <= held + 9.1
+    assert f"lag p99 {held + 9:.0f} ms" in status.getvalue().splitlines()[-1]     # what the user is told
 
 
 def wrap_step(step, now, seconds):
