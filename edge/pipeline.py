@@ -177,7 +177,6 @@ class Pipeline:
         # Part of the selection the model's criteria were tuned with: off when the caller brings its own.
         self.home_after = int(chosen.get("home_after", 0)) if criteria is None else 0
         self.home_margin = float(chosen.get("home_margin", 0.0))
-        self._home_run = 0
 
         # N=1 is the plain CVAE at the prior mean; more samples draw fixed latents once (SSI 3.2), and
         # sample 0, the one shown first, stays the prior mean: SSI moves away from what N=1 shows only
