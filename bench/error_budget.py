@@ -25,7 +25,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from edgetools.eval import evaluate
+from edge.options import PipelineOptions
+from motion.evaluate import evaluate
 from edge.imus import ImuNoise, parse_set
 from edge.inference import DEFAULT_PRECISION
 from edge.skeleton import JOINT
@@ -78,7 +79,7 @@ def _run(job):
     """One eval: with the default IMU noise (label None) its error budget, else its mpjpe alone."""
     name, label, kwargs = job
     with tempfile.TemporaryDirectory() as dump:
-        r = evaluate([kwargs.pop("data")], "val", log=lambda *a: None, dump=dump if label is None else None,
+        r = evaluate([kwargs.pop("data")], kwargs.pop("options"), split="val", log=lambda *a: None, dump=dump if label is None else None,
                      imu_noise=NOISE.get(label), **kwargs)
         return name, label, split_errors(dump) if label is None else r["mpjpe_cm"]
 
@@ -93,7 +94,7 @@ def main():
     a = ap.parse_args()
     jobs = []
     for name, spec in SETS.items():
-        kwargs = {"data": a.data, "precision": a.precision, "models": a.models, "trackers": parse_set(spec)}
+        kwargs = {"data": a.data, "options": PipelineOptions(precision=a.precision), "models": a.models, "trackers": parse_set(spec)}
         jobs += [(name, label, dict(kwargs)) for label in [None, *(NOISE if spec != "none" else ())]]
     table = {name: {} for name in SETS}
     with ProcessPoolExecutor(a.jobs) as ex:

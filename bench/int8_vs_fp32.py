@@ -19,13 +19,14 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from edgetools.eval import evaluate
+from edge.options import PipelineOptions
+from motion.evaluate import evaluate
 
 
 def _eval(job):
     path, kw = job
     if not Path(path).exists():
-        r = evaluate([kw.pop("data")], "val", log=lambda *a: None, **kw)
+        r = evaluate([kw.pop("data")], kw.pop("options"), split="val", log=lambda *a: None, **kw)
         r.pop("per_clip", None)
         Path(path).write_text(json.dumps(r, indent=2) + "\n")
     return json.loads(Path(path).read_text())
@@ -67,8 +68,8 @@ def main():
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     ns = [int(n) for n in a.samples.split(",")]
-    jobs = {(n, p): (str(out / f"n{n}_{p}.json"), {"data": a.data, "samples": n, "precision": p, "models": a.models,
-                                                    "dump": str(out / f"n{n}_{p}"), "max_clips": a.max_clips})
+    jobs = {(n, p): (str(out / f"n{n}_{p}.json"), {"data": a.data, "options": PipelineOptions(samples=n, precision=p),
+                                                    "models": a.models, "dump": str(out / f"n{n}_{p}"), "max_clips": a.max_clips})
             for n in ns for p in ("int8", "fp32")}
     with ProcessPoolExecutor(a.jobs) as ex:
         res = dict(zip(jobs, ex.map(_eval, jobs.values()), strict=True))

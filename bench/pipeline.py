@@ -60,9 +60,10 @@ import onnxruntime
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from edge.inference import Decoder, open_models
+from edge.options import PipelineOptions
 from edge.pipeline import Pipeline
-from edgetools.takes import from_sample
-from edge.timing import time_alternating, time_calls
+from motion.takes import from_sample
+from motion.timing import time_alternating, time_calls
 
 SAMPLE = Path(__file__).resolve().parent.parent / "samples" / "cmu_09_12_walk.npz"
 WARMUP = 120
@@ -102,7 +103,7 @@ def plain(a, frames, ns):
     rows = []
     print(f"{'N':>4} {'pipeline p50':>13} {'p99':>8} {'decoder p50':>12} {'p99':>8} {'ratio':>6}   (microseconds, one core)")
     for n in ns:
-        pipe = Pipeline(samples=n, precision=a.precision)
+        pipe = Pipeline(PipelineOptions(samples=n, precision=a.precision))
         warm(pipe, frames)
         whole = time_calls(lambda i, pipe=pipe: pipe.step(frames[(i + WARMUP) % len(frames)]), a.frames)
         bare = time_calls(lambda i, pipe=pipe: pipe.decoder.step(), a.frames)
@@ -157,10 +158,10 @@ def compare(a, frames, ns):
           f"{'numpy pipe':>11} {'numpy/ours':>18} {'int8 dec':>9} {'dec fp32/int8':>18}")
     rows = []
     for n in ns:
-        pipes = {"pipeline_fp32": Pipeline(samples=n, precision="fp32"),
-                 "pipeline_int8": Pipeline(samples=n, precision="int8"),
+        pipes = {"pipeline_fp32": Pipeline(PipelineOptions(samples=n, precision="fp32")),
+                 "pipeline_int8": Pipeline(PipelineOptions(samples=n, precision="int8")),
                  "pipeline_reference": reference_pipeline(model, n),
-                 "pipeline_numpy": Pipeline(samples=n, precision="fp32", use_native=False)}
+                 "pipeline_numpy": Pipeline(PipelineOptions(samples=n, precision="fp32", use_native=False))}
         for pipe in pipes.values():
             warm(pipe, frames)
         ours, m = pipes["pipeline_fp32"], pipes["pipeline_fp32"].manifest
@@ -200,7 +201,7 @@ def compare(a, frames, ns):
 def trackers(a, frames, ns):
     """The frame with all seven extra IMUs against the frame with none, interleaved (same model)."""
     from edge.imus import IMU_LOCATIONS, ImuNoise, mask
-    from edgetools.synth import wear
+    from motion.synth import wear
     take = from_sample(SAMPLE)
     worn = wear(take.signals, mask(IMU_LOCATIONS), take.fps, np.random.default_rng(0), ImuNoise())
     worn_frames = [worn.slice(t, t + 1) for t in range(take.frames)]
@@ -208,7 +209,7 @@ def trackers(a, frames, ns):
     rows = []
     print(f"{'N':>4} {'none p50':>9} {'all seven p50':>14} {'all/none':>20}   (microseconds, one core, int8)")
     for n in ns:
-        pipes = {"none": (Pipeline(samples=n), frames), "all_seven": (Pipeline(samples=n), worn_frames)}
+        pipes = {"none": (Pipeline(PipelineOptions(samples=n)), frames), "all_seven": (Pipeline(PipelineOptions(samples=n)), worn_frames)}
         if not pipes["none"][0].imus:
             sys.exit("the shipped decoder reads no extra IMUs: nothing to compare")
         for p, f in pipes.values():
@@ -230,7 +231,7 @@ def refine_bench(a, frames, ns):
     rows = []
 
     def targeted(n, steps):
-        pipe = Pipeline(samples=n, precision=a.precision, refine={"steps": steps})
+        pipe = Pipeline(PipelineOptions(samples=n, precision=a.precision, refine={"steps": steps}))
         warm(pipe, frames)
         # a target on the left toe that never ends, 40 cm above where the body is: refinement every frame
         pipe.refiner.add_target("l_toe", pipe.out.positions[JOINT["l_toe"]] + [0.0, 0.4, 0.2], radius=0.0,
@@ -265,7 +266,7 @@ def refine_bench(a, frames, ns):
     print(f"\n{'N':>4} {'no target p50':>14} {'p99':>7} " + " ".join(f"{'K=' + str(k) + ' p50':>10} {'p99':>7}"
                                                               for k in (1, 2, 3)) + "   (frame, microseconds)")
     for n in ns:
-        pipes = {"none": Pipeline(samples=n, precision=a.precision, refine=True)}
+        pipes = {"none": Pipeline(PipelineOptions(samples=n, precision=a.precision, refine=True))}
         warm(pipes["none"], frames)
         pipes.update({f"K={k}": targeted(n, k) for k in (1, 2, 3)})
         calls = {k: (lambda t, p=p: p.step(frames[t % len(frames)])) for k, p in pipes.items()}

@@ -16,6 +16,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 
 from edge.inference import Decoder
+from edge.options import PipelineOptions
 from edge.pipeline import Pipeline
 from models.export import load_checkpoint
 from models.nets import DecoderStep
@@ -57,7 +58,7 @@ class TorchDecoder(Decoder):
 
 def reference_pipeline(model, samples):
     """A fp32 Pipeline whose decoder and transition recompute are TorchDecoders on `model`."""
-    pipe = Pipeline(samples=samples, precision="fp32")
+    pipe = Pipeline(PipelineOptions(samples=samples, precision="fp32"))
     m = pipe.manifest
     dims = m["latent"], m["hidden"], m["features"]
     pipe.decoder = TorchDecoder(model, pipe.rows, *dims)

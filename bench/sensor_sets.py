@@ -19,7 +19,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from edgetools.eval import evaluate
+from edge.options import PipelineOptions
+from motion.evaluate import evaluate
 from edge.imus import ImuNoise, parse_set
 from edge.inference import DEFAULT_PRECISION
 
@@ -31,7 +32,7 @@ def _run(job):
     name, path, kwargs = job
     if Path(path).exists():
         return name, json.loads(Path(path).read_text())
-    r = evaluate([kwargs.pop("data")], "val", log=lambda *a: None, **kwargs)
+    r = evaluate([kwargs.pop("data")], kwargs.pop("options"), split="val", log=lambda *a: None, **kwargs)
     r.pop("per_clip", None)
     Path(path).write_text(json.dumps(r, indent=2) + "\n")
     return name, r
@@ -58,10 +59,10 @@ def main():
     a = ap.parse_args()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    common = {"data": a.data, "samples": a.samples, "precision": a.precision, "max_clips": a.max_clips}
-    if a.refine:
-        common["refine"] = {"steps": a.refine_steps, **({"terms": a.refine_terms.split(",")} if a.refine_terms else {})}
-    common["heading"] = False if a.no_heading else (json.loads(a.heading_settings) if a.heading_settings else True)
+    refine = {"steps": a.refine_steps, **({"terms": a.refine_terms.split(",")} if a.refine_terms else {})} if a.refine else None
+    heading = False if a.no_heading else (json.loads(a.heading_settings) if a.heading_settings else True)
+    options = PipelineOptions(samples=a.samples, precision=a.precision, refine=refine, heading=heading)
+    common = {"data": a.data, "options": options, "max_clips": a.max_clips}
     if a.perfect_heading:
         common["imu_noise"] = ImuNoise(yaw_offset_std_deg=0.0, yaw_drift_deg_s=0.0)
     jobs = []

@@ -18,7 +18,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from edgetools.eval import evaluate
+from edge.options import PipelineOptions
+from motion.evaluate import evaluate
 from edge.inference import DEFAULT_PRECISION
 from edgetools.study import run_study
 
@@ -27,7 +28,7 @@ def _eval(job):
     path, kw = job
     if Path(path).exists():
         return json.loads(Path(path).read_text())
-    r = evaluate([kw.pop("data")], "val", seed=kw.pop("seed", 0), log=lambda *a: None, **kw)
+    r = evaluate([kw.pop("data")], kw.pop("options"), split="val", log=lambda *a: None, **kw)
     r.pop("per_clip", None)
     Path(path).write_text(json.dumps(r, indent=2) + "\n")
     return r
@@ -63,15 +64,20 @@ def main():
     seeds = [int(x) for x in a.seeds.split(",")]
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    kw = {"data": a.data, "models": a.models, "precision": a.precision}
-    jobs = {"n1": (out / "eval_n1.json", {**kw, "samples": 1}),
-            "ssi": (out / "eval_ssi.json", {**kw, "samples": a.samples, "seed": seeds[0]}),
-            **{f"ssi_seed{k}": (out / f"eval_ssi_seed{k}.json", {**kw, "samples": a.samples, "seed": k}) for k in seeds[1:]},
-            "no_ssi": (out / "eval_no_ssi.json", {**kw, "samples": a.samples, "no_ssi": True}),
-            "n1_no_ssi": (out / "eval_n1.json", {**kw, "samples": 1})}
+    kw = {"data": a.data, "models": a.models}
+
+    def options(**o):
+        return PipelineOptions(precision=a.precision, **o)
+
+    jobs = {"n1": (out / "eval_n1.json", {**kw, "options": options(samples=1)}),
+            "ssi": (out / "eval_ssi.json", {**kw, "options": options(samples=a.samples, seed=seeds[0])}),
+            **{f"ssi_seed{k}": (out / f"eval_ssi_seed{k}.json", {**kw, "options": options(samples=a.samples, seed=k)})
+               for k in seeds[1:]},
+            "no_ssi": (out / "eval_no_ssi.json", {**kw, "options": options(samples=a.samples, ssi=False)}),
+            "n1_no_ssi": (out / "eval_n1.json", {**kw, "options": options(samples=1)})}
     jobs.pop("n1_no_ssi")
     if a.baseline:
-        jobs["baseline"] = (out / "eval_baseline_ssi.json", {**kw, "models": a.baseline, "samples": a.samples})
+        jobs["baseline"] = (out / "eval_baseline_ssi.json", {**kw, "models": a.baseline, "options": options(samples=a.samples)})
     studies = {} if a.skip_study else {
         t: (out / f"study_{t.replace('-', '_')}.json", {"data": a.data, "task": t, "runs": a.runs, "models": a.models,
                                                         "precision": a.precision}) for t in ("high-kick", "low-kick")}

@@ -29,12 +29,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-import edgetools.eval as ev
+import motion.evaluate as ev
 import edgetools.study as study
+from edge.options import PipelineOptions
 from edge.pipeline import Pipeline
 from edge.skeleton import ANKLES
 from edge.ssi import is_outlier
-from edgetools.takes import find_clips, load_take
+from motion.takes import find_clips, load_take
 
 
 def orthogonal_latents(rng, n, dim, norms):
@@ -105,7 +106,7 @@ def kick_oracle(data, clips=8, n=100):
             break
     first, best, highest, truth = [], [], [], []
     for take in takes:
-        run = ev.run_take(Pipeline(samples=n, seed=0, ssi=False), take, keep_samples=True)
+        run = ev.run_take(Pipeline(PipelineOptions(samples=n, seed=0, ssi=False)), take, keep_samples=True)
         for f, j in study.kick_apexes(take.gt_pos, "high-kick"):
             d = np.linalg.norm(run.samples[f][:, j] - take.gt_pos[f, j], axis=-1)
             first.append(d[0]), best.append(d.min())
@@ -128,7 +129,7 @@ def _run(job):
         return {"variant": variant, "high_kick_m": {x["samples"]: round(x["mean"], 3) for x in r["results"]}}
     ev.Pipeline = cls
     samples = 1 if variant == "n1" else 32
-    r = ev.evaluate([data], "val", samples=samples, no_ssi=not ssi, max_clips=clips, log=lambda *a: None)
+    r = ev.evaluate([data], PipelineOptions(samples=samples, ssi=ssi), split="val", max_clips=clips, log=lambda *a: None)
     d = r["diversity"]
     return {"variant": variant, "samples": samples, "ssi": r["ssi"], "mpjpe_cm": round(r["mpjpe_cm"], 3),
             "foot_skate_cm_s": round(r["foot_skate_cm_s"], 2), "switches": r["ssi_switches"],

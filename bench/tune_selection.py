@@ -17,7 +17,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from edgetools.eval import evaluate
+from edge.options import PipelineOptions
+from motion.evaluate import evaluate
 from edge.modelfiles import DEFAULT_DIR
 
 
@@ -25,7 +26,7 @@ def _run(job):
     path, kw = job
     if Path(path).exists():
         return json.loads(Path(path).read_text())
-    r = evaluate([kw.pop("data")], "val", log=lambda *a: None, **kw)
+    r = evaluate([kw.pop("data")], kw.pop("options"), split="val", log=lambda *a: None, **kw)
     r.pop("per_clip", None)
     Path(path).write_text(json.dumps(r, indent=2) + "\n")
     return r
@@ -53,8 +54,8 @@ def main():
     out.mkdir(parents=True, exist_ok=True)
     ws = [float(x) for x in a.weights.split(",")]
     kw = {"data": a.data, "models": a.models, "max_clips": a.clips}
-    jobs = [(out / "n1.json", {**kw, "samples": 1})] + [
-        (out / f"w{w:g}.json", {**kw, "samples": a.samples, "selection": selection(w)}) for w in ws]
+    jobs = [(out / "n1.json", {**kw, "options": PipelineOptions(samples=1)})] + [
+        (out / f"w{w:g}.json", {**kw, "options": PipelineOptions(samples=a.samples, selection=selection(w))}) for w in ws]
     with ProcessPoolExecutor(2) as ex:
         n1, *runs = ex.map(_run, jobs)
     print(f"val subset: {n1['clips']} clips, {n1['frames']} frames; N=1 mpjpe {n1['mpjpe_cm']:.3f}, "

@@ -17,11 +17,12 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from edgetools.eval import run_take
+from motion.evaluate import run_take
 from edge.imus import IMU_INDEX, ImuNoise, mask, parse_set
+from edge.options import PipelineOptions
 from edge.pipeline import Pipeline
-from edgetools.synth import wear
-from edgetools.takes import find_clips, load_take
+from motion.synth import wear
+from motion.takes import find_clips, load_take
 
 SAMPLE = Path(__file__).resolve().parent.parent / "samples" / "cmu_09_12_walk.npz"
 
@@ -54,7 +55,7 @@ def main():
     names = parse_set(a.trackers)
     if a.unplug not in names:
         ap.error(f"--unplug {a.unplug} is not among --trackers {a.trackers}")
-    pipe = Pipeline(samples=a.samples)
+    pipe = Pipeline(PipelineOptions(samples=a.samples))
     files = find_clips([a.data], "val") if a.data else [SAMPLE]
     rows = []
     for f in files:

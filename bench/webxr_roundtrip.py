@@ -28,7 +28,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from edgetools.sim.quest import EmulatedQuest
-from edgetools.takes import from_sample
+from motion.takes import from_sample
 from firmware_bridge import config as config_mod
 from firmware_bridge.service import Service
 

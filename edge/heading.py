@@ -3,8 +3,8 @@
 A body IMU's heading (yaw about +Y) is off by what the T-pose calibration left and drifts as the gyro
 integrates (edge.imus.ImuNoise: a fixed offset ~N(0, 3 deg) and a rate ~N(0, 0.5 deg/s); LoBSTR's
 sensor noise, DragPoser's noisy sensors). The waist puck and the headset are the heading references
-(in `edge eval` both are noise-free: edgetools.takes.load_take synthesises the signals without
-DeviceNoise and edgetools.eval.take_signals noises only the seven extra IMUs).
+(in `edge eval` both are noise-free: motion.takes.load_take synthesises the signals without
+DeviceNoise and motion.evaluate.take_signals noises only the seven extra IMUs).
 
 Per worn IMU a three-state Kalman filter (the IMU's heading offset, the reference's bias over the
 take, the drift rate) is fed, at a reduced rate (rate_hz), the heading of the IMU's raw orientation
@@ -25,11 +25,13 @@ seven, the pelvis relation's 2-12), and it reads the corrected IMU, so it leans 
 remaining error.
 """
 import copy
+from dataclasses import dataclass
 
 import numpy as np
 
 from edge import quat
 from edge.imus import IMU_JOINTS, NUM_IMUS
+from edge.settings import settings_from
 from edge.skeleton import NUM_JOINTS
 
 
@@ -70,6 +72,28 @@ DECODER_SPREAD_DEG = np.array([5.2, 9.0, 5.4, 10.3, 15.7, 23.4, 18.3])
 MEASUREMENT_STD_DEG = np.array([6.0, 6.0, 6.0, 6.0, 6.0, 12.0, 12.0])
 
 
+@dataclass(frozen=True)
+class HeadingSettings:
+    """The heading observer's filter: how often it updates, what it takes as the body's heading
+    ("pelvis": the waist IMU's, or "decoder": the shown sample's segments), its priors (degrees, per
+    IMU or one for all), the random walks of bias and drift, and the gates on turns and outliers."""
+    rate_hz: float = 10.0
+    reference: str = "pelvis"
+    offset_std_deg: float = 3.0
+    drift_std_deg_s: float = 0.5
+    bias_std_deg: object = None          # a number, one per IMU, or None: the reference's own spread
+    measurement_std_deg: object = tuple(MEASUREMENT_STD_DEG)     # per IMU
+    bias_walk_deg_s: float = 0.5
+    drift_walk_deg_s2: float = 0.02
+    max_turn_deg_s: float = 120.0
+    gate_sigmas: float = 3.0
+
+    @classmethod
+    def parse(cls, value):
+        """None/False (off), True (the defaults), a dict of fields, or HeadingSettings."""
+        return settings_from(cls, value, "heading")
+
+
 class HeadingObserver:
     """Online heading offset and drift of each of the seven extra IMUs (edge.imus order).
 
@@ -86,27 +110,27 @@ class HeadingObserver:
     o + b + noise, so the filter splits what it sees between o and b by their priors, and the rate
     comes from how the measurement moves over seconds."""
 
-    def __init__(self, fps=60.0, rate_hz=10.0, reference="pelvis", offset_std_deg=3.0, drift_std_deg_s=0.5,
-                 bias_std_deg=None, measurement_std_deg=MEASUREMENT_STD_DEG, bias_walk_deg_s=0.5, drift_walk_deg_s2=0.02,
-                 max_turn_deg_s=120.0, gate_sigmas=3.0):
-        if reference not in ("pelvis", "decoder"):
-            raise ValueError(f"reference must be 'pelvis' or 'decoder', got {reference!r}")
-        self.fps, self.reference = float(fps), reference
-        self.every = max(1, int(round(fps / rate_hz)))
+    def __init__(self, fps=60.0, settings=None):
+        s = self.settings = HeadingSettings() if settings is None else settings
+        if s.reference not in ("pelvis", "decoder"):
+            raise ValueError(f"reference must be 'pelvis' or 'decoder', got {s.reference!r}")
+        self.fps, self.reference = float(fps), s.reference
+        self.every = max(1, int(round(fps / s.rate_hz)))
         K = NUM_IMUS
+        bias_std_deg = s.bias_std_deg
         if bias_std_deg is None:
-            bias_std_deg = PELVIS_RELATIVE_SPREAD_DEG if reference == "pelvis" else DECODER_SPREAD_DEG
-        self.mean = np.radians(PELVIS_RELATIVE_MEAN_DEG) if reference == "pelvis" else np.zeros(K)
+            bias_std_deg = PELVIS_RELATIVE_SPREAD_DEG if s.reference == "pelvis" else DECODER_SPREAD_DEG
+        self.mean = np.radians(PELVIS_RELATIVE_MEAN_DEG) if s.reference == "pelvis" else np.zeros(K)
         # The prior of o and r is ImuNoise's, what a calibrated IMU starts with (LoBSTR's sensor noise).
         self.p0 = np.zeros((K, 3, 3))
-        self.p0[:, 0, 0] = np.radians(offset_std_deg) ** 2
+        self.p0[:, 0, 0] = np.radians(s.offset_std_deg) ** 2
         self.p0[:, 1, 1] = np.radians(np.broadcast_to(bias_std_deg, (K,))) ** 2
-        self.p0[:, 2, 2] = np.radians(drift_std_deg_s) ** 2
-        self.r = np.radians(np.broadcast_to(np.asarray(measurement_std_deg, float), (K,))) ** 2
-        self.q_bias = np.radians(bias_walk_deg_s) ** 2        # the bias wanders as the activity changes, per second
-        self.q_rate = np.radians(drift_walk_deg_s2) ** 2      # the drift rate's random walk, per second
-        self.max_turn = np.radians(max_turn_deg_s)
-        self.gate = gate_sigmas
+        self.p0[:, 2, 2] = np.radians(s.drift_std_deg_s) ** 2
+        self.r = np.radians(np.broadcast_to(np.asarray(s.measurement_std_deg, float), (K,))) ** 2
+        self.q_bias = np.radians(s.bias_walk_deg_s) ** 2        # the bias wanders as the activity changes, per second
+        self.q_rate = np.radians(s.drift_walk_deg_s2) ** 2      # the drift rate's random walk, per second
+        self.max_turn = np.radians(s.max_turn_deg_s)
+        self.gate = s.gate_sigmas
         self.x = np.zeros((K, 3))                           # (o, b, r) at frame t_state, per IMU
         self.offset, self.rate = self.x[:, 0], self.x[:, 2]
         self.t_state = np.zeros(K)

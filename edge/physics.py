@@ -1,7 +1,7 @@
 """Physical plausibility of a pose (SSI 3.2 and 5.3): the floor, the legs' clearance, and support.
 
 One place for the geometry and the thresholds: the runtime's floor clamp (edge.pipeline), the
-selection criterion (edge.criteria.PhysicalPlausibility, and its C twin) and the metrics (edgetools.metrics,
+selection criterion (edge.criteria.PhysicalPlausibility, and its C twin) and the metrics (motion.metrics,
 docs/metrics.md) read them from here. The floor is y = 0 in the world frame.
 """
 import numpy as np

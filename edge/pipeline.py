@@ -32,11 +32,14 @@ from edge import native, quat
 from edge.criteria import Composite, FrameContext, PhysicalPlausibility, Plausibility
 from edge.features import NUM_POINT_FEATURES, body_points, features, heading, imu_features
 from edge.imus import IMU_JOINTS, NUM_IMUS
+from edge.heading import HeadingObserver
 from edge.ik import FootLock, apply_limb_ik
-from edge.inference import DEFAULT_PRECISION, Autoencoder, Decoder, open_jacobian, open_models
+from edge.inference import Autoencoder, Decoder, open_jacobian, open_models
 from edge.modelfiles import ModelError
+from edge.options import PipelineOptions
 from edge.physics import INTERSECT_M, floor_lift, lowest_point, support
 from edge.plausibility import PlausibilityScorer
+from edge.refine import Refiner
 from edge.signals import EYE_OFFSET, GRIP_OFFSET, Signals
 from edge.ssi import LookaheadBuffer, Switcher, switch_to, transition_weight
 from edge.skeleton import (ANKLES, HEAD, JOINT, LEVELS, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, PELVIS_TO_HEAD,
@@ -137,22 +140,19 @@ def torso_segments(seg_m, seg_flag, waist_m, head_m):
 
 
 class Pipeline:
-    def __init__(self, models=None, samples=1, seed=0, fps=60.0, body_scale=1.0, precision=DEFAULT_PRECISION, threads=1,
-                 lookahead=None, transition=10, ssi=True, criteria=None, foot_ik=True, arm_ik=True,
-                 use_native=True, segments=True, selection=None, refine=None, heading=True):
-        if not 1 <= samples <= 128:
-            raise ValueError(f"samples must be 1..128, got {samples}")
+    def __init__(self, options=None, models=None, criteria=None):
+        """options: a PipelineOptions (edge.options; the defaults when None); models: the model folder
+        (the shipped models/ when None); criteria: SSI's selection criteria in place of the model's."""
+        o = self.options = PipelineOptions() if options is None else options
         # The newest frame's pose by default: tau frames of look-ahead put the body tau / fps behind the
         # person (167 ms at tau = 10, 60 Hz), which is for offline use (recording, edge eval --lookahead).
-        lookahead = 0 if lookahead is None else lookahead
-        if lookahead < 0 or transition < 1:
-            raise ValueError("lookahead must be >= 0 and transition >= 1 frames")
-        N = samples
+        N, fps, lookahead, transition = o.samples, o.fps, o.lookahead, o.transition
         self.max_samples = N    # allocated for; `samples` is how many run now (adaptive N: set_samples)
-        self.samples, self.fps, self.body_scale = N, fps, body_scale
+        self.samples, self.fps, self.body_scale = N, fps, o.body_scale
         self.lookahead, self.transition = lookahead, transition
-        self.ssi = ssi and N > 1
-        self.foot_ik, self.arm_ik = foot_ik, arm_ik
+        self.ssi = o.ssi and N > 1
+        self.foot_ik, self.arm_ik = o.foot_ik, o.arm_ik
+        threads, precision, use_native = o.threads, o.precision, o.use_native
         self.manifest, dec_session, ae_session = open_models(models, threads, precision)
         m = self.manifest
         # what runs: int8 falls back to fp32 where its start-up self-check fails (edge.int8check)
@@ -161,14 +161,14 @@ class Pipeline:
         self.n_features = m["features"]
         self.imus = NUM_IMUS if self.n_features > NUM_POINT_FEATURES else 0
         # A worn IMU also sets its segment's world rotation after the decoder (fk_with_segments).
-        self.segments = bool(segments and self.imus)
+        self.segments = bool(o.segments and self.imus)
         self.rows = N + 1 if N > 1 else N   # the extra row carries a live transition
         self.decoder = Decoder(dec_session, self.rows, m["latent"], m["hidden"], m["features"])
         self.recompute = Decoder(dec_session, lookahead + 1, m["latent"], m["hidden"], m["features"], recurrent=False)
         self.autoencoder = Autoencoder(ae_session, N)
         self.threshold = m["plausibility_threshold_m"]
         self.scorer = PlausibilityScorer(self.autoencoder, self.threshold, use_native)
-        chosen = selection or m.get("selection", {})        # the selection's settings: given, or the model's
+        chosen = o.selection or m.get("selection", {})      # the selection's settings: given, or the model's
         self.criteria = Composite(criteria if criteria is not None else self.default_criteria(chosen, use_native))
         self.switch_margin = float(chosen.get("switch_margin", 0.0))
         # Homing: a shown sample other than sample 0 (the prior mean, the most accurate on average) moves
@@ -185,7 +185,7 @@ class Pipeline:
         self.latent_scale = latent_scale(chosen)
         self.latents = np.zeros((N, m["latent"]), np.float32)
         if N > 1:
-            self.latents[1:] = self.latent_scale * np.random.default_rng(seed).standard_normal((N - 1, m["latent"]))
+            self.latents[1:] = self.latent_scale * np.random.default_rng(o.seed).standard_normal((N - 1, m["latent"]))
         self.decoder.latent[:N] = self.latents
         self.buffer = LookaheadBuffer(lookahead + 1, N, m["hidden"], m["features"], self.decoder.rot6d.shape[1],
                                       NUM_JOINTS)
@@ -210,7 +210,7 @@ class Pipeline:
         self._weights = np.zeros((R, 2))
         self._limb_targets = np.zeros((R, 4, 3))
         self._limb_weights = np.zeros((R, 4))
-        self._limb_weights[:, 2:] = 1.0 if arm_ik else 0.0
+        self._limb_weights[:, 2:] = 1.0 if o.arm_ik else 0.0
         self._limb_ends = np.zeros((R, 4, 3, 3))
         self._floor_lift = np.zeros((R, 2))           # how far the floor lifted each row's feet (m), per frame
         self._rest6d = np.tile(np.array([1, 0, 0, 0, 1, 0], np.float32), NUM_PREDICTED)   # the rest pose's 6D
@@ -242,21 +242,14 @@ class Pipeline:
         self.reference = NumpyFrame(self)
         self.path = CompiledFrame(self, self.native) if self.native else self.reference
         self.timing, self.stage_ns = False, np.zeros(len(STAGES) + 1, np.int64)
-        # The extra IMUs' heading observer (edge.heading), on when IMUs are worn: heading=True, a dict of its
-        # settings, or False/None for none.
-        self.heading = None
-        if heading and self.imus:
-            from edge.heading import HeadingObserver
-            self.heading = HeadingObserver(fps, **(heading if isinstance(heading, dict) else {}))
-        # Latent refinement of the shown sample (edge.refine), when asked: refine=True, or a dict of
-        # Refiner settings (steps, eps, prior, continuity, terms, ...).
+        # The extra IMUs' heading observer (edge.heading), on when IMUs are worn and options.heading is set.
+        self.heading = HeadingObserver(fps, o.heading) if o.heading is not None and self.imus else None
+        # Latent refinement of the shown sample (edge.refine), when options.refine is set.
         self.refiner = None
-        if refine:
-            from edge.refine import Refiner
+        if o.refine is not None:
             compiled = (self.native, self.path.core, lambda: self._slot_now) if self.native else None
-            self.refiner = Refiner(dec_session, m, self._forward_rows, compiled=compiled,
-                                   jacobian_session=open_jacobian(models, threads, self.precision),
-                                   **(refine if isinstance(refine, dict) else {}))
+            self.refiner = Refiner(dec_session, m, self._forward_rows, o.refine, fps, compiled=compiled,
+                                   jacobian_session=open_jacobian(models, threads, self.precision))
         self.reset()
 
 

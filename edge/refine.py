@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from edge import native
+from edge.settings import settings_from
 from edge.imus import IMU_JOINTS
 from edge.physics import FLOOR_ANKLE, FLOOR_TOE     # the lowest a toe and an ankle joint may go (as the IK's floor)
 from edge.skeleton import ANKLES, JOINT, NUM_JOINTS, TOES
@@ -200,6 +201,30 @@ for _side in "lr":
             LIMB_OF[_j] = _chain
 
 
+@dataclass(frozen=True)
+class RefineSettings:
+    """How the refiner steps: K Gauss-Newton steps a frame, the Jacobian's step along each latent axis,
+    the analytic terms' weights, and the constraint terms (names of DEFAULT_TERMS and the IMU terms, or
+    term objects) with optional {name: weight}. `edge run`'s [refine] section and `--refine` set steps
+    and terms; the rest are the tuned defaults."""
+    steps: int = 2
+    eps: float = 0.5
+    prior: float = 3e-4
+    continuity: float = 3e-4
+    damping: float = 1e-3
+    max_step: float = 3.0
+    release_s: float = 0.1
+    terms: tuple = None
+    weights: dict = None
+    ik_pull: float = 0.5
+
+    @classmethod
+    def parse(cls, value):
+        """None/False (off), True (the defaults), a dict of fields, or RefineSettings -> RefineSettings or
+        None; an unknown field is refused with the known ones."""
+        return settings_from(cls, value, "refine")
+
+
 class Refiner:
     """K Gauss-Newton steps a frame on one row's latent (see the module's docstring).
 
@@ -207,16 +232,17 @@ class Refiner:
     out)` is the pipeline's FK of decoder rows against the live frame's inputs (CompiledFrame's C
     call or NumpyFrame's numpy), into out = (local, world, pos) [R,...]."""
 
-    def __init__(self, decoder_session, manifest, forward, steps=2, eps=0.5, prior=3e-4, continuity=3e-4,
-                 damping=1e-3, max_step=3.0, release_s=0.1, fps=60.0, terms=None, weights=None, ik_pull=0.5,
-                 compiled=None, jacobian_session=None):
+    def __init__(self, decoder_session, manifest, forward, settings=None, fps=60.0, compiled=None,
+                 jacobian_session=None):
         from edge.inference import Decoder, JacobianBatch
+        s = self.settings = RefineSettings() if settings is None else settings
         L, H, F = manifest["latent"], manifest["hidden"], manifest["features"]
-        self.L, self.steps, self.eps, self.ik_pull = L, steps, eps, ik_pull
-        self.prior, self.continuity, self.damping, self.max_step = prior, continuity, damping, max_step
+        eps = s.eps
+        self.L, self.steps, self.eps, self.ik_pull = L, s.steps, eps, s.ik_pull
+        self.prior, self.continuity, self.damping, self.max_step = s.prior, s.continuity, s.damping, s.max_step
         # With no term live the latent eases back to the sample's own, by this fraction a frame (a time
         # constant of release_s), so a constraint that ends lets go smoothly (as a foot lock does).
-        self.release = 1.0 - np.exp(-1.0 / (fps * release_s))
+        self.release = 1.0 - np.exp(-1.0 / (fps * s.release_s))
         # The latent, L steps along its axes, and the sample's own latent (KeepPose's reference): on the
         # Jacobian graph (what the rows share computed once) when the models have one, else the decoder's.
         self.batch = (JacobianBatch(jacobian_session, L + 2, L, H, F) if jacobian_session is not None
@@ -235,9 +261,9 @@ class Refiner:
         self._z_addrs = tuple(native.addr(v) for v in (self.z, self.z_prev, self.z_prior))
         known = {"imus": ImuOrientation, "imus-tilt": lambda: ImuOrientation(tilt_only=True), "floor": FloorContact,
                  "targets": TargetReach, "keep": KeepPose}
-        terms = DEFAULT_TERMS if terms is None else terms
+        terms = DEFAULT_TERMS if s.terms is None else s.terms
         self.terms = [known[t]() if isinstance(t, str) else t for t in terms]   # names or term objects
-        for name, w in (weights or {}).items():         # {term name: weight}
+        for name, w in (s.weights or {}).items():       # {term name: weight}
             self.term(name).weight = w
         self._reach = self.term("targets")              # TargetReach, or None when it is not among the terms
         self.ctx = RefineContext()

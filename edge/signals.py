@@ -1,6 +1,6 @@
 """Tracker signals as the board sees them, one frame or a take: the pipeline's input (`Signals`).
 
-edgetools.synth makes them from a canonical-skeleton motion (training, `edge eval` and the device
+motion.synth makes them from a canonical-skeleton motion (training, `edge eval` and the device
 simulator all call it); on the board the synchroniser fills them from the devices.
 - headset: 6-DoF pose of the eyes (head joint plus an eye offset in the head frame);
 - controllers: 6-DoF poses at the grip (wrist plus a grip offset in the wrist frame);

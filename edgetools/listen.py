@@ -108,7 +108,7 @@ def status_loop(listener, seconds=None, every=0.25):
 
 def main(args, loop=None):
     """`edge listen PORT [--baud B] [--seconds S] [--record FILE]`: open the port (and the recording), then
-    run `loop(listener, seconds)`: the status line, or viz.live's window for --plot."""
+    run `loop(listener, seconds)`: the status line, or (edgecli, for --plot) viz.live's window."""
     loop = loop or status_loop
     record = None
     try:

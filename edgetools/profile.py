@@ -106,7 +106,7 @@ class Feeder:
     def __init__(self, hz, bench):
         import numpy as np
         from edgetools.sim import scheme
-        from edgetools.takes import from_sample
+        from motion.takes import from_sample
         from firmware_bridge.samples import HeadsetSample, TrackerSample
         take = from_sample(SAMPLE)
         s = take.signals

@@ -12,14 +12,15 @@ from pathlib import Path
 
 import numpy as np
 
-from edgetools.bvh import BvhError
+from motion.bvh import BvhError
 from edge.criteria import CollisionAvoid, TargetHit
-from edgetools.eval import run_take
+from motion.evaluate import run_take
 from edge.inference import DEFAULT_PRECISION
+from edge.options import PipelineOptions
 from edge.pipeline import Pipeline
 from edge.progress import Progress
 from edge.skeleton import JOINT
-from edgetools.takes import find_clips, load_take
+from motion.takes import find_clips, load_take
 
 KICK_HEIGHTS = {"high-kick": (0.9, 3.0), "low-kick": (0.35, 0.9)}   # toe height at the apex, metres
 LEAD_FRAMES = 20
@@ -88,7 +89,7 @@ def run_study(paths, task, samples_list, runs, split=None, models=None, max_clip
 
 
 def _one(take, task, n, seed, models, precision=DEFAULT_PRECISION, refine=None):
-    pipe = Pipeline(models, samples=n, seed=seed, precision=precision, refine=refine)   # the default criteria, plus the task's
+    pipe = Pipeline(PipelineOptions(samples=n, seed=seed, precision=precision, refine=refine), models=models)   # the default criteria, plus the task's
     if task == "avoid":
         center, radius = obstacle_for(take)
         crit = CollisionAvoid([center], [radius], joints=LEFT_LEG, weight=10.0)

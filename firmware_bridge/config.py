@@ -40,6 +40,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from edge.inference import DEFAULT_PRECISION
+from edge.options import PipelineOptions
 from firmware_bridge.transports.base import TransportError, parse_url, tracker_names
 
 
@@ -79,7 +80,13 @@ class Config:
     models: str = ""
     path: str = ""
     tracker_names: list = field(default_factory=list)
-    refine: dict = None             # Pipeline's refine= (None: off)
+    refine: dict = None             # [refine] as RefineSettings' fields (None: off)
+
+    def pipeline_options(self):
+        """The board's Pipeline, as edge.options.PipelineOptions: [runtime]'s N, look-ahead, rate and
+        precision, and [refine]."""
+        return PipelineOptions(samples=self.samples, lookahead=self.lookahead, fps=self.hz, precision=self.precision,
+                               refine=self.refine)
 
 
 from edge.imus import TRACKER_NAMES  # noqa: E402  (the body locations a tracker may be named for)

@@ -7,11 +7,11 @@ from collections import defaultdict
 
 import numpy as np
 
-from edgetools import bvh
+from motion import bvh
 from edge.progress import Progress
-from edgetools.retarget import LIMB_BONES, detect_source, direction_errors_deg, retarget
+from motion.retarget import LIMB_BONES, detect_source, direction_errors_deg, retarget
 from edge.skeleton import JOINT_NAMES
-from models.dataset import clip_paths
+from motion.dataset import clip_paths
 
 
 def main():

@@ -1,13 +1,13 @@
 """Train the pose autoencoder and the CVAE on the `train` split, select on `val`, export ONNX.
 
     python -m models.train --data ../shared/mocap [--sources cmu daz hdm05] [--minutes 100] [--device cuda]
-    python -m models.train --data .cache/pack/edgepose-pack.npz ...   # the training pack (models.pack)
+    python -m models.train --data .cache/pack/edgepose-pack.npz ...   # the training pack (motion.pack)
     torchrun --nproc_per_node=2 -m models.train ...      # the same recipe on several GPUs (PyTorch DDP)
     scripts/train-device                                 # one fixed-budget run on an accelerator, from the pack
 
 Seeded, with a progress bar and a log (models/train_log.txt). The decoder reads the 4-point features
 and the seven extra IMUs (edge.features), trained on random sensor sets with drop-outs and IMU noise
-(models.dataset.random_imus, edge.imus.ImuNoise). The shipped recipe (recipe_losses, --best-of 8):
+(motion.dataset.random_imus, edge.imus.ImuNoise). The shipped recipe (recipe_losses, --best-of 8):
   L = w_pos * (MSE(FK positions at z=0) + relaxed best-of-K MSE) + w_floor * floor depth^2
       + w_clear * leg-clearance shortfall^2 + gamma * BCE(contacts) + w_rot * MSE(6D)
 (v0.3, shipped: v0.2's run fine-tuned with --best-of 16 --eps 0.02 --clearance 10000 --lr 5e-4; see
@@ -34,9 +34,9 @@ import torch
 from edge.progress import Progress
 from edge.imus import ImuNoise
 from edge.physics import INTERSECT_M, LEG_SEGMENTS
-from edgetools.synth import DeviceNoise
+from motion.synth import DeviceNoise
 from edge.skeleton import ANKLES, HEAD, LOWER_BODY, NUM_PREDICTED, TOES
-from models import dataset as ds
+from motion import dataset as ds
 from models.nets import CVAE, HIDDEN, LATENT, PoseAE, fk_positions, matrix_from_6d
 
 LOSS = {"w_pos": 1000.0, "lambda_kl": 5.0, "gamma_bce": 0.1, "w_rot": 0.1, "w_floor": 1000.0, "w_clear": 0.0}

@@ -165,7 +165,7 @@ def write_int8_reference(folder, frames=240, rows=4, poses=240):
     the waist rotation for FK, and `poses` of its ground-truth poses for the autoencoder."""
     from edge import quat
     from edge.features import sequence_features
-    from edgetools.takes import from_sample
+    from motion.takes import from_sample
     manifest = read_manifest(folder)
     take = from_sample(Path(__file__).resolve().parent.parent / "samples" / "cmu_09_12_walk.npz")
     f, _, yaw = sequence_features(take.signals, take.fps, n_features=manifest["features"])

@@ -1,6 +1,6 @@
 """Shared by the int8 build and its report: model names, closed-loop decoder rollouts, FK, timing, data.
 
-numpy + onnxruntime only (the mocap windows come from models.dataset, which needs no torch).
+numpy + onnxruntime only (the mocap windows come from motion.dataset, which needs no torch).
 """
 
 import numpy as np
@@ -8,7 +8,7 @@ import numpy as np
 from edge.int8check import head_anchored_positions  # noqa: F401  (re-exported: quantize.build, tests)
 from edge.inference import Autoencoder, Decoder, JacobianBatch, make_session
 from edge.skeleton import NUM_PREDICTED
-from edge.timing import time_calls
+from motion.timing import time_calls
 
 MODELS = ("decoder", "autoencoder")
 
@@ -101,9 +101,9 @@ def mocap_windows(data, split, windows, window, seed, noise=True, n_features=Non
     """`windows` random training-style windows of one split: the decoder's features [W,B,F] (time-major;
     with random extra IMUs as training has them, unless n_features is 24, a model without IMU inputs),
     the head-anchored ground truth [W,B,J,3], the puck rotation in the character frame [W,B,3,3] and the
-    ground-truth local poses for the autoencoder. Uses models.dataset (cached in .cache/)."""
-    from edgetools.synth import DeviceNoise
-    from models.dataset import build, make_batch, pose_batch, window_starts
+    ground-truth local poses for the autoencoder. Uses motion.dataset (cached in .cache/)."""
+    from motion.synth import DeviceNoise
+    from motion.dataset import build, make_batch, pose_batch, window_starts
     cs = build(data, split)
     rng = np.random.default_rng(seed)
     starts = window_starts(cs, window)

@@ -3,8 +3,8 @@
     python -m quantize.report --data ../shared/mocap --json out/quant_report.json [--samples 32]
                               [--drift-frames 3000] [--timing-frames 600] [--max-clips K]
 
-- accuracy on the `val` split through the real pipeline (edgetools.eval.evaluate, N=32): mpjpe, implausible rate;
-- selection agreement: per val take, edgetools.eval.run_take with both precisions; how often SSI shows the same sample;
+- accuracy on the `val` split through the real pipeline (motion.evaluate.evaluate, N=32): mpjpe, implausible rate;
+- selection agreement: per val take, motion.evaluate.run_take with both precisions; how often SSI shows the same sample;
 - closed-loop drift: both decoders on the same feature stream (the bundled sample's, looped to 3,000
   frames), each fed its own GRU state; rot6d and FK joint-position differences at frames 100/1000/3000;
 - model file sizes;
@@ -23,14 +23,15 @@ from pathlib import Path
 import numpy as np
 
 from edge import quat
-from edgetools.eval import evaluate, run_take
+from motion.evaluate import evaluate, run_take
 from edge.features import sequence_features
 from edge.inference import make_session
 from edge.modelfiles import DEFAULT_DIR, ModelError, load_manifest
+from edge.options import PipelineOptions
 from edge.pipeline import Pipeline
 from edge.progress import Progress
-from edgetools.takes import find_clips, from_sample, load_take
-from edge.timing import time_calls
+from motion.takes import find_clips, from_sample, load_take
+from motion.timing import time_calls
 from quantize.common import MODELS, fp32_name, head_anchored_positions, int8_name, latents_for, pin_one_core, rollout
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -43,8 +44,8 @@ def accuracy(data, samples, max_clips, models, log):
     out = {}
     for prec in PRECISIONS:
         paths = find_clips([data], "val")[:max_clips] if max_clips else [data]
-        r = evaluate(paths, split=None if max_clips else "val", samples=samples, precision=prec, models=models,
-                     log=log)
+        r = evaluate(paths, PipelineOptions(samples=samples, precision=prec), split=None if max_clips else "val",
+                     models=models, log=log)
         out[prec] = {k: r[k] for k in ("clips", "frames", "mpjpe_cm", "implausible_rate", "ssi_switches",
                                        "jitter_m_s3", "foot_skate_cm_s", "seconds")}
     return out
@@ -53,7 +54,7 @@ def accuracy(data, samples, max_clips, models, log):
 def selection_agreement(data, samples, max_clips, models):
     """Fraction of frames where both precisions show the same sample (run_take on every val take)."""
     files = find_clips([data], "val")[:max_clips or None]
-    pipes = {p: Pipeline(models, samples=samples, precision=p) for p in PRECISIONS}
+    pipes = {p: Pipeline(PipelineOptions(samples=samples, precision=p), models=models) for p in PRECISIONS}
     same = frames = 0
     per_take_min = 1.0
     switches = {p: 0 for p in PRECISIONS}
@@ -139,7 +140,7 @@ def latency(models, frames=600, rounds=6):
     sig = [take.signals.slice(t, t + 1) for t in range(take.frames)]
     res = {"core": core, "frames_per_precision": frames}
     for n in (32, 100):
-        pipes = {p: Pipeline(models, samples=n, precision=p) for p in PRECISIONS}
+        pipes = {p: Pipeline(PipelineOptions(samples=n, precision=p), models=models) for p in PRECISIONS}
         for p in pipes.values():
             for t in range(120):
                 p.step(sig[t % len(sig)])

@@ -33,7 +33,7 @@ def worn_signals(take, names=None, seed=0, drops=True):
     their flags fade out and back in (edge.imus), so tests cross every IMU path."""
     import numpy as np
     from edge.imus import IMU_LOCATIONS, ImuNoise, dragposer_drops, mask
-    from edgetools.synth import wear
+    from motion.synth import wear
     rng = np.random.default_rng(seed)
     worn = mask(IMU_LOCATIONS if names is None else names)
     alive = dragposer_drops(rng, take.frames, worn, p=0.02, frames=50) if drops else None

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from edgetools import bvh
-from edgetools.bvh import BvhError
+from motion import bvh
+from motion.bvh import BvhError
 from tests.conftest import SKELETON_CLIPS
 
 TINY = """HIERARCHY

@@ -1,4 +1,4 @@
-"""Each `edge` subcommand run as a user runs it: a subprocess (`python -m edgetools.cli`, what the `edge`
+"""Each `edge` subcommand run as a user runs it: a subprocess (`python -m edgecli`, what the `edge`
 script calls) on the bundled sample and session, simulated devices on real ptys where a board would have
 hardware, with short bounded runs. Checks the exit code, what the command prints and the files it says
 it writes; the functions behind the commands have their own tests."""
@@ -19,7 +19,7 @@ SESSION = ROOT / "samples" / "cmu_09_12_walk.session.npz"
 
 
 def edge_cmd(*args):
-    return [sys.executable, "-m", "edgetools.cli", *map(str, args)]
+    return [sys.executable, "-m", "edgecli", *map(str, args)]
 
 
 def edge(*args, cwd, timeout=120, env=None):
@@ -99,7 +99,7 @@ class Lines:
 
 def play_headset(fd, stop, hz=60.0):
     """The bundled take's head and hands as a headset sends them (HEADSET_POSE frames) on a pty master."""
-    from edgetools.takes import from_sample
+    from motion.takes import from_sample
     from firmware_bridge.samples import HeadsetSample
     from firmware_bridge.wire import messages
     sig = from_sample(SAMPLE).signals
@@ -164,7 +164,7 @@ def play_headset_and_hub(headset_fd, hub_fd, stop, hz=60.0):
     """The bundled take as a headset (HEADSET_POSE) and a tracker hub with the waist puck
     (TRACKER_SAMPLES) send it, each on its pty master."""
     from tests.test_service import feed
-    from edgetools.takes import from_sample
+    from motion.takes import from_sample
     feed(from_sample(SAMPLE), headset_fd, hub_fd, stop, hz)
 
 

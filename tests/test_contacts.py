@@ -1,7 +1,7 @@
-"""Foot-contact labels from motion (edge.contacts): a planted foot is in contact, a swinging or raised one is not."""
+"""Foot-contact labels from motion (motion.contacts): a planted foot is in contact, a swinging or raised one is not."""
 import numpy as np
 
-from edge.contacts import contact_labels, savgol
+from motion.contacts import contact_labels, savgol
 
 
 def test_savgol_preserves_cubics_away_from_edges():

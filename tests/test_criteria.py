@@ -61,15 +61,16 @@ def test_ssi_samples_are_drawn_at_the_manifests_latent_scale_and_a_bad_one_is_re
     (0, 4] fails at start-up with the fix."""
     import pytest
     from edge.modelfiles import ModelError, load_manifest
+    from edge.options import PipelineOptions
     from edge.pipeline import Pipeline
     scale = load_manifest(need=())["selection"]["latent_scale"]
     draws = np.random.default_rng(0).standard_normal((7, 30))
-    pipe = Pipeline(samples=8, seed=0)
+    pipe = Pipeline(PipelineOptions(samples=8, seed=0))
     assert scale == pipe.latent_scale != 1.0
     np.testing.assert_array_equal(pipe.latents[0], 0.0)
     np.testing.assert_allclose(pipe.latents[1:], scale * draws, rtol=1e-6)
-    wide = Pipeline(samples=8, seed=0, selection={"plausibility": 1.0, "latent_scale": 1.0})
+    wide = Pipeline(PipelineOptions(samples=8, seed=0, selection={"plausibility": 1.0, "latent_scale": 1.0}))
     np.testing.assert_allclose(wide.latents[1:], draws, rtol=1e-6)
     for bad in (0.0, -1.0, 9.0, float("nan"), "0.7", True):
         with pytest.raises(ModelError, match="latent_scale"):
-            Pipeline(samples=2, selection={"plausibility": 1.0, "latent_scale": bad})
+            Pipeline(PipelineOptions(samples=2, selection={"plausibility": 1.0, "latent_scale": bad}))

@@ -88,7 +88,7 @@ NOT_RUNNABLE = {
         f"{BOARD}, and runs until Ctrl-C; tests/test_cli.py runs edge run on a pty headset",
     "edge listen /dev/ttyUSB0": "a USB serial adapter on the pose stream; tests/test_cli.py runs edge listen on a pty",
     ".venv/bin/pip install -e .[train]": "installs PyTorch; CI does it (EDGEPOSE_EXTRAS=train ./scripts/test)",
-    ".venv/bin/python -m models.pack": "reads all of ../shared/mocap (80 s) and writes the 27 MiB pack; "
+    ".venv/bin/python -m motion.pack": "reads all of ../shared/mocap (80 s) and writes the 27 MiB pack; "
                                        "tests/test_train_device.py builds and checks a pack of four clips",
     "scripts/train-device --minutes 7 --sizes 192,256": "needs an accelerator (the device tool) and the "
                                                        "pack; tests/test_train_device.py runs it on CPU at a tiny size",
@@ -189,7 +189,7 @@ def program(word):
         raise AssertionError(f"no mapping for the program {word!r}: add a replace= to its Short")
     if name == "edge":
         script = Path(sys.executable).with_name("edge")
-        return [str(script)] if script.exists() else [sys.executable, "-m", "edgetools.cli"]
+        return [str(script)] if script.exists() else [sys.executable, "-m", "edgecli"]
     return [sys.executable]
 
 
@@ -281,7 +281,7 @@ def resolves(name):
 
 
 def test_every_dotted_name_the_docs_cite_exists():
-    """README.md and docs/*.md name the code they describe (`edge.ssi.Switcher`, `edgetools.synth.synthesize`):
+    """README.md and docs/*.md name the code they describe (`edge.ssi.Switcher`, `motion.synth.synthesize`):
     each such name imports, so a rename or a removal shows in the docs that still cite it."""
     cited = {(doc.name, m.group(1).rstrip(".")) for doc in DOCS for m in DOTTED.finditer(doc.read_text())}
     assert len(cited) > 25

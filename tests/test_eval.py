@@ -4,9 +4,10 @@ import json
 import numpy as np
 import pytest
 
-from edgetools.cli import main
+from edgecli import main
+from edge.options import PipelineOptions
 from edge.pipeline import Pipeline
-from edgetools.takes import from_sample
+from motion.takes import from_sample
 from tests.conftest import SAMPLE
 
 REQUIRED = ("clips", "frames", "samples", "precision", "mpjpe_cm", "mpjve_cm_s", "mpjae_cm_s2", "jitter_m_s3",
@@ -38,7 +39,7 @@ def test_pipeline_is_deterministic_with_ssi_samples_and_switches():
     sig = take.signals
     outs, switches = [], []
     for _ in range(2):
-        pipe = Pipeline(samples=8, lookahead=5)
+        pipe = Pipeline(PipelineOptions(samples=8, lookahead=5))
         poses = [pipe.step(sig.slice(t % take.frames, t % take.frames + 1)) for t in range(400)]
         outs.append(np.stack([p.positions.copy() for p in poses if p is not None]))
         switches.append(list(pipe.switches))
@@ -65,24 +66,25 @@ def test_malformed_bvh_is_skipped_with_its_reason(tmp_path, capsys):
 
 def test_bad_sample_count_is_refused():
     with pytest.raises(ValueError, match="samples"):
-        Pipeline(samples=0)
+        Pipeline(PipelineOptions(samples=0))
 
 
 def test_eval_runs_the_extra_imus_it_is_told_and_says_which(tmp_path):
     """--trackers synthesises those IMUs from the clip (with IMU noise); the JSON names them, and the
     physical and diversity metrics are there, on the prediction and on the ground truth."""
-    from edgetools.eval import evaluate
+    from motion.evaluate import evaluate
     from edge.imus import parse_set
     from edge.pipeline import Pipeline
-    if not Pipeline(samples=1).imus:
+    if not Pipeline(PipelineOptions(samples=1)).imus:
         pytest.skip("the shipped decoder reads no extra IMUs")
-    base = evaluate([str(SAMPLE)], samples=4, max_frames=400, log=lambda *a: None)
+    base = evaluate([str(SAMPLE)], PipelineOptions(samples=4), max_frames=400, log=lambda *a: None)
     four = parse_set("l_thigh,r_thigh,l_shin,r_shin")
     # Without the heading observer: on these 400 frames of one walk it has not settled and costs the
     # leg IMUs 0.2 cm (on all of val it gains; models/MODEL_CARD.md). This test is about the plumbing.
-    legs = evaluate([str(SAMPLE)], samples=4, max_frames=400, log=lambda *a: None, trackers=four, heading=False)
-    faulty = evaluate([str(SAMPLE)], samples=4, max_frames=400, log=lambda *a: None, trackers=four, faults="disconnect",
-                      heading=False)
+    legs = evaluate([str(SAMPLE)], PipelineOptions(samples=4, heading=False), max_frames=400, log=lambda *a: None,
+                    trackers=four)
+    faulty = evaluate([str(SAMPLE)], PipelineOptions(samples=4, heading=False), max_frames=400, log=lambda *a: None,
+                      trackers=four, faults="disconnect")
     assert base["trackers"] == ["waist"] and legs["trackers"] == ["waist", "l_thigh", "r_thigh", "l_shin", "r_shin"]
     assert faulty["faults"] == "disconnect" and legs["imu_segments"]
     assert legs["mpjpe_cm"] < base["mpjpe_cm"]                 # four leg IMUs beat none
@@ -91,7 +93,7 @@ def test_eval_runs_the_extra_imus_it_is_told_and_says_which(tmp_path):
         assert k in base and k in base["ground_truth"]
     d = base["diversity"]
     assert d["apd_lower_cm"] > 0.1 and d["oracle_lower_cm"] < d["average_sample_lower_cm"]   # the samples differ
-    assert evaluate([str(SAMPLE)], samples=1, max_frames=200, log=lambda *a: None)["diversity"] == {}
+    assert evaluate([str(SAMPLE)], PipelineOptions(samples=1), max_frames=200, log=lambda *a: None)["diversity"] == {}
     with pytest.raises(ValueError, match="disconnect"):
         evaluate([str(SAMPLE)], max_frames=100, faults="unplug", log=lambda *a: None)
 
@@ -100,7 +102,7 @@ def test_eval_imus_carry_the_noise_they_are_given():
     """take_signals' IMU noise is a parameter (bench/error_budget.py measures with none): noise-free
     IMUs report the take's own segment orientations, the default noise does not."""
     from edge.imus import ImuNoise, mask
-    from edgetools.eval import take_signals
+    from motion.evaluate import take_signals
     take = from_sample(SAMPLE)
     shins = mask(("l_shin", "r_shin")) > 0
     clean = take_signals(take, ("l_shin", "r_shin"), imu_noise=ImuNoise(0.0, 0.0, 0.0, 0.0))

@@ -3,7 +3,7 @@ import numpy as np
 
 from edge import quat
 from edge.features import body_points, derive_waist_position, sequence_features
-from edgetools.synth import DeviceNoise, synthesize
+from motion.synth import DeviceNoise, synthesize
 from edge.skeleton import JOINT, NUM_JOINTS, PELVIS_HEIGHT, fk
 
 

@@ -22,7 +22,7 @@ from edge import quat
 from edge.skeleton import fk
 from edgetools.listen import Listener
 from edgetools.sim.devices import wait_readable
-from edgetools.takes import from_sample
+from motion.takes import from_sample
 from firmware_bridge import config as config_mod
 from firmware_bridge.samples import HeadsetSample, TrackerSample
 from firmware_bridge.service import Service

@@ -4,8 +4,9 @@ import pytest
 
 from conftest import SAMPLE
 from edge import quat
-from edge.heading import HeadingObserver, heading_of, wrap
+from edge.heading import HeadingObserver, HeadingSettings, heading_of, wrap
 from edge.imus import IMU_LOCATIONS, NUM_IMUS, mask
+from edge.options import PipelineOptions
 
 FPS = 60.0
 OFFSET_DEG = np.array([4.0, -3.0, 5.0, -4.0, 3.0, -5.0, 4.0])
@@ -65,7 +66,7 @@ def test_offset_and_drift_are_estimated_against_a_faithful_pelvis():
     and a drift of 0.3-0.6 deg/s are tracked to within 0.5 deg from 5 s on."""
     waist, segments = synthetic_walk()
     imu, err = with_heading_error(segments)
-    ob = HeadingObserver(FPS, bias_std_deg=0.0, bias_walk_deg_s=0.0, measurement_std_deg=1.0)
+    ob = HeadingObserver(FPS, HeadingSettings(bias_std_deg=0.0, bias_walk_deg_s=0.0, measurement_std_deg=1.0))
     rot = run_observer(ob, imu, np.ones((len(imu), NUM_IMUS)), waist)
     left = heading_error_deg(rot, segments)[int(5 * FPS):]
     assert np.abs(left).max() < 0.5, np.abs(left).max(0)
@@ -128,7 +129,7 @@ def test_reset_forgets_the_take():
 
 def test_unknown_reference_is_refused():
     with pytest.raises(ValueError, match="reference"):
-        HeadingObserver(FPS, reference="chest")
+        HeadingObserver(FPS, HeadingSettings(reference="chest"))
 
 
 @pytest.mark.parametrize("reference, kept", [("pelvis", 0.7), ("decoder", None)])
@@ -138,8 +139,8 @@ def test_pipeline_corrects_what_the_core_and_the_numpy_path_read(reference, kept
     against the body (the default) the IMUs the pipeline used keep under `kept` of the heading error
     they came with over 5-10 s (the decoder's own segments are too biased to promise anything)."""
     from edge.pipeline import Pipeline
-    from edgetools.synth import wear
-    from edgetools.takes import load_take
+    from motion.synth import wear
+    from motion.takes import load_take
     take = load_take(SAMPLE)
     T = 600
     sig = wear(take.signals.slice(0, T), mask(IMU_LOCATIONS), take.fps)
@@ -147,7 +148,7 @@ def test_pipeline_corrects_what_the_core_and_the_numpy_path_read(reference, kept
     truth = take.signals.imu_rot[:T]
     poses, used = {}, {}
     for native in (True, False):
-        pipe = Pipeline(heading={"reference": reference}, use_native=native)
+        pipe = Pipeline(PipelineOptions(heading={"reference": reference}, use_native=native))
         assert pipe.heading is not None
         out, got = [], []
         for t in range(T):
@@ -165,12 +166,12 @@ def test_pipeline_corrects_what_the_core_and_the_numpy_path_read(reference, kept
 
 def test_pipeline_without_imus_is_unchanged_by_the_observer():
     from edge.pipeline import Pipeline
-    from edgetools.takes import load_take
+    from motion.takes import load_take
     take = load_take(SAMPLE)
     sig = take.signals.slice(0, 120)
     out = {}
     for h in (None, True):
-        pipe = Pipeline(heading=h)
+        pipe = Pipeline(PipelineOptions(heading=h))
         out[h] = np.array([pipe.step(sig.slice(t, t + 1)).positions.copy() for t in range(120)])
     np.testing.assert_array_equal(out[None], out[True])
 
@@ -199,13 +200,13 @@ def test_pipeline_reset_starts_the_observer_again():
     """Two runs of the same take, each after reset(), make the same poses: the observer's estimate
     from the first does not leak into the second (edge eval resets between takes)."""
     from edge.pipeline import Pipeline
-    from edgetools.synth import wear
-    from edgetools.takes import load_take
+    from motion.synth import wear
+    from motion.takes import load_take
     take = load_take(SAMPLE)
     T = 300
     sig = wear(take.signals.slice(0, T), mask(IMU_LOCATIONS), take.fps)
     sig.imu_rot, _ = with_heading_error(sig.imu_rot)
-    pipe, runs = Pipeline(heading=True), []
+    pipe, runs = Pipeline(PipelineOptions(heading=True)), []
     for _ in range(2):
         pipe.reset()
         runs.append(np.array([pipe.step(sig.slice(t, t + 1)).positions.copy() for t in range(T)]))
@@ -213,8 +214,8 @@ def test_pipeline_reset_starts_the_observer_again():
 
 
 def test_edge_eval_passes_heading_through():
-    from edgetools.eval import evaluate
-    runs = {h: evaluate([SAMPLE], trackers=("l_shin", "r_shin"), max_frames=240, heading=h, log=lambda *a: None)
+    from motion.evaluate import evaluate
+    runs = {h: evaluate([SAMPLE], PipelineOptions(heading=h), trackers=("l_shin", "r_shin"), max_frames=240, log=lambda *a: None)
             for h in (None, True)}
     assert runs[True]["heading_observer"] and not runs[None]["heading_observer"]
     assert runs[True]["mpjpe_cm"] != runs[None]["mpjpe_cm"]

@@ -13,13 +13,14 @@ import pytest
 
 from edge.int8check import BOUNDS, REFERENCE
 from edge.modelfiles import DEFAULT_DIR
+from edge.options import PipelineOptions
 from edge.pipeline import Pipeline
-from edgetools.takes import from_sample
+from motion.takes import from_sample
 from tests.conftest import ROOT, SAMPLE
 
 
 def test_the_shipped_int8_passes_its_self_check_on_this_cpu():
-    pipe = Pipeline(samples=1, precision="int8")
+    pipe = Pipeline(PipelineOptions(samples=1, precision="int8"))
     check = pipe.manifest["int8_check"]
     assert pipe.precision == "int8" and pipe.precision_note == ""
     assert check["ok"] and check["decoder_fk_max_cm"] <= BOUNDS["decoder_fk_max_cm"]
@@ -39,15 +40,15 @@ def strict_models(tmp_path):
 
 
 def test_int8_that_disagrees_falls_back_to_fp32_says_why_once_and_runs_fp32s_body(strict_models, capsys):
-    pipe = Pipeline(strict_models, samples=1, precision="int8")
-    again = Pipeline(strict_models, samples=1, precision="int8")
+    pipe = Pipeline(PipelineOptions(samples=1, precision="int8"), models=strict_models)
+    again = Pipeline(PipelineOptions(samples=1, precision="int8"), models=strict_models)
     said = capsys.readouterr().err
     assert pipe.precision == "fp32" and not pipe.manifest["int8_check"]["ok"]
     assert pipe.precision_note.startswith("int8 off on this CPU: decoder FK ") and "bound 0.001" in pipe.precision_note
     assert said.count("int8 off on this CPU") == 1 and "running the fp32 models" in said     # once a process
     assert again.precision == "fp32"
     take = from_sample(SAMPLE)
-    fp32 = Pipeline(strict_models, samples=1, precision="fp32")
+    fp32 = Pipeline(PipelineOptions(samples=1, precision="fp32"), models=strict_models)
     for t in range(30):
         got, want = pipe.step(take.signals.slice(t, t + 1)), fp32.step(take.signals.slice(t, t + 1))
     assert np.array_equal(got.positions, want.positions)

@@ -7,7 +7,7 @@ import pytest
 from edge.features import sequence_features
 from edge.inference import Decoder, load_models
 from edge.modelfiles import DEFAULT_DIR, ModelError, load_manifest
-from edgetools.takes import from_sample
+from motion.takes import from_sample
 from tests.conftest import SAMPLE
 
 
@@ -58,7 +58,7 @@ def _sample_features(T=300):
     """The bundled walk's decoder input, as wide as the shipped decoder reads it; with the extra IMUs
     (when it reads them) worn on both legs and dropping out (edge.imus), so those inputs are exercised."""
     from edge.imus import IMU_LOCATIONS, ImuNoise, dragposer_drops, mask
-    from edgetools.synth import wear
+    from motion.synth import wear
     take = from_sample(SAMPLE)
     rng = np.random.default_rng(0)
     worn = mask(IMU_LOCATIONS[1:5])
@@ -141,10 +141,10 @@ def test_learned_prior_step_at_zero_epsilon_decodes_the_prior_mean(torch):
 
 
 def test_vigorous_windows_are_those_that_lift_a_toe():
-    """--vigorous draws from the windows whose truth lifts a toe 35 cm (models.dataset.vigorous_starts):
+    """--vigorous draws from the windows whose truth lifts a toe 35 cm (motion.dataset.vigorous_starts):
     a standing body lifted 50 cm over frames 100..129 makes exactly the 60-frame windows holding one
     of those frames vigorous."""
-    from models import dataset as ds
+    from motion import dataset as ds
     from edge.skeleton import NUM_JOINTS, PELVIS_HEIGHT
     F = 400
     rot = np.zeros((F, NUM_JOINTS, 4), np.float32)

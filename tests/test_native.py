@@ -9,10 +9,11 @@ import pytest
 
 from edge import native, quat
 from edge.inference import Autoencoder, open_models
+from edge.options import PipelineOptions
 from edge.pipeline import LIMB_CHAINS, LIMB_POLES, Pipeline
 from edge.plausibility import PlausibilityScorer
 from edge.skeleton import ANKLES, HEAD, JOINT, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, fk
-from edgetools.takes import from_sample
+from motion.takes import from_sample
 from tests.conftest import SAMPLE, worn_signals
 
 lib = native.load()
@@ -82,7 +83,7 @@ def test_limb_ik_matches_numpy_on_reachable_unreachable_and_straight_chains():
     hand_m, head_m = random_rotations((R, 2), 6), random_rotations((R,), 7)
     results = []
     # NumpyFrame.post: legs to foot goals, arms onto controllers, head; and ep_post, its C form.
-    pipe = Pipeline(samples=R, use_native=False)
+    pipe = Pipeline(PipelineOptions(samples=R, use_native=False))
     pipe._local[:R], pipe._world[:R], pipe._pos[:R] = loc, W, P
     pipe._targets[:R], pipe._weights[:R] = targets[:, :2], weights
     pipe.reference.post(R, targets[:, 2:].copy(), hand_m, head_m)
@@ -142,7 +143,7 @@ def test_pipeline_output_is_the_same_with_and_without_the_compiled_core(samples,
     sig = worn_signals(take)            # every extra IMU worn, dropping out now and then
     runs = []
     for use_native in (True, False):
-        pipe = Pipeline(samples=samples, ssi=ssi, use_native=use_native, foot_ik=ik != "arms", arm_ik=ik != "feet")
+        pipe = Pipeline(PipelineOptions(samples=samples, ssi=ssi, use_native=use_native, foot_ik=ik != "arms", arm_ik=ik != "feet"))
         assert (pipe.native is not None) == use_native
         poses = []
         for t in range(400):
@@ -164,7 +165,7 @@ def _python(code, **env):
 
 
 def test_without_a_compiler_the_pipeline_falls_back_to_numpy_and_says_so(tmp_path):
-    code = ("from edge import native; from edge.pipeline import Pipeline; p = Pipeline(samples=2); "
+    code = ("from edge import native; from edge.options import PipelineOptions; from edge.pipeline import Pipeline; p = Pipeline(PipelineOptions(samples=2)); "
             "print('native' if p.native else 'numpy', native.why_unavailable())")
     r = _python(code, CC="/nonexistent/cc", EDGEPOSE_CACHE=str(tmp_path))
     assert r.returncode == 0, r.stderr
@@ -253,7 +254,7 @@ def test_frame_features_are_bit_identical_to_the_numpy_features_training_used():
     from edge.features import body_points, features, heading, imu_features
     take = from_sample(SAMPLE)
     signals = worn_signals(take)
-    pipe = Pipeline(samples=1, body_scale=1.07)
+    pipe = Pipeline(PipelineOptions(samples=1, body_scale=1.07))
     prev, state = None, {}
     for t in range(300):
         sig = signals.slice(t, t + 1)
@@ -293,7 +294,7 @@ def test_a_decoder_swapped_in_after_construction_is_the_one_the_compiled_core_re
     """bench/reference.py swaps in a PyTorch decoder; the C calls must follow (not the freed buffers)."""
     from edge.inference import Decoder
     take = from_sample(SAMPLE)
-    plain, swapped = Pipeline(samples=4, precision="fp32"), Pipeline(samples=4, precision="fp32")
+    plain, swapped = Pipeline(PipelineOptions(samples=4, precision="fp32")), Pipeline(PipelineOptions(samples=4, precision="fp32"))
     m = swapped.manifest
     swapped.decoder = Decoder(swapped.decoder.session, swapped.rows, m["latent"], m["hidden"], m["features"])
     swapped.decoder.latent[:4] = swapped.latents
@@ -306,7 +307,7 @@ def test_a_decoder_swapped_in_after_construction_is_the_one_the_compiled_core_re
 def test_the_live_frame_inputs_land_in_the_ring_bit_identical_to_the_numpy_path():
     take = from_sample(SAMPLE)
     sig = worn_signals(take)
-    pipes = [Pipeline(samples=8, use_native=u, precision="fp32") for u in (True, False)]
+    pipes = [Pipeline(PipelineOptions(samples=8, use_native=u, precision="fp32")) for u in (True, False)]
     for t in range(40):
         for p in pipes:
             p.step(sig.slice(t, t + 1))

@@ -1,12 +1,12 @@
 """Pose outputs: OSC wire format, VMC and VRChat over real UDP on 127.0.0.1, BVH recordings that
-an independent reader (the `bvh` package on PyPI) and edgetools.bvh both load back."""
+an independent reader (the `bvh` package on PyPI) and motion.bvh both load back."""
 import socket
 import struct
 
 import numpy as np
 import pytest
 
-from edgetools import bvh as edge_bvh
+from motion import bvh as edge_bvh
 from edge import quat
 from edge.pipeline import Pose
 from edge.signals import EYE_OFFSET
@@ -413,7 +413,7 @@ def test_every_output_carries_the_calibrated_body_size(receiver, tmp_path):
     assert np.allclose(position, pose.positions[0] * k * [-1, 1, 1], atol=FLOAT32_TOL)
     with BvhWriter(tmp_path / "k.bvh", scale=k) as bvh:
         bvh.send(pose)
-    from edgetools import bvh as bvh_file
+    from motion import bvh as bvh_file
     clip = bvh_file.load(tmp_path / "k.bvh")
     named = {n: clip.offsets[i] / 100.0 for i, n in enumerate(clip.names) if n in JOINT}
     assert len(named) == len(OFFSETS)

@@ -1,14 +1,15 @@
-"""Physical plausibility: the geometry and metrics (edge.physics, edgetools.metrics), the floor clamp in the
+"""Physical plausibility: the geometry and metrics (edge.physics, motion.metrics), the floor clamp in the
 foot IK, and the selection criterion (numpy and compiled core alike)."""
 import numpy as np
 import pytest
 
-from edgetools import metrics
+from motion import metrics
 from edge.criteria import FrameContext, PhysicalPlausibility
 from edge.physics import FLOOR_ANKLE, FLOOR_TOE, foot_height, leg_gap, segment_distance
+from edge.options import PipelineOptions
 from edge.pipeline import Pipeline, supported_contacts
 from edge.skeleton import ANKLES, JOINT, REST, TOES, PELVIS_HEIGHT
-from edgetools.takes import from_sample
+from motion.takes import from_sample
 from conftest import SAMPLE
 
 STANDING = REST + [0.0, PELVIS_HEIGHT, 0.0]          # the rest pose on the floor
@@ -42,7 +43,7 @@ def test_foot_ik_never_leaves_a_foot_in_the_floor_on_either_path():
     sig = take.signals
     sunk = type(sig)(**{**vars(sig), "head_pos": sig.head_pos - [0, 0.15, 0], "hand_pos": sig.hand_pos - [0, 0.15, 0]})
     for native in (True, False):
-        pipe = Pipeline(samples=1, use_native=native)
+        pipe = Pipeline(PipelineOptions(samples=1, use_native=native))
         low, lifted = [], []
         for t in range(300):
             pose = pipe.step(sunk.slice(t, t + 1))
@@ -97,7 +98,7 @@ def test_the_output_never_says_contact_for_a_foot_in_the_air(native):
     """A foot's reported contact is at most what its height lets it bear (edge.physics.support)."""
     from edge.physics import support
     take = from_sample(SAMPLE)
-    pipe = Pipeline(samples=4, use_native=native)
+    pipe = Pipeline(PipelineOptions(samples=4, use_native=native))
     lifted = 0
     for t in range(400):
         pose = pipe.step(take.signals.slice(t, t + 1))

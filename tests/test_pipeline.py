@@ -5,8 +5,9 @@ import tracemalloc
 import numpy as np
 import pytest
 
+from edge.options import PipelineOptions
 from edge.pipeline import Pipeline
-from edgetools.takes import from_sample
+from motion.takes import from_sample
 from tests.conftest import SAMPLE
 
 
@@ -17,7 +18,7 @@ def take():
 
 @pytest.mark.parametrize("tau", [0, 3, 10])
 def test_output_latency_is_exactly_tau_frames(take, tau):
-    pipe = Pipeline(samples=4, lookahead=tau)
+    pipe = Pipeline(PipelineOptions(samples=4, lookahead=tau))
     for t in range(40):
         pose = pipe.step(take.signals.slice(t, t + 1))
         if t < tau:
@@ -35,10 +36,10 @@ def test_by_default_the_board_sends_frame_t_at_tick_t(take):
     cfg = config_mod.from_dict({"headset": {"url": "serial:///dev/null?role=headset"},
                                 "runtime": {"samples": 8}}, "default")
     assert cfg.lookahead == 0
-    pipe = Pipeline(samples=cfg.samples, lookahead=cfg.lookahead)
+    pipe = Pipeline(cfg.pipeline_options())
     for t in range(40):
         assert pipe.step(take.signals.slice(t, t + 1)).frame == t
-    assert Pipeline(samples=8).lookahead == 0 and pipe.flush() == []
+    assert Pipeline(PipelineOptions(samples=8)).lookahead == 0 and pipe.flush() == []
 
 
 def test_a_switch_at_tau_0_is_eased_forward_from_the_shown_pose(take):
@@ -56,7 +57,7 @@ def test_a_switch_at_tau_0_is_eased_forward_from_the_shown_pose(take):
 def test_the_sample_moved_to_takes_the_shown_samples_foot_locks(take):
     """A switch hands the shown sample's foot locks to the sample it moves to, so a planted foot stays
     where the user sees it instead of sliding to where the other sample had planted it."""
-    pipe = Pipeline(samples=6, lookahead=0, criteria=[], precision="fp32")
+    pipe = Pipeline(PipelineOptions(samples=6, lookahead=0, precision="fp32"), criteria=[])
     pipe.criteria.criteria.append(ForcedSwitch(pipe, at=40))      # from sample 0 to sample 3 at frame 40
     for t in range(41):
         pipe.step(take.signals.slice(t, t + 1))
@@ -72,7 +73,7 @@ def test_the_shown_sample_goes_home_to_the_prior_mean_once_that_costs_no_more(ta
     """Homing (selection.home_after): after a move away from sample 0, the output moves back to it with
     the same eased move once sample 0 has cost no more than the shown sample for home_after frames in a
     row (counted from when a new move may start: the last one has been sent)."""
-    pipe = Pipeline(samples=6, lookahead=0, criteria=[], precision="fp32")
+    pipe = Pipeline(PipelineOptions(samples=6, lookahead=0, precision="fp32"), criteria=[])
     pipe.criteria.criteria.append(ForcedSwitch(pipe, at=40))      # to sample 3 at 40; all costs 0 after
     pipe.home_after = 10
     for t in range(100):
@@ -81,7 +82,7 @@ def test_the_shown_sample_goes_home_to_the_prior_mean_once_that_costs_no_more(ta
 
 
 def test_single_sample_is_the_prior_mean_and_never_switches(take):
-    pipe = Pipeline(samples=1)
+    pipe = Pipeline(PipelineOptions(samples=1))
     assert np.all(pipe.latents == 0) and pipe.lookahead == 0 and not pipe.ssi
     for t in range(100):
         assert pipe.step(take.signals.slice(t, t + 1)).sample == 0
@@ -89,7 +90,7 @@ def test_single_sample_is_the_prior_mean_and_never_switches(take):
 
 
 def test_no_ssi_keeps_the_starting_sample_with_random_latents(take):
-    pipe = Pipeline(samples=8, ssi=False)
+    pipe = Pipeline(PipelineOptions(samples=8, ssi=False))
     assert np.std(pipe.latents) > 0.5
     poses = [pipe.step(take.signals.slice(t, t + 1)) for t in range(200)]
     assert {p.sample for p in poses if p is not None} == {0} and list(pipe.switches) == []
@@ -114,7 +115,7 @@ def run_forced_switch(take, lookahead, at, frames, transition=10):
     """Run with a switch forced at frame `at`; returns the pipeline, {frame: (positions, sample, in
     transition)} and sample 3's own pose at frame at-1 as the buffer held it at the switch."""
     # fp32: a recomputed frame then matches the live one exactly (int8's per-batch activation scales do not)
-    pipe = Pipeline(samples=6, lookahead=lookahead, transition=transition, criteria=[], precision="fp32")
+    pipe = Pipeline(PipelineOptions(samples=6, lookahead=lookahead, transition=transition, precision="fp32"), criteria=[])
     pipe.criteria.criteria.append(ForcedSwitch(pipe, at=at))
     out, own_new = {}, None
     for t in range(frames):
@@ -142,7 +143,7 @@ def test_transition_longer_than_the_lookahead_continues_live(take):
 
 
 def test_ring_buffer_memory_is_fixed_over_20000_frames(take):
-    pipe = Pipeline(samples=8, lookahead=10)
+    pipe = Pipeline(PipelineOptions(samples=8, lookahead=10))
     n = take.frames
     frames = [take.signals.slice(t, t + 1) for t in range(n)]
 
@@ -186,7 +187,7 @@ def test_a_frame_makes_no_arrays_at_any_n_and_a_switch_none_either(take):
     frames = [take.signals.slice(t, t + 1) for t in range(take.frames)]
     runs = {}
     for n in (2, 128):
-        pipe = Pipeline(samples=n)
+        pipe = Pipeline(PipelineOptions(samples=n))
         for t in range(200):
             pipe.step(frames[t % len(frames)])
         tracemalloc.start()
@@ -213,7 +214,7 @@ def test_a_refined_frame_makes_no_arrays_either(take):
     frames = [take.signals.slice(t, t + 1) for t in range(take.frames)]
     runs = {}
     for live in (False, True):
-        pipe = Pipeline(samples=8, refine={"steps": 2})
+        pipe = Pipeline(PipelineOptions(samples=8, refine={"steps": 2}))
         for t in range(150):
             pipe.step(frames[t % len(frames)])
         if live:
@@ -238,7 +239,7 @@ def test_a_refined_frame_makes_no_arrays_either(take):
 @pytest.mark.parametrize("precision,tol,tail", [("fp32", 1e-5, 1e-5), ("int8", 0.015, 0.08)])
 def test_changing_n_leaves_the_shown_sample_untouched(take, precision, tol, tail):
     """Without SSI the shown sample is sample 0: lowering and raising N around it must not move it."""
-    fixed, adaptive = (Pipeline(samples=16, ssi=False, precision=precision) for _ in range(2))
+    fixed, adaptive = (Pipeline(PipelineOptions(samples=16, ssi=False, precision=precision)) for _ in range(2))
     plan = {50: 4, 120: 16, 180: 1}
     live, moved = [], []
     for t in range(240):
@@ -256,7 +257,7 @@ def test_changing_n_leaves_the_shown_sample_untouched(take, precision, tol, tail
 
 
 def test_dropping_the_shown_sample_moves_to_a_kept_one_with_the_ssi_transition(take):
-    pipe = Pipeline(samples=6, lookahead=10, criteria=[])
+    pipe = Pipeline(PipelineOptions(samples=6, lookahead=10), criteria=[])
     pipe.criteria.criteria.append(ForcedSwitch(pipe, at=40))      # shows sample 3 from frame 40 on
     out = {}
     for t in range(120):
@@ -275,7 +276,7 @@ def test_dropping_the_shown_sample_moves_to_a_kept_one_with_the_ssi_transition(t
 
 
 def test_with_ssi_on_a_smaller_n_only_ever_shows_kept_samples(take):
-    pipe = Pipeline(samples=12, lookahead=10)
+    pipe = Pipeline(PipelineOptions(samples=12, lookahead=10))
     shown_after = []
     for t in range(400):
         if t == 100:
@@ -291,7 +292,7 @@ def test_with_ssi_on_a_smaller_n_only_ever_shows_kept_samples(take):
 
 def test_a_live_transition_keeps_its_source_sample_running_until_its_last_frame(take):
     """tau=3 < T=10: the transition from sample 3 runs live to frame 76, so N drops after that step."""
-    pipe = Pipeline(samples=6, lookahead=3, criteria=[])
+    pipe = Pipeline(PipelineOptions(samples=6, lookahead=3), criteria=[])
     pipe.criteria.criteria.append(ForcedSwitch(pipe, at=40))
     live = {}
     for t in range(90):
@@ -315,7 +316,7 @@ def test_switch_history_is_bounded_for_long_runs_but_every_switch_is_counted(tak
             c[pipe.current] = 1.0
             return c
 
-    pipe = Pipeline(samples=4, lookahead=0, transition=1, criteria=[CurrentIsWorst()])
+    pipe = Pipeline(PipelineOptions(samples=4, lookahead=0, transition=1), criteria=[CurrentIsWorst()])
     for t in range(30):
         pipe.step(take.signals.slice(t, t + 1))
     assert pipe.switch_count == 30 and len(pipe.switches) == 5
@@ -324,7 +325,7 @@ def test_switch_history_is_bounded_for_long_runs_but_every_switch_is_counted(tak
 
 def _run_pair(take, native, hurt_frame, frames=260, samples=1):
     """A clean pipeline and one whose frames `hurt_frame(t, pipe, sig)` may spoil; their outputs by frame."""
-    clean, hurt = Pipeline(samples=samples, use_native=native), Pipeline(samples=samples, use_native=native)
+    clean, hurt = Pipeline(PipelineOptions(samples=samples, use_native=native)), Pipeline(PipelineOptions(samples=samples, use_native=native))
     out_clean, out_hurt = {}, {}
     for t in range(frames):
         sig = take.signals.slice(t, t + 1)

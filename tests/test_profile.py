@@ -69,7 +69,7 @@ def test_a_profile_stopped_by_sigterm_removes_its_cgroup(tmp_path):
     if not profile.CpuLimit(0.5, 10000).enforced:
         pytest.skip("needs root and a writable cgroup cpu controller")
     before = leftover_groups()
-    proc = subprocess.Popen([sys.executable, "-m", "edgetools.cli", "profile", "--cpu-quota", "0.5", "--samples", "1",
+    proc = subprocess.Popen([sys.executable, "-m", "edgecli", "profile", "--cpu-quota", "0.5", "--samples", "1",
                              "--frames", "100000", "--json", str(tmp_path / "p.json")], stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 60
     while leftover_groups() == before and time.monotonic() < deadline:

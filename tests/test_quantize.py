@@ -6,13 +6,14 @@ import numpy as np
 import pytest
 
 from edge import quat
-from edgetools.eval import evaluate
+from motion.evaluate import evaluate
 from edge.features import sequence_features
 from edge.inference import Autoencoder, make_session, model_files
 from edge.modelfiles import DEFAULT_DIR, ModelError, load_manifest, sha256, write_manifest
+from edge.options import PipelineOptions
 from edge.pipeline import Pipeline
 from edge.plausibility import PlausibilityScorer
-from edgetools.takes import from_sample
+from motion.takes import from_sample
 from quantize.common import head_anchored_positions, rollout
 from tests.conftest import SAMPLE
 
@@ -54,8 +55,8 @@ def test_pipeline_loads_int8_models_and_poses_like_fp32(take, manifest):
     discrete choices, a foot lock taken a frame earlier, turn millimetres into centimetres for a few
     frames; v0.3 reached 10.7 cm on one frame of this take, v0.4 7.7 cm. The network alone is held to
     3 cm at worst by the closed-loop test below.)"""
-    pipe = Pipeline(samples=4, precision="int8", ssi=False)
-    ref = Pipeline(samples=4, precision="fp32", ssi=False)
+    pipe = Pipeline(PipelineOptions(samples=4, precision="int8", ssi=False))
+    ref = Pipeline(PipelineOptions(samples=4, precision="fp32", ssi=False))
     assert pipe.manifest["files_in_use"] == list(model_files("int8", manifest)) and pipe.precision == "int8"
     assert model_files("int8", manifest)[0] == INT8[0]      # the int8 decoder always; the autoencoder as measured
     worst = []
@@ -94,7 +95,7 @@ def test_int8_autoencoder_scores_the_sample_like_fp32(take, manifest):
 
 
 def test_int8_eval_on_the_sample_is_within_2_percent_of_fp32(manifest):
-    r = {p: evaluate([SAMPLE], precision=p, log=lambda *_: None) for p in ("fp32", "int8")}
+    r = {p: evaluate([SAMPLE], PipelineOptions(precision=p), log=lambda *_: None) for p in ("fp32", "int8")}
     assert r["int8"]["mpjpe_cm"] <= 1.02 * r["fp32"]["mpjpe_cm"]
 
 

@@ -5,11 +5,12 @@ import pytest
 
 from edge.imus import IMU_JOINTS
 from edge.inference import Decoder, JacobianBatch
+from edge.options import PipelineOptions
 from edge.pipeline import Pipeline
 from edge.refine import ImuOrientation, RefineContext, TargetReach
 from edge.skeleton import JOINT, NUM_JOINTS
-from edgetools.eval import run_take
-from edgetools.takes import from_sample
+from motion.evaluate import run_take
+from motion.takes import from_sample
 from tests.conftest import SAMPLE
 
 L_TOE = JOINT["l_toe"]
@@ -29,14 +30,14 @@ def run_to(pipe, take, frame):
 def lifted_toe_target(take, frame, up=0.35, forward=0.25):
     """A point well above and ahead of where the plain model puts the left toe at `frame` (a kick it
     does not make by itself), and that distance."""
-    base = run_take(Pipeline(samples=1, precision="fp32"), take, max_frames=frame + 1).pred[frame, L_TOE]
+    base = run_take(Pipeline(PipelineOptions(samples=1, precision="fp32")), take, max_frames=frame + 1).pred[frame, L_TOE]
     return base + np.array([0.0, up, forward]), np.hypot(up, forward)
 
 
 def test_the_jacobian_matches_central_differences(take):
     """refine's forward-difference Jacobian of the live terms (one batched decode) agrees with central
     differences of the residuals taken one latent at a time (fp32, where both are exact to rounding)."""
-    pipe = Pipeline(samples=1, precision="fp32", refine={"steps": 1, "ik_pull": 0.0})
+    pipe = Pipeline(PipelineOptions(samples=1, precision="fp32", refine={"steps": 1, "ik_pull": 0.0}))
     goal, _ = lifted_toe_target(take, 60)
     pipe.refiner.add_target(L_TOE, goal, radius=0.0, first=50, last=60, pelvis=None)
     run_to(pipe, take, 55)                       # refine ran this frame: the batch holds its inputs
@@ -55,7 +56,7 @@ def test_the_jacobian_graph_decodes_each_latent_as_the_decoder_does(take):
     """The refiner's batch graph (models.nets.JacobianStep: one frame's features and GRU state shared
     by every row) gives each latent the rotations the decoder step gives it (fp32), and the pipeline's
     refiner runs on it when the models have it."""
-    pipe = Pipeline(samples=1, precision="fp32", refine=True)
+    pipe = Pipeline(PipelineOptions(samples=1, precision="fp32", refine=True))
     run_to(pipe, take, 80)
     dec, m = pipe.decoder, pipe.manifest
     batch = pipe.refiner.batch
@@ -93,7 +94,7 @@ def test_models_without_the_jacobian_graph_refine_with_the_decoder(tmp_path):
     manifest["files"] = {k: v for k, v in manifest["files"].items() if k in ("decoder.onnx", "autoencoder.onnx")}
     manifest.pop("precisions", None)
     (tmp_path / "manifest.json").write_text(json.dumps(manifest))
-    pipe = Pipeline(models=tmp_path, samples=1, precision="fp32", refine=True)
+    pipe = Pipeline(PipelineOptions(samples=1, precision="fp32", refine=True), models=tmp_path)
     assert isinstance(pipe.refiner.batch, Decoder)
 
 
@@ -104,8 +105,8 @@ def test_a_target_the_model_misses_is_reached(take, ik_pull):
     model's latent space reaches so far in a walk); with the leg IK's full pull, within 5 cm."""
     frame = 100
     goal, far = lifted_toe_target(take, frame)
-    plain = run_take(Pipeline(samples=1), take, max_frames=frame + 1).pred[frame, L_TOE]
-    pipe = Pipeline(samples=1, refine={"ik_pull": ik_pull})
+    plain = run_take(Pipeline(PipelineOptions(samples=1)), take, max_frames=frame + 1).pred[frame, L_TOE]
+    pipe = Pipeline(PipelineOptions(samples=1, refine={"ik_pull": ik_pull}))
     assert pipe.refiner.add_target("l_toe", goal, radius=0.02, first=frame - 20, last=frame) is not None
     got = run_take(pipe, take, max_frames=frame + 1).pred[frame, L_TOE]
     assert np.linalg.norm(plain - goal) > 0.9 * far
@@ -120,12 +121,12 @@ def test_a_target_the_model_misses_is_reached(take, ik_pull):
     ([0.0, 1.0, 2.0], "l_toe", "out_of_reach"),
 ])
 def test_a_bad_target_is_refused_counted_and_never_applied(take, position, joint, why):
-    pipe = Pipeline(samples=1, refine=True)
+    pipe = Pipeline(PipelineOptions(samples=1, refine=True))
     assert pipe.refiner.add_target(joint, position, pelvis=np.array([0.0, 1.0, 0.0]), first=0, last=200) is None
     assert pipe.refiner.refused[why] == 1 and sum(pipe.refiner.refused.values()) == 1
     assert pipe.refiner.term("targets").targets == []
     got = run_take(pipe, take, max_frames=120).pred
-    want = run_take(Pipeline(samples=1), take, max_frames=120).pred
+    want = run_take(Pipeline(PipelineOptions(samples=1)), take, max_frames=120).pred
     assert np.array_equal(got, want)
 
 
@@ -177,8 +178,8 @@ def test_live_targets_are_one_list_until_a_window_opens_or_closes_or_the_targets
 def test_without_a_live_constraint_the_refiner_changes_nothing(take, samples):
     """4-point input and no target: every output pose is bit for bit the unrefined pipeline's (the
     guards never move the latent alone)."""
-    got = run_take(Pipeline(samples=samples, refine=True), take, max_frames=240).pred
-    want = run_take(Pipeline(samples=samples), take, max_frames=240).pred
+    got = run_take(Pipeline(PipelineOptions(samples=samples, refine=True)), take, max_frames=240).pred
+    want = run_take(Pipeline(PipelineOptions(samples=samples)), take, max_frames=240).pred
     assert np.array_equal(got, want)
 
 
@@ -187,7 +188,7 @@ def test_the_compiled_step_holds_the_shown_rows_planted_feet(take):
     """With sample 3 shown at N=8, the compiled step reads row 3's foot locks from FootLock's state (as
     the numpy step reads the row's views): a lock moved 7 cm on that row alone costs both the same."""
     # ssi=False: the shown row stays 3 (a switch would move the step to another row)
-    pipe = Pipeline(samples=8, precision="fp32", ssi=False, refine={"steps": 1, "terms": ["targets", "keep", "floor"]})
+    pipe = Pipeline(PipelineOptions(samples=8, precision="fp32", ssi=False, refine={"steps": 1, "terms": ["targets", "keep", "floor"]}))
     goal, _ = lifted_toe_target(take, 60)
     pipe.reset()
     pipe.switcher.current = 3
@@ -210,7 +211,7 @@ def test_the_compiled_step_holds_the_shown_rows_planted_feet(take):
 def test_at_zero_steps_a_live_target_moves_no_latent_and_a_moved_one_is_let_go(take):
     """The governor's K = 0 rung (Pipeline.set_refine_steps): the target stays live but the latent is
     the sample's own again within a few frames; at K = 2 it had moved."""
-    pipe = Pipeline(samples=1, precision="fp32", refine={"steps": 2, "ik_pull": 0.0})
+    pipe = Pipeline(PipelineOptions(samples=1, precision="fp32", refine={"steps": 2, "ik_pull": 0.0}))
     goal, _ = lifted_toe_target(take, 100)
     pipe.refiner.add_target(L_TOE, goal, radius=0.0, first=40, last=200)
     run_to(pipe, take, 60)
@@ -229,10 +230,10 @@ def test_the_latent_lets_go_after_the_window_and_the_pose_returns(take):
     unrefined one to 3 mm on average and 2 cm at most."""
     frame = 100
     goal, _ = lifted_toe_target(take, frame)
-    pipe = Pipeline(samples=1, refine=True)
+    pipe = Pipeline(PipelineOptions(samples=1, refine=True))
     pipe.refiner.add_target("l_toe", goal, first=frame - 20, last=frame)
     got = run_take(pipe, take, max_frames=frame + 150).pred
-    want = run_take(Pipeline(samples=1), take, max_frames=frame + 150).pred
+    want = run_take(Pipeline(PipelineOptions(samples=1)), take, max_frames=frame + 150).pred
     assert np.abs(got[frame] - want[frame]).max() > 0.1
     late = np.linalg.norm(got[frame + 120:] - want[frame + 120:], axis=-1)
     assert late.mean() < 3e-3 and late.max() < 0.02
@@ -247,11 +248,11 @@ def test_the_compiled_step_is_the_numpy_step(take, imus):
     from the same batch (to 1 % of the step)."""
     from dataclasses import replace
     from edge.imus import IMU_LOCATIONS, ImuNoise, mask
-    from edgetools.synth import wear
+    from motion.synth import wear
     if imus != "none":
         take = replace(take, signals=wear(take.signals, mask(IMU_LOCATIONS), take.fps, np.random.default_rng(0),
                                           ImuNoise()))
-    pipe = Pipeline(samples=1, precision="fp32", refine={"steps": 1, "terms": ["targets", "keep", "floor"]})
+    pipe = Pipeline(PipelineOptions(samples=1, precision="fp32", refine={"steps": 1, "terms": ["targets", "keep", "floor"]}))
     goal, _ = lifted_toe_target(take, 60)
     pipe.refiner.add_target(L_TOE, goal, radius=0.02, first=40, last=60)
     run_to(pipe, take, 55)
@@ -273,7 +274,7 @@ def test_the_compiled_step_is_the_numpy_step(take, imus):
 def test_the_compiled_batch_fill_is_numpys_to_the_bit(take):
     """ep_refine_fill (the refiner's own latent into the batch's first L + 1 rows, then its steps along
     each axis) writes the bits Refiner._fill_batch writes: z rounded to float32, steps added in float32."""
-    pipe = Pipeline(samples=1, refine={"steps": 1})
+    pipe = Pipeline(PipelineOptions(samples=1, refine={"steps": 1}))
     r = pipe.refiner
     assert r._c is not None
     L = r.L

@@ -5,7 +5,7 @@ import time
 import numpy as np
 import pytest
 
-from edgetools.takes import from_sample
+from motion.takes import from_sample
 from edgetools.sim.record import CanTap, SerialTap
 from edgetools.sim.devices import CanDevice, SerialDevice, SimClock
 from edgetools.sim.replay import replay
@@ -120,7 +120,7 @@ def test_a_realtime_replay_that_first_builds_the_compiled_core_still_tracks(tmp_
     import sys
     out = tmp_path / "r.json"
     env = {**os.environ, "EDGEPOSE_CACHE": str(tmp_path / "cache")}       # an empty cache: build on first use
-    code = ("import sys; from edgetools.cli import main; "
+    code = ("import sys; from edgecli import main; "
             f"sys.exit(main(['replay', {str(SAMPLE).replace('.npz', '.session.npz')!r}, '--seconds', '3', "
             f"'--json', {str(out)!r}]))")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=180, env=env)
@@ -131,6 +131,7 @@ def test_a_realtime_replay_that_first_builds_the_compiled_core_still_tracks(tmp_
 
 def test_extra_trackers_ride_the_simulated_hub_and_can_and_feed_the_model(take):
     """--trackers: the shins go on the serial hub, the feet on CAN, and the model reads all four."""
+    from edge.options import PipelineOptions
     from edge.pipeline import Pipeline
     session = synthesize(take, ("serial", "i2c", "can"), {}, 0, trackers=("l_shin", "r_shin", "l_foot", "r_foot"))
     assert session.meta["placement"] == {"i2c": ["waist"], "hub": ["l_shin", "r_shin"], "can": ["l_foot", "r_foot"],
@@ -138,7 +139,7 @@ def test_extra_trackers_ride_the_simulated_hub_and_can_and_feed_the_model(take):
     result = replay(session, "max", samples=8, lookahead=LOOKAHEAD, seconds=SECONDS)
     assert set(result["trackers"]) == {"waist", "l_shin", "r_shin", "l_foot", "r_foot"}
     assert result["errors"] == [] and result["poses_decoded"] > 0
-    if Pipeline(samples=1).imus:
+    if Pipeline(PipelineOptions(samples=1)).imus:
         assert result["trackers_used_by_model"] == ["l_shin", "r_shin", "l_foot", "r_foot"]
         bare = replay(synthesize(take, ("serial", "i2c", "can"), {}, 0, trackers=()), "max", samples=8,
                       lookahead=LOOKAHEAD, seconds=SECONDS)
@@ -173,7 +174,7 @@ def test_a_tracker_down_while_the_service_starts_is_ridden_through_and_reported(
 
 def test_the_documented_disconnect_replay_runs_to_the_end_in_real_time(tmp_path):
     """README's `edge replay samples/cmu_09_12_walk.npz --faults disconnect`, as a user runs it."""
-    from edgetools.cli import main as edge_main
+    from edgecli import main as edge_main
     out = tmp_path / "r.json"
     assert edge_main(["replay", str(SAMPLE), "--faults", "disconnect", "--json", str(out)]) == 0
     import json
@@ -214,7 +215,7 @@ def test_faults_a_recording_cannot_carry_name_the_profile_and_the_take_to_replay
 
 
 def test_a_replay_whose_service_raised_exits_non_zero(tmp_path, monkeypatch, capsys):
-    from edgetools.cli import main as edge_main
+    from edgecli import main as edge_main
     from firmware_bridge.service import Service
     real, calls = Service.step, []
 
@@ -342,7 +343,7 @@ def test_a_replay_drives_vmc_and_vrchat_receivers_with_the_calibrated_body(tmp_p
 def test_edge_listen_reads_a_simulated_board_through_replays_pose_port(tmp_path):
     """`edge replay --pose-port PATH` puts the pose stream on a real pty; a Listener opened on PATH, as
     `edge listen PATH` opens it (pyserial), decodes it: edge listen without hardware."""
-    from edgetools.cli import main as edge_main
+    from edgecli import main as edge_main
     from edgetools.listen import Listener
     port = tmp_path / "board"
     frames, done = [], threading.Event()

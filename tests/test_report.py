@@ -19,7 +19,7 @@ pytest.importorskip("matplotlib", reason="needs matplotlib for pictures: pip ins
 pytest.importorskip("PIL", reason="needs pillow for pictures: pip install -e '.[viz]'")
 from PIL import Image  # noqa: E402
 
-from edgetools.cli import main as edge_main  # noqa: E402
+from edgecli import main as edge_main  # noqa: E402
 from edge.skeleton import JOINT, PELVIS_HEIGHT, REST  # noqa: E402
 from firmware_bridge.wire import messages  # noqa: E402
 from edgetools.listen import Listener  # noqa: E402
@@ -27,7 +27,8 @@ from tests.conftest import ROOT, SAMPLE  # noqa: E402
 from viz import canvas  # noqa: E402
 from viz.figures import skeleton_strip  # noqa: E402
 from viz.skeleton_draw import body_views  # noqa: E402
-from viz.live import LiveView, live_plot, pose_positions  # noqa: E402
+from viz.live import LiveView, pose_positions  # noqa: E402
+from edgecli import listen_plot_loop  # noqa: E402
 from viz.report import build_report, choose_clip  # noqa: E402
 
 FIGURES = ("skeleton_strip.png", "animation.gif", "ssi_timeline.png", "per_joint_error.png")
@@ -228,7 +229,7 @@ def test_missing_plotting_library_names_the_extra(monkeypatch):
 
 
 def test_board_runtime_never_imports_plotting():
-    code = ("import sys, edgetools.cli, edgetools.eval, edge.pipeline, edgetools.listen, firmware_bridge.service, "
+    code = ("import sys, edgecli, edgetools.eval, edge.pipeline, edgetools.listen, firmware_bridge.service, "
             "viz, viz.report, viz.live, viz.figures\n"
             "loaded = sorted(m for m in sys.modules if m.split('.')[0] in ('matplotlib', 'PIL'))\n"
             "assert not loaded, loaded")
@@ -259,7 +260,7 @@ def test_listen_plot_without_a_display_says_so_and_keeps_the_status_line(monkeyp
     for seq in range(3):
         os.write(write_end, messages.encode_pose_frame(frame, seq))
     try:
-        assert live_plot(Listener(fd=read_end), seconds=0.2) == 0
+        assert listen_plot_loop(Listener(fd=read_end), seconds=0.2) == 0
     finally:
         os.close(read_end)
         os.close(write_end)
@@ -316,7 +317,7 @@ def test_a_replay_report_has_the_skeleton_pictures(tmp_path):
     """edge replay --report dumps the decoded poses beside the ground truth, and the report draws the
     skeleton strip and the animation from them (they were missing for replays)."""
     pytest.importorskip("matplotlib")
-    from edgetools.cli import main as edge_main
+    from edgecli import main as edge_main
     out = tmp_path / "report"
     assert edge_main(["replay", str(ROOT / "samples" / "cmu_09_12_walk.session.npz"), "--speed", "max",
                       "--seconds", "4", "--json", str(tmp_path / "r.json"), "--report", str(out)]) == 0

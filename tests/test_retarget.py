@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from edge import quat
-from edgetools import bvh
-from edgetools.retarget import LIMB_BONES, direction_errors_deg, resample, retarget
+from motion import bvh
+from motion.retarget import LIMB_BONES, direction_errors_deg, resample, retarget
 from edge.skeleton import JOINT, NUM_JOINTS, OFFSETS, PARENTS, REST, fk
 from tests.conftest import SKELETON_CLIPS
 
@@ -43,7 +43,7 @@ def test_retargeted_clip_stands_on_the_floor(mocap, source):
 
 
 def test_resample_30_to_60_keeps_duration_and_interpolates():
-    from edgetools.retarget import Motion
+    from motion.retarget import Motion
     T = 31
     angles = np.linspace(0, np.pi / 2, T)
     rot = np.tile([1.0, 0, 0, 0], (T, NUM_JOINTS, 1))

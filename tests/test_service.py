@@ -8,9 +8,9 @@ import time
 import numpy as np
 import pytest
 
-from edgetools.cli import main as edge_main
+from edgecli import main as edge_main
 from edge.skeleton import NUM_JOINTS
-from edgetools.takes import from_sample
+from motion.takes import from_sample
 from firmware_bridge import config as config_mod
 from firmware_bridge.wire import messages
 from edgetools.listen import Listener

@@ -39,14 +39,14 @@ def tiny_mocap(mocap, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def tiny_pack(tiny_mocap, tmp_path_factory):
-    from models.pack import build_pack
+    from motion.pack import build_pack
     out = tmp_path_factory.mktemp("pack") / "pack.npz"
     info = build_pack(tiny_mocap, out)
     return out, info
 
 
 def test_the_pack_holds_the_frames_training_reads(tiny_mocap, tiny_pack):
-    from models import dataset as ds
+    from motion import dataset as ds
     path, info = tiny_pack
     assert info["splits"]["train"]["stored_frames"] < info["splits"]["train"]["frames_60hz"]   # 30 fps kept as 30
     assert info["error_mm"]["train"]["max"] < 1.0 and info["error_mm"]["val"]["max"] < 1.0

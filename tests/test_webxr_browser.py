@@ -33,7 +33,7 @@ def bone_pixels(png):
 
 @pytest.fixture(scope="module")
 def take():
-    from edgetools.takes import from_sample
+    from motion.takes import from_sample
     return from_sample(SAMPLE)
 
 

@@ -352,7 +352,7 @@ def test_edge_run_with_a_webxr_headset_prints_the_page_code_and_status(tmp_path)
     import subprocess
     path = tmp_path / "board.toml"
     path.write_text(f'[headset]\nurl = "webxr://127.0.0.1:0?state={tmp_path}"\n[runtime]\nsamples = 1\n')
-    run = subprocess.run([sys.executable, "-m", "edgetools.cli", "run", "--config", str(path), "--seconds", "1"],
+    run = subprocess.run([sys.executable, "-m", "edgecli", "run", "--config", str(path), "--seconds", "1"],
                          capture_output=True, text=True, timeout=60)
     err = run.stderr
     assert run.returncode == 0, err

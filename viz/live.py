@@ -1,13 +1,15 @@
 """`edge listen PORT --plot`: a live 3D stick figure of the board's pose stream in a desktop window.
 
-    from edgetools.listen import Listener
+    from edgetools.listen import Listener, status_loop
     from viz.live import live_plot
     with Listener("/dev/ttyUSB0") as ear:
-        live_plot(ear, seconds=30)
+        live_plot(ear, seconds=30, fallback=status_loop)
 
 Each POSE_FRAME carries the root position and the LOCAL joint rotations (edge.skeleton order); the
 figure is their forward kinematics. Without a display (no DISPLAY or WAYLAND_DISPLAY, or matplotlib has
-no GUI toolkit) it says so and shows the listener's status line instead, as plain `edge listen` does.
+no GUI toolkit) it says so and runs `fallback` instead (the command passes the listener's status
+line, edgetools.listen.status_loop, as plain `edge listen` shows). This module imports no tool: the
+`edge` command (edgecli) puts the listener and the window together.
 """
 import os
 import sys
@@ -35,12 +37,13 @@ def pose_positions(frame):
     return fk(rotations, np.asarray(frame.root_pos, dtype=np.float64))[1]
 
 
-def live_plot(listener, seconds=None):
-    """Draw the stream `listener` (a edgetools.listen.Listener) receives until the window is
-    closed, Ctrl-C, or `seconds` pass. Falls back to the status line when there is no display."""
+def live_plot(listener, seconds=None, fallback=None):
+    """Draw the stream `listener` (anything with poll(timeout) -> pose frames and status_line(), as
+    edgetools.listen.Listener) receives until the window is closed, Ctrl-C, or `seconds` pass. Without
+    a display it runs fallback(listener, seconds) instead (returns 1 when there is none)."""
     plt = _interactive_pyplot()
     if plt is None:
-        return status_loop(listener, seconds)
+        return fallback(listener, seconds) if fallback is not None else 1
     fig = plt.figure("edge listen", figsize=(6, 7))
     view = LiveView(fig)
     plt.show(block=False)
@@ -122,16 +125,3 @@ class LiveView:
         lost = [str(i) for i in range(16) if frame.trackers_lost >> i & 1]
         self.title.set_text(status.replace(" | ", "\n", 1) + (f"\ntrackers lost: {', '.join(lost)}" if lost else ""))
         return p
-
-
-def status_loop(listener, seconds=None):
-    """What `edge listen` shows without --plot (edgetools.listen's own loop)."""
-    from edgetools.listen import status_loop as listen_loop
-    return listen_loop(listener, seconds, every=1.0 / STATUS_HZ)
-
-
-def main(args):
-    """`edge listen PORT --plot [--baud B] [--seconds S] [--record FILE]`: `edge listen` with the window."""
-    from edgetools import listen
-
-    return listen.main(args, loop=live_plot)

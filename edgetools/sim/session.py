@@ -17,8 +17,8 @@ import numpy as np
 from edge import quat
 from edge.imus import IMU_LOCATIONS, ImuNoise
 from edge.signals import Signals
-from edgetools.synth import DeviceNoise
-from edgetools.takes import Take
+from motion.synth import DeviceNoise
+from motion.takes import Take
 from firmware_bridge.wire import messages
 from firmware_bridge.samples import HeadsetSample, TrackerSample
 from firmware_bridge.wire.can_frames import encode_node_frames
@@ -251,7 +251,7 @@ def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, see
     missing = [n for n in trackers if n not in (take.imu or {})]
     if missing:
         raise ValueError(f"{take.name} carries no orientation for {', '.join(missing)} (an older sample file: "
-                         f"replay the BVH clip, or rebuild the sample with python -m models.make_sample)")
+                         f"replay the BVH clip, or rebuild the sample with python -m edgetools.make_sample)")
     imu_rng = np.random.default_rng([seed, 13])
     imus = {}
     if trackers:

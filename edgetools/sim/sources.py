@@ -46,7 +46,7 @@ def load_source(source, transports, faults, seed=0, seconds=None, trackers=None)
                       f"{','.join(session.meta.get('trackers', ['waist']))}; --trackers applies to a take or BVH clip "
                       f"(e.g. samples/cmu_09_12_walk.npz)", file=sys.stderr)
             return session
-    from edgetools.takes import load_take
+    from motion.takes import load_take
     take = load_take(path)
     if seconds:
         take = tile_take(take, seconds)

@@ -1,4 +1,4 @@
-"""Record the output stream as a BVH file (Blender, MotionBuilder, edgetools.bvh and other readers).
+"""Record the output stream as a BVH file (Blender, MotionBuilder, motion.bvh and other readers).
 
 The file is the canonical skeleton as edgepose sees it: Y-up, the character facing +Z with its left
 at +X, offsets and root positions in centimetres (Blender's importer takes a scale: use 0.01 for
@@ -148,7 +148,7 @@ class BvhWriter(PoseSink):
 
     def close(self):
         """Fill in the frame count and close. A take with no frames says 'Frames: 0', which some
-        readers (edgetools.bvh among them) refuse."""
+        readers (motion.bvh among them) refuse."""
         if self._file.closed:
             return
         self.flush()

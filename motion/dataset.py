@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 
 from edge import imus, quat
-from edgetools.bvh import BvhError
-from edge.contacts import contact_labels
+from motion.bvh import BvhError
+from motion.contacts import contact_labels
 from edge.features import sequence_features
 from edge.progress import Progress
-from edgetools.retarget import load_motion
-from edgetools.synth import DeviceNoise, synthesize_from_pose, wear, world_pose
+from motion.retarget import load_motion
+from motion.synth import DeviceNoise, synthesize_from_pose, wear, world_pose
 from edge.skeleton import FEET, HEAD, PREDICTED, TOES
 
 # --sources groups -> folders of ../shared/mocap. CMU terms: cmu, daz; CC BY-NC 4.0: bandai; CC BY-SA 3.0: hdm05.
@@ -73,9 +73,9 @@ class ClipSet:
 
 
 def build(root, split, sources=None, cache_dir=".cache", workers=2):
-    """A split's clips as a ClipSet: from a training pack (models.pack) when `root` is one, else from the
+    """A split's clips as a ClipSet: from a training pack (motion.pack) when `root` is one, else from the
     mocap folder through a cache of its retargeted clips."""
-    from models.pack import is_pack, load_pack
+    from motion.pack import is_pack, load_pack
     if is_pack(root):
         return load_pack(root, split, sources)
     paths = clip_paths(root, split, sources)

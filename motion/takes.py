@@ -8,9 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
-from edgetools.bvh import BvhError
+from motion.bvh import BvhError
 from edge.signals import Signals
-from edgetools.synth import synthesize, world_pose
+from motion.synth import synthesize, world_pose
 from edge.skeleton import JOINT_NAMES
 
 FPS = 60.0
@@ -37,7 +37,7 @@ def _imus_of(signals):
 
 
 def from_bvh(path, fps=FPS, rng=None, noise=None):
-    from edgetools.retarget import load_motion
+    from motion.retarget import load_motion
     m = load_motion(path, fps)
     _, pos = world_pose(m.rotations, m.root)
     sig = synthesize(m.rotations, m.root, fps, rng, noise)

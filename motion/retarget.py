@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from edge import quat
-from edgetools.bvh import BvhClip, BvhError
+from motion.bvh import BvhClip, BvhError
 from edge.skeleton import JOINT, JOINT_NAMES, NUM_JOINTS, OFFSETS, PARENTS, TOE_HEIGHT
 
 _SIDES = ("l", "r")
@@ -155,6 +155,6 @@ def resample(motion: Motion, fps=60.0):
 
 def load_motion(path, fps=60.0):
     """BVH file -> canonical Motion at the model rate."""
-    from edgetools import bvh
+    from motion import bvh
     motion, _ = retarget(bvh.load(path))
     return resample(motion, fps)

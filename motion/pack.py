@@ -1,12 +1,12 @@
 """The training pack: the whole retargeted train and val set in one file that travels (to an accelerator).
 
-    python -m models.pack [--data ../shared/mocap] [--out .cache/pack/edgepose-pack.npz] [--sources ...]
+    python -m motion.pack [--data ../shared/mocap] [--out .cache/pack/edgepose-pack.npz] [--sources ...]
 
-`models.train --data PACK` (and models.dataset.build) read it instead of the mocap folder. What it holds
-is what training reads, models.dataset's ClipSet per split, in this form:
+`models.train --data PACK` (and motion.dataset.build) read it instead of the mocap folder. What it holds
+is what training reads, motion.dataset's ClipSet per split, in this form:
 - rotations: each joint's local quaternion in Q13 integers (1/8192; the error is measured at build time
   as FK joint positions, in mm, and printed and recorded); 30 fps clips keep only their own frames (the
-  60 Hz frames between them are slerps of their neighbours, edgetools.retarget.resample, and are made
+  60 Hz frames between them are slerps of their neighbours, motion.retarget.resample, and are made
   again on load); second differences in time per clip, channel by channel, LZMA-compressed.
 - root: positions in 0.1 mm integers, likewise; contacts: one bit per foot and frame (60 Hz).
 - the clip names, the manifest's sha256 and the pack's own sha256 beside it in PACK.json.
@@ -79,7 +79,7 @@ def _stored_frames(n, step):
 
 def _expand(q_kept, root_kept, step, n):
     """A clip's kept frames back to its n frames at 60 Hz: a frame left out is the slerp (lerp for the
-    root) halfway between its neighbours, as edgetools.retarget.resample made it from the 30 fps file.
+    root) halfway between its neighbours, as motion.retarget.resample made it from the 30 fps file.
     (The files say 0.0333333 s a frame, so the resampler's halfway is 0.5 +- 1e-4: pack_error_mm
     measures what that and the rounding cost.)"""
     if step == 1:
@@ -102,7 +102,7 @@ def _split_arrays(cs, steps):
 
 def build_pack(data, out=DEFAULT_PACK, sources=None):
     """Read (or reuse the cache of) the retargeted train and val sets and write the pack. Returns its info."""
-    from models import dataset as ds
+    from motion import dataset as ds
     out = Path(out)
     rows = ds.read_manifest(data)
     if rows is None:
@@ -139,15 +139,15 @@ def build_pack(data, out=DEFAULT_PACK, sources=None):
 
 
 def load_pack(path, split, sources=None):
-    """A split of the pack as models.dataset.ClipSet (float32, 60 Hz), optionally only some sources."""
-    from models import dataset as ds
+    """A split of the pack as motion.dataset.ClipSet (float32, 60 Hz), optionally only some sources."""
+    from motion import dataset as ds
     try:
         z = np.load(path, allow_pickle=False)
         info = json.loads(str(z["info"]))
     except (OSError, ValueError, KeyError) as e:
-        raise PackError(f"{path}: not an edgepose training pack ({e}); build one: python -m models.pack") from e
+        raise PackError(f"{path}: not an edgepose training pack ({e}); build one: python -m motion.pack") from e
     if info.get("format") != FORMAT:
-        raise PackError(f"{path}: format {info.get('format')!r}, this code reads {FORMAT}; rebuild: python -m models.pack")
+        raise PackError(f"{path}: format {info.get('format')!r}, this code reads {FORMAT}; rebuild: python -m motion.pack")
     if f"{split}_rot" not in z:
         raise PackError(f"{path}: no {split!r} split")
     names, lengths, stored, steps = (z[f"{split}_{k}"] for k in ("names", "lengths", "stored", "steps"))
@@ -177,8 +177,8 @@ def pack_error_mm(path, data, sources=None, frames=20000, seed=0):
     """What the pack's rounding costs: FK joint positions (world, from the root) of the pack's clips
     against the cache built from the BVH files, on `frames` random frames of each split.
     -> {split: {"mean": mm, "max": mm}}."""
-    from models import dataset as ds
-    from edgetools.synth import world_pose
+    from motion import dataset as ds
+    from motion.synth import world_pose
     rng = np.random.default_rng(seed)
     out = {}
     for split in ("train", "val"):
@@ -194,7 +194,7 @@ def pack_error_mm(path, data, sources=None, frames=20000, seed=0):
 
 
 def main(argv=None):
-    from models import dataset as ds
+    from motion import dataset as ds
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default="../shared/mocap")
     ap.add_argument("--out", default=str(DEFAULT_PACK))

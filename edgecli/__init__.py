@@ -1,4 +1,9 @@
-"""The `edge` command."""
+"""The `edge` command: one subcommand a tool, composed here, above every package it dispatches to
+(the tools below it import none of each other: pyproject.toml's import-linter layers).
+
+Each subcommand is a parser (`_add_<name>`) and a runner (`_<name>`) that imports its tool lazily,
+so one subcommand loads only what it needs.
+"""
 import argparse
 import sys
 from pathlib import Path
@@ -14,10 +19,7 @@ def add_refine_flags(p, what="refine the shown sample's latent against the live 
                    help="comma-separated terms (default targets,keep,floor; also imus, imus-tilt)")
 
 
-def main(argv=None):
-    ap = argparse.ArgumentParser(prog="edge", description="edgepose: full-body pose from a headset, controllers and IMU trackers")
-    sub = ap.add_subparsers(dest="cmd", required=True)
-
+def _add_eval(sub):
     ev = sub.add_parser("eval", help="measure reconstruction quality on BVH clips or sample files")
     ev.add_argument("--data", nargs="+", required=True, help="BVH files, folders of them, or edgepose sample .npz files")
     ev.add_argument("--split", choices=("train", "val"), help="filter a folder by its MANIFEST.tsv")
@@ -43,6 +45,8 @@ def main(argv=None):
     ev.add_argument("--report", help="also draw the report (PNGs, GIF, index.html) into this folder (needs the [viz] extra; "
                                      "dumps into REPORT/dump unless --dump is given)")
 
+
+def _add_report(sub):
     rpt = sub.add_parser("report", help="pictures of a run: skeletons, animation, per-joint errors, SSI, latency, tracker health")
     rpt.add_argument("run", help="the JSON `edge eval --json` wrote")
     rpt.add_argument("--dump", help="the folder `edge eval --dump` wrote (skeletons, animation and SSI timeline need it)")
@@ -52,6 +56,8 @@ def main(argv=None):
     rpt.add_argument("--strip-frames", type=int, default=6, help="columns in the skeleton strip")
     rpt.add_argument("--gif-seconds", type=float, default=5.0, help="length of the animation in seconds")
 
+
+def _add_ssi_study(sub):
     st = sub.add_parser("ssi-study", help="SSI target hitting / collision avoidance against N (SSI Table 3)")
     st.add_argument("--data", nargs="+", required=True)
     st.add_argument("--task", choices=("high-kick", "low-kick", "avoid"), required=True)
@@ -63,16 +69,22 @@ def main(argv=None):
     st.add_argument("--json", required=True)
     add_refine_flags(st, "kicks: the targets also go to the refiner (edge.refine), as a headset's would")
 
+
+def _add_run(sub):
     run = sub.add_parser("run", help="the board service: sources in, poses out, live status")
     run.add_argument("--config", required=True, help="TOML or JSON config (see firmware_bridge/config.py)")
     run.add_argument("--seconds", type=float, default=None, help="stop after this long (default: run until Ctrl-C)")
     run.add_argument("--json", help="write the run's counters and timings here at exit")
 
+
+def _add_calibrate(sub):
     cal = sub.add_parser("calibrate", help="stand in a T-pose: store IMU mounting offsets and height scale")
     cal.add_argument("--config", required=True)
     cal.add_argument("--seconds", type=float, default=3.0)
     cal.add_argument("--out", default="calibration.json")
 
+
+def _add_listen(sub):
     li = sub.add_parser("listen", help="decode the board's pose stream on a serial port, with a status line")
     li.add_argument("port")
     li.add_argument("--baud", type=int, default=460800)
@@ -80,6 +92,8 @@ def main(argv=None):
     li.add_argument("--record", help="also write every byte read to this file, as it came (for a bug report)")
     li.add_argument("--plot", action="store_true", help="show a live 3D stick figure in a window (needs a display and the [viz] extra)")
 
+
+def _add_replay(sub):
     rp = sub.add_parser("replay", help="replay a session through simulated devices into the real service")
     rp.add_argument("source", help="a session recording (.npz), a BVH clip or a sample take")
     rp.add_argument("--json", help="also write every figure of the run here, for scripts (the summary is printed "
@@ -109,66 +123,110 @@ def main(argv=None):
     rp.add_argument("--models")
     rp.add_argument("--report", help="also draw the report (latency, tracker health) into this folder ([viz] extra)")
 
+
+def _add_record(sub):
     rec = sub.add_parser("record", help="capture live traffic from the configured transports into a session file")
     rec.add_argument("--config", required=True)
     rec.add_argument("--seconds", type=float, default=10.0)
     rec.add_argument("--out", required=True)
 
+
+def _add_profile(sub):
     pf = sub.add_parser("profile", help="how many SSI samples fit a CPU budget (real pipeline, real time, cgroup quota)")
     from edgetools import profile as profile_mod      # light import: no numpy or onnxruntime at module level
     profile_mod.add_arguments(pf)
 
+
+def _eval(args):
+    from edgetools import eval as ev_mod
+    if args.report:
+        from viz.canvas import require_plotting
+        require_plotting()                   # say what to install before evaluating, not after
+        args.dump = args.dump or str(Path(args.report) / "dump")
+    code = ev_mod.main(args)
+    if code == 0 and args.report:
+        from viz.report import build_report
+        print(f"wrote {build_report(args.json, args.report, args.dump)}")
+    return code
+
+
+def _report(args):
+    from viz import report
+    return report.main(args)
+
+
+def _run(args):
+    from firmware_bridge import commands
+    return commands.run(args)
+
+
+def _calibrate(args):
+    from firmware_bridge import commands
+    return commands.calibrate(args)
+
+
+def _profile(args):
+    from edgetools import profile
+    return profile.main(args)
+
+
+def _record(args):
+    from edgetools.sim import record
+    return record.main(args)
+
+
+def _replay(args):
+    from edgetools.sim import replay_cli
+    if args.report:
+        from viz.canvas import require_plotting
+        require_plotting()                   # say what to install before replaying, not after
+        args.json = args.json or str(Path(args.report) / "replay.json")     # the report draws from it
+    code = replay_cli.main(args)
+    if code == 0 and args.report:
+        from viz.report import build_report
+        dump = Path(args.report) / "dump"
+        print(f"wrote {build_report(args.json, args.report, dump if any(dump.glob('*.npz')) else None)}")
+    return code
+
+
+LISTEN_STATUS_HZ = 4       # status-line redraws a second under --plot when there is no window
+
+
+def listen_plot_loop(listener, seconds=None):
+    """`edge listen --plot`'s loop: viz.live's window on the listener, or, without a display, the
+    listener's own status line (edgetools.listen.status_loop)."""
+    from edgetools.listen import status_loop
+    from viz.live import live_plot
+
+    def fallback(ear, secs):
+        return status_loop(ear, secs, every=1.0 / LISTEN_STATUS_HZ)
+
+    return live_plot(listener, seconds, fallback=fallback)
+
+
+def _listen(args):
+    from edgetools import listen
+    return listen.main(args, loop=listen_plot_loop if args.plot else None)
+
+
+def _ssi_study(args):
+    from edgetools import study
+    return study.main(args)
+
+
+COMMANDS = {"eval": (_add_eval, _eval), "report": (_add_report, _report), "ssi-study": (_add_ssi_study, _ssi_study),
+            "run": (_add_run, _run), "calibrate": (_add_calibrate, _calibrate), "listen": (_add_listen, _listen),
+            "replay": (_add_replay, _replay), "record": (_add_record, _record), "profile": (_add_profile, _profile)}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(prog="edge", description="edgepose: full-body pose from a headset, controllers and IMU trackers")
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    for add, _ in COMMANDS.values():
+        add(sub)
     args = ap.parse_args(argv)
     try:
-        if args.cmd == "eval":
-            from edgetools import eval as ev_mod
-            if args.report:
-                from viz.canvas import require_plotting
-                require_plotting()                   # say what to install before evaluating, not after
-                args.dump = args.dump or str(Path(args.report) / "dump")
-            code = ev_mod.main(args)
-            if code == 0 and args.report:
-                from viz.report import build_report
-                print(f"wrote {build_report(args.json, args.report, args.dump)}")
-            return code
-        if args.cmd == "report":
-            from viz import report
-            return report.main(args)
-        if args.cmd in ("run", "calibrate"):
-            from firmware_bridge import commands
-            return commands.run(args) if args.cmd == "run" else commands.calibrate(args)
-        if args.cmd == "profile":
-            from edgetools import profile
-            return profile.main(args)
-        if args.cmd == "record":
-            from edgetools.sim import record
-            return record.main(args)
-        if args.cmd == "replay":
-            from edgetools.sim import replay_cli
-            if args.report:
-                from viz.canvas import require_plotting
-                require_plotting()                   # say what to install before replaying, not after
-                args.json = args.json or str(Path(args.report) / "replay.json")     # the report draws from it
-            code = replay_cli.main(args)
-            if code == 0 and args.report:
-                from viz.report import build_report
-                dump = Path(args.report) / "dump"
-                print(f"wrote {build_report(args.json, args.report, dump if any(dump.glob('*.npz')) else None)}")
-            return code
-        if args.cmd == "listen":
-            if args.plot:
-                from viz import live
-                return live.main(args)
-            from edgetools import listen
-            return listen.main(args)
-        if args.cmd == "ssi-study":
-            from edgetools import study
-            return study.main(args)
+        return COMMANDS[args.cmd][1](args)
     except ModelError as e:
         print(f"edge: {e}", file=sys.stderr)
         return 2
-    return 1
-
-
-if __name__ == "__main__":
-    sys.exit(main())

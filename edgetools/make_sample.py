@@ -1,11 +1,11 @@
 """Make the bundled sample take: tracker signals plus ground-truth joint positions from one CMU clip (no BVH).
 
-    python -m models.make_sample --clip ../shared/mocap/cmu_amc2bvh/09/09_12.bvh --out samples/cmu_09_12_walk.npz
+    python -m edgetools.make_sample --clip ../shared/mocap/cmu_amc2bvh/09/09_12.bvh --out samples/cmu_09_12_walk.npz
 """
 import argparse
 from pathlib import Path
 
-from edgetools.takes import from_bvh, save_sample
+from motion.takes import from_bvh, save_sample
 
 CMU_CREDIT = ("The data used in this project was obtained from mocap.cs.cmu.edu. "
               "The database was created with funding from NSF EIA-0196217.")

@@ -1,7 +1,7 @@
 """Reconstruction metrics (SSI Table 1 and smoothness/contact measures), on world positions in metres."""
 import numpy as np
 
-from edge.contacts import contact_labels
+from motion.contacts import contact_labels
 from edge.physics import FLOAT_M, INTERSECT_M, PENETRATION_M, foot_height, leg_gap
 from edge.skeleton import ANKLES, FEET, HEAD, LOWER_BODY, WRISTS
 

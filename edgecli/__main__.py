@@ -1,0 +1,6 @@
+"""python -m edgecli: the `edge` command."""
+import sys
+
+from edgecli import main
+
+sys.exit(main())

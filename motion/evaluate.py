@@ -1,0 +1,207 @@
+"""Reconstruction quality on BVH clips or sample files, through the real per-frame pipeline: the library
+behind `edge eval` (edgetools.eval), the benchmarks and the int8 report."""
+from dataclasses import dataclass
+import time
+from pathlib import Path
+
+import numpy as np
+
+from motion.bvh import BvhError
+from motion.contacts import contact_labels
+from edge.imus import ImuNoise, dragposer_drops, mask
+from edge.features import head_joint, wrist_joints
+from edge.options import PipelineOptions
+from edge.pipeline import Pipeline
+from edge.plausibility import PlausibilityScorer
+from edge.progress import Progress
+from motion.synth import wear
+from edge.skeleton import FEET, JOINT_NAMES, PARENTS
+from motion.takes import find_clips, load_take
+from motion import metrics
+
+WARMUP_S = 1.0
+
+
+@dataclass
+class TakeRun:
+    """What the pipeline produced for one take, frame-aligned with the input."""
+    pred: np.ndarray        # [T,J,3] world joint positions
+    pelvis: np.ndarray      # [T,3,3] pelvis rotations
+    contacts: np.ndarray    # [T,2] foot-contact probabilities of the output
+    sample: np.ndarray      # [T] the sample shown (the target sample during a transition)
+    transition: np.ndarray  # [T] frame was part of a sample transition
+    cost: np.ndarray        # [T,N] every sample's selection cost when the frame was judged (N>1)
+    samples: np.ndarray = None  # [T,N,J,3] every sample's pose of the frame (N>1, with keep_samples)
+
+
+def run_take(pipe, take, max_frames=None, keep_samples=False, signals=None):
+    """Feed a take (or these signals of it) frame by frame through the pipeline. Output frame o arrives
+    tau frames after input o."""
+    signals = take.signals if signals is None else signals
+    T = take.frames if max_frames is None else min(take.frames, max_frames)
+    N = pipe.samples
+    run = TakeRun(np.zeros((T, len(JOINT_NAMES), 3)), np.zeros((T, 3, 3)), np.zeros((T, 2)),
+                  np.zeros(T, np.int16), np.zeros(T, bool), np.zeros((T, N), np.float32),
+                  np.zeros((T, N, len(JOINT_NAMES), 3), np.float32) if keep_samples and N > 1 else None)
+
+    def keep(pose):
+        f = pose.frame
+        run.pred[f], run.pelvis[f], run.contacts[f] = pose.positions, pose.rotations[0], pose.contacts
+        run.sample[f], run.transition[f] = pose.sample, pose.transition
+
+    pipe.reset()
+    for t in range(T):
+        pose = pipe.step(signals.slice(t, t + 1))
+        run.cost[t] = pipe.buffer.cost[pipe.buffer.slot(t)]
+        if run.samples is not None:         # frame t's poses of every sample, after IK
+            run.samples[t] = pipe._pos[:N]
+        if pose is not None:
+            keep(pose)
+    for pose in pipe.flush():
+        keep(pose)
+    return run
+
+
+def take_signals(take, trackers, faults=None, seed=0, index=0, imu_noise=None):
+    """The take's signals as the board would see them with the extra IMUs `trackers` worn: IMU noise
+    (`imu_noise`, by default edge.imus.ImuNoise as training synthesises it) and, with faults='disconnect', DragPoser's
+    faulty-sensor protocol on them (each frame one tracker drops with probability 1 % for 100 frames),
+    through the synchroniser's hold and fade. Seeded per take."""
+    if not trackers:
+        return take.signals
+    rng = np.random.default_rng([seed, index, 13])
+    worn = mask(trackers)
+    alive = dragposer_drops(rng, take.frames, worn, take.fps) if faults == "disconnect" else None
+    return wear(take.signals, worn, take.fps, rng, ImuNoise() if imu_noise is None else imu_noise, alive)
+
+
+def evaluate(paths, options=None, *, split=None, models=None, trackers=(), faults=None, imu_noise=None,
+             max_frames=None, max_clips=None, dump=None, log=print):
+    """Every clip of `paths` (BVH files, folders, sample .npz; a folder filtered by its MANIFEST.tsv's
+    `split`) through a Pipeline(options, models), wearing the extra IMUs `trackers` (with `faults`:
+    DragPoser's disconnect protocol; `imu_noise`: edge.imus.ImuNoise by default), scored after a
+    WARMUP_S warm-up. Returns the JSON `edge eval` writes; `dump` also writes one .npz per clip."""
+    options = PipelineOptions() if options is None else options
+    files = _clips(paths, split, max_clips)
+    if faults not in (None, "disconnect"):
+        raise ValueError(f"--faults {faults!r}: edge eval knows 'disconnect' (DragPoser's protocol on the extra trackers)")
+    pipe = Pipeline(options, models=models)
+    if trackers and not pipe.imus:
+        raise ValueError(f"--trackers {','.join(trackers)}: the model in {models or 'models/'} reads no extra IMUs "
+                         f"(its decoder takes {pipe.n_features} features)")
+    tally = Tally(PlausibilityScorer(pipe.autoencoder, pipe.threshold))
+    if dump:
+        Path(dump).mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    with Progress(len(files), "eval") as bar:
+        for index, f in enumerate(files):
+            try:
+                take = load_take(f)
+            except BvhError as e:
+                tally.skipped.append(str(e))
+                log(f"skipped: {e}")
+                bar.update()
+                continue
+            run = run_take(pipe, take, max_frames, keep_samples=pipe.samples > 1,
+                           signals=take_signals(take, trackers, faults, options.seed, index, imu_noise))
+            tally.add(f, take, run, pipe, dump)
+            bar.update(postfix=f"mpjpe {metrics.summarize(tally.parts)['mpjpe_cm']:.2f} cm" if tally.parts else None)
+    if not tally.parts:
+        raise SystemExit("edge eval: no clip could be evaluated: " + "; ".join(tally.skipped))
+    return {**_run_settings(pipe, options, split, trackers, faults), **tally.summary(),
+            "seconds": round(time.time() - t0, 1), "joint_names": list(JOINT_NAMES)}
+
+
+def _clips(paths, split, max_clips):
+    files = find_clips(paths, split)
+    if max_clips and len(files) > max_clips:        # an even spread over the list (a quick subset)
+        files = [files[i] for i in np.linspace(0, len(files) - 1, max_clips).round().astype(int)]
+    if not files:
+        raise SystemExit(f"edge eval: no clips found in {paths}" + (f" for split {split!r}" if split else ""))
+    return files
+
+
+def _run_settings(pipe, options, split, trackers, faults):
+    """What ran: the part of the result that says how, before what it measured."""
+    return {"samples": options.samples, "ssi": pipe.ssi, "precision": options.precision,
+            "precision_in_use": pipe.precision, "precision_note": pipe.precision_note,
+            "ik": options.foot_ik and options.arm_ik, "trackers": ["waist", *trackers], "faults": faults,
+            "decoder_features": pipe.n_features, "imu_segments": pipe.segments,
+            "heading_observer": pipe.heading is not None,
+            "selection": [(c.name, c.weight) for c in pipe.criteria.criteria], "lookahead_frames": pipe.lookahead,
+            "split": split, "warmup_s": WARMUP_S, "plausibility_threshold_m": pipe.threshold}
+
+
+class Tally:
+    """The metrics of the clips evaluated so far: per clip, then summed up by summary()."""
+
+    def __init__(self, scorer):
+        self.scorer = scorer
+        self.parts, self.phys, self.phys_gt, self.div = [], [], [], []
+        self.per_clip, self.skipped = [], []
+        self.switches = self.switch_frames = 0
+        self.peaks = {"after": [], "quiet": [], "gt_after": [], "gt_quiet": []}
+
+    def add(self, f, take, run, pipe, dump):
+        """One clip's run (a TakeRun of `pipe` on `take`, file `f`), after its warm-up."""
+        pred, pelvis = run.pred, run.pelvis
+        self.switches += pipe.switch_count
+        self.switch_frames += int(run.transition.sum())
+        T, w = len(pred), int(round(WARMUP_S * take.fps))
+        if T - w < 4:
+            self.skipped.append(f"{f}: shorter than the {WARMUP_S:.0f} s warm-up")
+            return
+        sig, gt = take.signals.slice(0, T), take.gt_pos[:T]
+        head, wrists = head_joint(sig.head_pos, sig.head_rot), wrist_joints(sig.hand_pos, sig.hand_rot)
+        bad = self.scorer.lower_body_error(pred[w:], pelvis[w:]) > self.scorer.threshold
+        starts = [s0 - w for _, s0, _, _ in pipe.switches]
+        # The jerk around switches, and in the same windows of the ground truth: how much the motion brings.
+        for key, pos in (("", pred[w:]), ("gt_", gt[w:])):
+            after, quiet = metrics.transition_peaks(pos, take.fps, starts)
+            self.peaks[key + "after"] += after
+            self.peaks[key + "quiet"] += quiet
+        m = metrics.clip_metrics(pred[w:], gt[w:], take.fps, head[w:], wrists[w:], bad)
+        self.parts.append(m)
+        self.phys.append(metrics.physical_metrics(pred[w:], run.contacts[w:]))
+        self.phys_gt.append(metrics.physical_metrics(gt[w:], contact_labels(gt[:, FEET], take.fps)[w:]))
+        if run.samples is not None:
+            self.div.append(metrics.diversity_metrics(run.samples[w:], gt[w:]))
+        s = metrics.summarize([m])
+        self.per_clip.append({"clip": str(f), "frames": s["frames"], "mpjpe_cm": round(s["mpjpe_cm"], 3),
+                              "implausible_rate": round(s["implausible_rate"], 4)})
+        if dump:
+            np.savez_compressed(Path(dump) / (Path(f).stem + ".npz"), joint_names=np.array(JOINT_NAMES),
+                                parents=PARENTS, fps=take.fps, gt_pos=gt.astype(np.float32),
+                                pred_pos=pred.astype(np.float32), contacts=run.contacts.astype(np.float32),
+                                sample=run.sample, transition=run.transition, cost=run.cost,
+                                implausible=np.concatenate([np.zeros(w, bool), bad]),
+                                switches=np.array([s[:2] for s in pipe.switches], np.int64).reshape(-1, 2),
+                                threshold=pipe.threshold, warmup_frames=w)
+
+    def summary(self):
+        return {"clips": len(self.parts), "ssi_switches": self.switches, "transition_frames": self.switch_frames,
+                **metrics.summarize(self.parts), **metrics.summarize_physical(self.phys),
+                "ground_truth": metrics.summarize_physical(self.phys_gt),
+                "diversity": metrics.summarize_diversity(self.div), "transition_jerk": self._jerk(),
+                "skipped": self.skipped, "per_clip": self.per_clip}
+
+    def _jerk(self):
+        """RPM's transition jerk: the peak after each switch against the median quiet window, for the
+        prediction and for the ground truth in the same windows."""
+        def ratio(after, quiet):
+            return float(np.mean(after) / np.median(quiet)) if after and quiet else None
+
+        def mean(x):
+            return float(np.mean(x)) if x else None
+
+        def median(x):
+            return float(np.median(x)) if x else None
+
+        k = self.peaks
+        return {"switches_measured": len(k["after"]),
+                "peak_after_switch_mean_m_s3": mean(k["after"]), "peak_quiet_window_median_m_s3": median(k["quiet"]),
+                "ratio": ratio(k["after"], k["quiet"]),
+                "ground_truth_same_windows": {
+                    "peak_after_switch_mean_m_s3": mean(k["gt_after"]),
+                    "peak_quiet_window_median_m_s3": median(k["gt_quiet"]),
+                    "ratio": ratio(k["gt_after"], k["gt_quiet"])}}
