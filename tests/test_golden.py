@@ -36,8 +36,7 @@ def pose_stream(samples):
     from edgetools.sim.replay import replay
     from edgetools.sim.session import Session
     log = io.BytesIO()
-    result = replay(Session.load(str(SESSION)), "max", samples=samples, lookahead=LOOKAHEAD, seconds=SECONDS,
-                    precision="fp32", pose_log=log)
+    result = replay(Session.load(str(SESSION)), "max", seconds=SECONDS, pose_log=log, runtime={"samples": samples, "lookahead": LOOKAHEAD, "precision": "fp32"})
     assert result["errors"] == [], result["errors"]
     return log.getvalue(), result
 

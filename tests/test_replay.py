@@ -23,7 +23,7 @@ def take():
 
 def run(take, transports=("serial", "i2c", "can"), faults="clean", seconds=SECONDS, seed=0):
     f = fault_profile(faults)
-    return replay(synthesize(take, transports, f, seed), "max", samples=8, lookahead=LOOKAHEAD, seconds=seconds, faults=f)
+    return replay(synthesize(take, transports, f, seed), "max", seconds=seconds, faults=f, runtime={"samples": 8, "lookahead": LOOKAHEAD})
 
 
 @pytest.fixture(scope="module")
@@ -136,13 +136,12 @@ def test_extra_trackers_ride_the_simulated_hub_and_can_and_feed_the_model(take):
     session = synthesize(take, ("serial", "i2c", "can"), {}, 0, trackers=("l_shin", "r_shin", "l_foot", "r_foot"))
     assert session.meta["placement"] == {"i2c": ["waist"], "hub": ["l_shin", "r_shin"], "can": ["l_foot", "r_foot"],
                                          "slimevr": []}
-    result = replay(session, "max", samples=8, lookahead=LOOKAHEAD, seconds=SECONDS)
+    result = replay(session, "max", seconds=SECONDS, runtime={"samples": 8, "lookahead": LOOKAHEAD})
     assert set(result["trackers"]) == {"waist", "l_shin", "r_shin", "l_foot", "r_foot"}
     assert result["errors"] == [] and result["poses_decoded"] > 0
     if Pipeline(PipelineOptions(samples=1)).imus:
         assert result["trackers_used_by_model"] == ["l_shin", "r_shin", "l_foot", "r_foot"]
-        bare = replay(synthesize(take, ("serial", "i2c", "can"), {}, 0, trackers=()), "max", samples=8,
-                      lookahead=LOOKAHEAD, seconds=SECONDS)
+        bare = replay(synthesize(take, ("serial", "i2c", "can"), {}, 0, trackers=()), "max", seconds=SECONDS, runtime={"samples": 8, "lookahead": LOOKAHEAD})
         assert result["mpjpe_cm"] < bare["mpjpe_cm"]
     with pytest.raises(ValueError, match="need the serial hub or CAN"):
         synthesize(take, ("i2c",), {}, 0, trackers=("l_shin",))
@@ -152,8 +151,7 @@ def test_unplugging_a_foot_tracker_mid_replay_changes_the_pose_without_a_pop(tak
     """unplug-foot: the left foot's CAN tracker goes silent for good at 4 s; the replay reports the
     largest joint move per frame in the second before and after, and the fade keeps them alike."""
     f = fault_profile("unplug-foot")
-    result = replay(synthesize(take, ("serial", "i2c", "can"), f, 0), "max", samples=8, lookahead=LOOKAHEAD,
-                    seconds=7.0, faults=f)
+    result = replay(synthesize(take, ("serial", "i2c", "can"), f, 0), "max", seconds=7.0, faults=f, runtime={"samples": 8, "lookahead": LOOKAHEAD})
     u = result["tracker_unplug"]
     assert u["tracker"] == "l_foot" and result["tracker_lost_events"] >= 1
     assert u["largest_step_before_m"] > 0 and u["ratio"] < 1.5
@@ -166,7 +164,7 @@ def test_a_tracker_down_while_the_service_starts_is_ridden_through_and_reported(
     threads of the never-silent issue take device I/O off the tick.)"""
     session = synthesize(take, ("serial", "i2c", "can"), {}, 0)
     session.i2c_quat[:200] = np.nan                 # the puck NACKs for the first 2 s
-    result = replay(session, "realtime", samples=8, lookahead=LOOKAHEAD, seconds=3.0)
+    result = replay(session, "realtime", seconds=3.0, runtime={"samples": 8, "lookahead": LOOKAHEAD})
     assert result["errors"] == [] and result["poses_decoded"] > 50
     assert any(url.startswith("sim://i2c/") for url in result["devices_down_at_start"])
     assert result["reopens"] >= 1
@@ -188,7 +186,7 @@ def test_slimevr_trackers_replay_over_loopback_udp_and_a_restarted_one_is_back_a
     f = fault_profile("slimevr-restart")
     session = synthesize(take, ("slimevr",), f, 0, trackers=("l_shin", "r_shin"))
     assert sorted(session.meta["slimevr_trackers"].values()) == ["l_shin", "r_shin", "waist"]
-    result = replay(session, "max", samples=8, lookahead=LOOKAHEAD, seconds=8.0, faults=f)
+    result = replay(session, "max", seconds=8.0, faults=f, runtime={"samples": 8, "lookahead": LOOKAHEAD})
     assert result["errors"] == [] and result["poses_decoded"] > 400
     assert set(result["trackers"]) == {"waist", "l_shin", "r_shin"}
     assert all(t["in_use"] and t["packets_per_s"] > 50 for t in result["slimevr"].values())
@@ -200,7 +198,7 @@ def test_slimevr_trackers_replay_over_loopback_udp_and_a_restarted_one_is_back_a
 def test_a_garbage_flood_at_the_slimevr_port_is_counted_and_the_board_keeps_streaming(take):
     f = fault_profile("slimevr-flood")
     session = synthesize(take, ("slimevr",), f, 0, trackers=("l_shin", "r_shin"))
-    result = replay(session, "realtime", samples=8, lookahead=LOOKAHEAD, seconds=2.5, faults=f)
+    result = replay(session, "realtime", seconds=2.5, faults=f, runtime={"samples": 8, "lookahead": LOOKAHEAD})
     assert result["errors"] == [] and result["poses_decoded"] > 100
     assert result["packets_corrupt"] > 1000                     # counted and dropped, every one
     assert all(t["in_use"] for t in result["slimevr"].values())
@@ -246,10 +244,8 @@ def test_a_read_that_blocks_50_ms_every_200_ms_never_holds_the_tick():
     from edgetools.sim.session import fault_profile
     f = fault_profile("slow-i2c")
     take = from_sample(SAMPLE)
-    threaded = replay(synthesize(take, ("serial", "i2c", "can"), f, 0), "realtime", samples=8,
-                      lookahead=LOOKAHEAD, seconds=4.0, faults=f)
-    inline = replay(synthesize(take, ("serial", "i2c", "can"), f, 0), "realtime", samples=8,
-                    lookahead=LOOKAHEAD, seconds=4.0, faults=f, threaded=False)
+    threaded = replay(synthesize(take, ("serial", "i2c", "can"), f, 0), "realtime", seconds=4.0, faults=f, runtime={"samples": 8, "lookahead": LOOKAHEAD})
+    inline = replay(synthesize(take, ("serial", "i2c", "can"), f, 0), "realtime", seconds=4.0, faults=f, threaded=False, runtime={"samples": 8, "lookahead": LOOKAHEAD})
     assert threaded["reader_threads"] >= 3 and inline["reader_threads"] == 0
     # about 20 stalls in 4 s; a poll that only takes from queues is preempted for a frame hardly ever
     assert threaded["polls_held"] <= 1, threaded["polls_held"]
@@ -292,9 +288,10 @@ def test_a_replay_drives_vmc_and_vrchat_receivers_with_the_calibrated_body(tmp_p
     Calibration(height_scale=1.75 / 1.60).save(cal)
     trackers = ["pelvis", "l_ankle", "r_ankle"]
     session = synthesize(from_sample(SAMPLE), ("serial", "i2c", "can"), {}, 0)
-    r = replay(session, "max", samples=8, lookahead=LOOKAHEAD, seconds=4.0, calibration=cal,
-               outputs={"vmc": f"127.0.0.1:{socks['vmc'].getsockname()[1]}",
-                        "vrchat": f"127.0.0.1:{socks['vrchat'].getsockname()[1]}", "vrchat_trackers": trackers})
+    output = {"vmc": f"127.0.0.1:{socks['vmc'].getsockname()[1]}",
+              "vrchat": f"127.0.0.1:{socks['vrchat'].getsockname()[1]}", "vrchat_trackers": trackers}
+    r = replay(session, "max", seconds=4.0, runtime={"samples": 8, "lookahead": LOOKAHEAD, "calibration": str(cal)},
+               output=output)
     time.sleep(0.3)
     stop.set()
     for t in threads:

@@ -58,7 +58,7 @@ def test_a_take_through_the_page_matches_the_serial_replay(take, tmp_path, monke
     def through_the_page(state, screenshot=None):
         headset = QuestHeadset(take, tmp_path / state, screenshot=screenshot)
         try:
-            return replay(session, speed="realtime", seconds=10, samples=8, headset=headset), headset
+            return replay(session, speed="realtime", seconds=10, headset=headset, runtime={"samples": 8}), headset
         finally:
             headset.close()
 
@@ -73,11 +73,11 @@ def test_a_take_through_the_page_matches_the_serial_replay(take, tmp_path, monke
     # a dropped stream costs far more than 10 %.
     web, headset = through_the_page("state", tmp_path / "mirror.png")
     decoded_first = list(decoded)
-    serial = [replay(session, speed="realtime", seconds=10, samples=8)]
+    serial = [replay(session, speed="realtime", seconds=10, runtime={"samples": 8})]
     webs = [web]
     for k in (1, 2):
         webs.append(through_the_page(f"state-{k}")[0])
-        serial.append(replay(session, speed="realtime", seconds=10, samples=8))
+        serial.append(replay(session, speed="realtime", seconds=10, runtime={"samples": 8}))
     decoded[:] = decoded_first            # the head poses are checked against the first run's page log
     page = headset.state
     web_cm = float(np.median([run["mpjpe_cm"] for run in webs]))

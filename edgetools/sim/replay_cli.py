@@ -70,11 +70,12 @@ def main(args):
               file=sys.stderr)
     pose_log = Tee(sinks) if sinks else None
     try:
-        outputs = {k: v for k, v in (("vmc", getattr(args, "vmc", None)), ("vrchat", getattr(args, "vrchat", None)))
-                   if v}
-        result = replay(session, args.speed, samples, args.lookahead, args.seconds, faults, args.bvh, sys.stderr,
-                        args.models, adaptive=args.adaptive or args.samples == "auto", precision=args.precision,
-                        pose_log=pose_log, outputs=outputs, calibration=getattr(args, "calibration", None) or "",
+        runtime = {"samples": samples, "lookahead": args.lookahead, "precision": args.precision, "models": args.models,
+                   "adaptive": args.adaptive or args.samples == "auto",
+                   "calibration": getattr(args, "calibration", None)}
+        output = {"bvh": args.bvh, "vmc": getattr(args, "vmc", None), "vrchat": getattr(args, "vrchat", None)}
+        result = replay(session, args.speed, args.seconds, runtime=runtime, output=output, faults=faults,
+                        status=sys.stderr, pose_log=pose_log,
                         dump=str(Path(args.report) / "dump") if getattr(args, "report", None) else None)
     except (ValueError, TransportError) as e:     # a bad --vmc / --vrchat address or calibration file
         print(f"edge replay: {e}", file=sys.stderr)
