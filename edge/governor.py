@@ -24,6 +24,7 @@ in the judged window) is climbed at the base hold whatever the doubled one says,
 within seconds of the contention ending.
 """
 from collections import deque
+from dataclasses import dataclass
 
 CHANGE_HISTORY = 1000      # a service that runs for days keeps the last thousand changes of N
 
@@ -50,15 +51,31 @@ def rungs(max_samples, max_steps=0):
     return out
 
 
+@dataclass(frozen=True)
+class GovernorSettings:
+    """When the watchdog acts (the module's docstring): `high` and `low` are fractions of the frame
+    period; `hold`, `max_hold`, `cooldown`, `probation` and `calm` are frames."""
+    high: float = 0.75
+    low: float = 0.45
+    hold: int = 60
+    max_hold: int = 1920
+    cooldown: int = 6
+    probation: int = 240
+    calm: int = 3600
+
+
 class SampleGovernor:
-    def __init__(self, period_ms, max_samples, start=None, high=0.75, low=0.45, hold=60, max_hold=1920,
-                 cooldown=6, probation=240, calm=3600, max_steps=0):
-        if not 0 < low < high <= 1:
+    def __init__(self, period_ms, max_samples, start=None, max_steps=0, settings=None):
+        """period_ms: the frame period; max_samples, max_steps: the top of the ladder (rungs); start: the
+        N to start at (default the top)."""
+        s = self.settings = GovernorSettings() if settings is None else settings
+        if not 0 < s.low < s.high <= 1:
             raise ValueError("need 0 < low < high <= 1 (fractions of the frame period)")
+        hold = s.hold
         self.ladder = rungs(max_samples, max_steps)
-        self.period_ms, self.high_ms, self.low_ms = period_ms, high * period_ms, low * period_ms
-        self.base_hold, self.max_hold, self.hold = hold, max_hold, hold
-        self.cooldown, self.probation, self.calm = cooldown, probation, calm
+        self.period_ms, self.high_ms, self.low_ms = period_ms, s.high * period_ms, s.low * period_ms
+        self.base_hold, self.max_hold, self.hold = hold, s.max_hold, hold
+        self.cooldown, self.probation, self.calm = s.cooldown, s.probation, s.calm
         self.level = len(self.ladder) - 1 if start is None else self._level_at_most(start)
         self.window = hold // 2               # frames judged before a raise (the newest ones)
         self._slow = bytearray(self.window)   # ring of "slower than low" flags, no allocation per frame
@@ -67,7 +84,7 @@ class SampleGovernor:
         self._over_count = 0
         self.frame = 0
         self.since_change = 0
-        self.since_lower = cooldown + 1       # the first late frame acts at once
+        self.since_lower = self.cooldown + 1      # the first late frame acts at once
         self.last_raise_at = None
         # (frame, from N, to N, reason, from K, to K): the most recent CHANGE_HISTORY, for reports;
         # change_count counts all

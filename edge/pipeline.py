@@ -146,29 +146,40 @@ class Pipeline:
         o = self.options = PipelineOptions() if options is None else options
         # The newest frame's pose by default: tau frames of look-ahead put the body tau / fps behind the
         # person (167 ms at tau = 10, 60 Hz), which is for offline use (recording, edge eval --lookahead).
-        N, fps, lookahead, transition = o.samples, o.fps, o.lookahead, o.transition
-        self.max_samples = N    # allocated for; `samples` is how many run now (adaptive N: set_samples)
-        self.samples, self.fps, self.body_scale = N, fps, o.body_scale
-        self.lookahead, self.transition = lookahead, transition
-        self.ssi = o.ssi and N > 1
+        self.max_samples = o.samples    # allocated for; `samples` is how many run now (adaptive N: set_samples)
+        self.samples, self.fps, self.body_scale = o.samples, o.fps, o.body_scale
+        self.lookahead, self.transition = o.lookahead, o.transition
+        self.ssi = o.ssi and o.samples > 1
         self.foot_ik, self.arm_ik = o.foot_ik, o.arm_ik
-        threads, precision, use_native = o.threads, o.precision, o.use_native
-        self.manifest, dec_session, ae_session = open_models(models, threads, precision)
-        m = self.manifest
+        self.manifest, dec_session, ae_session = open_models(models, o.threads, o.precision)
+        self._open(dec_session, ae_session, o.use_native)
+        self._choose(o.selection or self.manifest.get("selection", {}), criteria, o.use_native, o.seed)
+        self._allocate_ssi()
+        self._allocate_rows(o.arm_ik)
+        self._allocate_frame_inputs()
+        self._choose_paths(dec_session, models, o.use_native, o.threads)
+        self.reset()
+
+    def _open(self, dec_session, ae_session, use_native):
+        """The decoder (N rows and a transition row), its look-ahead recompute, the autoencoder and scorer."""
+        m, N, lookahead = self.manifest, self.samples, self.lookahead
         # what runs: int8 falls back to fp32 where its start-up self-check fails (edge.int8check)
         self.precision, self.precision_note = m["precision"], m["precision_note"]
         # The decoder's input: the 24 point features, and the extra IMUs' 49 when the model reads them.
         self.n_features = m["features"]
         self.imus = NUM_IMUS if self.n_features > NUM_POINT_FEATURES else 0
         # A worn IMU also sets its segment's world rotation after the decoder (fk_with_segments).
-        self.segments = bool(o.segments and self.imus)
+        self.segments = bool(self.options.segments and self.imus)
         self.rows = N + 1 if N > 1 else N   # the extra row carries a live transition
         self.decoder = Decoder(dec_session, self.rows, m["latent"], m["hidden"], m["features"])
         self.recompute = Decoder(dec_session, lookahead + 1, m["latent"], m["hidden"], m["features"], recurrent=False)
         self.autoencoder = Autoencoder(ae_session, N)
         self.threshold = m["plausibility_threshold_m"]
         self.scorer = PlausibilityScorer(self.autoencoder, self.threshold, use_native)
-        chosen = o.selection or m.get("selection", {})      # the selection's settings: given, or the model's
+
+    def _choose(self, chosen, criteria, use_native, seed):
+        """SSI's selection: its criteria, margins and homing, and the samples' latents (`chosen`: the settings)."""
+        m, N = self.manifest, self.samples
         self.criteria = Composite(criteria if criteria is not None else self.default_criteria(chosen, use_native))
         self.switch_margin = float(chosen.get("switch_margin", 0.0))
         # Homing: a shown sample other than sample 0 (the prior mean, the most accurate on average) moves
@@ -185,8 +196,12 @@ class Pipeline:
         self.latent_scale = latent_scale(chosen)
         self.latents = np.zeros((N, m["latent"]), np.float32)
         if N > 1:
-            self.latents[1:] = self.latent_scale * np.random.default_rng(o.seed).standard_normal((N - 1, m["latent"]))
+            self.latents[1:] = self.latent_scale * np.random.default_rng(seed).standard_normal((N - 1, m["latent"]))
         self.decoder.latent[:N] = self.latents
+
+    def _allocate_ssi(self):
+        """The look-ahead ring, the switcher, a switch's recompute scratch and the foot locks."""
+        m, N, lookahead, transition = self.manifest, self.samples, self.lookahead, self.transition
         self.buffer = LookaheadBuffer(lookahead + 1, N, m["hidden"], m["features"], self.decoder.rot6d.shape[1],
                                       NUM_JOINTS)
         self.switcher = Switcher(lookahead, transition)
@@ -200,6 +215,10 @@ class Pipeline:
                                 "goal": np.zeros((2, K, 2, 3)), "w_latent": np.repeat(w[..., None], L, 2),
                                 "w_hidden": np.repeat(w[..., None], H, 2), "w_goal": np.tile(w[..., None, None], (1, 1, 2, 3))}
         self.feet = FootLock(N)
+
+    def _allocate_rows(self, arm_ik):
+        """Every row's FK and IK buffers (N samples, the transition row, the look-ahead's recompute)."""
+        N, lookahead = self.samples, self.lookahead
         R = max(self.rows, lookahead + 1)
         self._local = np.zeros((R, NUM_JOINTS, 3, 3))
         self._world = np.zeros((R, NUM_JOINTS, 3, 3))
@@ -210,7 +229,7 @@ class Pipeline:
         self._weights = np.zeros((R, 2))
         self._limb_targets = np.zeros((R, 4, 3))
         self._limb_weights = np.zeros((R, 4))
-        self._limb_weights[:, 2:] = 1.0 if o.arm_ik else 0.0
+        self._limb_weights[:, 2:] = 1.0 if arm_ik else 0.0
         self._limb_ends = np.zeros((R, 4, 3, 3))
         self._floor_lift = np.zeros((R, 2))           # how far the floor lifted each row's feet (m), per frame
         self._rest6d = np.tile(np.array([1, 0, 0, 0, 1, 0], np.float32), NUM_PREDICTED)   # the rest pose's 6D
@@ -218,6 +237,9 @@ class Pipeline:
         # Every sample's pelvis is the waist IMU's rotation: a read-only [N,3,3] view of slot s's.
         self._pelvis = [np.broadcast_to(self.buffer.waist_m[k], (N, 3, 3)) for k in range(lookahead + 1)]
         self.out = Pose()
+
+    def _allocate_frame_inputs(self):
+        """One frame's tracker signals in, laid out for the C calls, and a foot target's slots."""
         # One frame's tracker signals in (the extra IMUs' orientations and flags after the 25): the C
         # calls' input, and what step() checks before anything uses it (path.inputs).
         self._frame_in = np.zeros(25 + 5 * NUM_IMUS)
@@ -236,6 +258,10 @@ class Pipeline:
         self._target_weight = np.zeros(2)
         self._ae_ready = None       # the scorer whose input the compiled core prepares (CompiledFrame)
         self._fused_criteria = None     # the criteria CompiledFrame.judge computes in C (the defaults), if it can
+
+    def _choose_paths(self, dec_session, models, use_native, threads):
+        """The compiled core or the numpy reference, and the heading observer and refiner if asked."""
+        m, fps, o = self.manifest, self.fps, self.options
         # The compiled core (edge/native) runs the whole frame around the two ONNX calls when a C
         # compiler is there; NumpyFrame is the reference and the fallback.
         self.native = native.load() if use_native else None
@@ -250,8 +276,6 @@ class Pipeline:
             compiled = (self.native, self.path.core, lambda: self._slot_now) if self.native else None
             self.refiner = Refiner(dec_session, m, self._forward_rows, o.refine, fps, compiled=compiled,
                                    jacobian_session=open_jacobian(models, threads, self.precision))
-        self.reset()
-
 
     def default_criteria(self, selection, use_native=True):
         """SSI's default selection cost: the autoencoder's plausibility score, plus the physical one

@@ -14,7 +14,7 @@ from firmware_bridge.transports.bno055 import Mode, Reg
 from firmware_bridge.samples import TrackerSample
 from edgetools.sim.bno055_fake import FakeBNO055, ManualClock, motion_from_arrays
 from firmware_bridge.transports import TransportError, open_source
-from firmware_bridge.transports.i2c import backoff_delay, next_poll_time
+from firmware_bridge.transports.i2c import Recovery, backoff_delay, next_poll_time
 
 ADDRESS = 0x28
 
@@ -270,7 +270,7 @@ def test_retries_back_off_exponentially():
 
 def test_failed_reads_are_retried_with_growing_gaps(clock):
     fake = make_fake(clock)
-    source = open_fake(fake, clock, url="i2c://1/0x28?rate=100", reinit_after=100)
+    source = open_fake(fake, clock, url="i2c://1/0x28?rate=100", recovery=Recovery(reinit_after=100))
     source.recv(timeout=0.1)
     fake.fail_next(5)
     assert source.recv(timeout=2.0) is not None

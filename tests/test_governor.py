@@ -1,7 +1,7 @@
 """Adaptive N and K: the deadline watchdog against a simulated board whose CPU share drops and returns."""
 import pytest
 
-from edge.governor import SampleGovernor, rungs
+from edge.governor import GovernorSettings, SampleGovernor, rungs
 
 PERIOD_MS = 1000 / 60
 
@@ -38,7 +38,7 @@ def test_contention_halves_n_at_once_and_slack_brings_it_back_one_step_at_a_time
 
 
 def test_a_raise_that_is_undone_doubles_the_wait_before_the_next_try():
-    g = SampleGovernor(PERIOD_MS, 32, hold=120)
+    g = SampleGovernor(PERIOD_MS, 32, settings=GovernorSettings(hold=120))
     # A busy board (one frame in 25 is slow) where the response time jumps past a point, as under a
     # CFS quota when a frame overruns its share of a period: 16 samples fit and 24 do not.
     frame = iter(range(10**9))
@@ -52,7 +52,7 @@ def test_a_raise_that_is_undone_doubles_the_wait_before_the_next_try():
 
 def test_thresholds_must_be_ordered():
     with pytest.raises(ValueError):
-        SampleGovernor(PERIOD_MS, 32, high=0.4, low=0.5)
+        SampleGovernor(PERIOD_MS, 32, settings=GovernorSettings(high=0.4, low=0.5))
 
 
 def test_the_change_history_is_bounded_and_the_count_is_not():

@@ -26,6 +26,7 @@ stretching the BNO055 uses; if reads fail often, slow the bus down (`dtparam=i2c
 in config.txt) or use the software `i2c-gpio` overlay.
 """
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -40,6 +41,15 @@ MAX_RATE_HZ = 100.0                 # the fusion output rate; polling faster re-
 REINIT_AFTER_FAILURES = 3
 FIRST_BACKOFF_S = 0.010
 MAX_BACKOFF_S = 1.0
+
+
+@dataclass(frozen=True)
+class Recovery:
+    """How a source rides out bus errors: back off from first_backoff (s) doubling to max_backoff, and set
+    the chip up again after reinit_after failed polls in a row."""
+    reinit_after: int = REINIT_AFTER_FAILURES
+    first_backoff: float = FIRST_BACKOFF_S
+    max_backoff: float = MAX_BACKOFF_S
 SET_UP_ATTEMPTS = 3
 
 
@@ -47,20 +57,20 @@ def tracker_names(parsed):
     return [parsed[3].get("tracker", DEFAULT_TRACKER)]
 
 
-def open(url, parsed, bus=None, *, clock=time.monotonic, sleep=time.sleep, **source_options):
+def open(url, parsed, bus=None, *, clock=time.monotonic, sleep=time.sleep, recovery=None):
     """Open the BNO055 the URL names. `bus`: an SMBus-like object to use instead of /dev/i2c-BUS
     (tests pass a FakeBNO055; the simulator's sim:// scheme does the same); `clock`/`sleep` are
-    injectable; `source_options` go to BNO055Source (reinit_after, first_backoff, max_backoff)."""
+    injectable; `recovery` goes to BNO055Source (default Recovery())."""
     _, netloc, path, _ = parsed
     bus_number = parse_bus_number(netloc, url)
     parse_address(path, url)
     owns_bus = bus is None
     if owns_bus:
         bus = open_smbus(bus_number)
-    return open_on_bus(url, parsed, bus, owns_bus, clock=clock, sleep=sleep, **source_options)
+    return open_on_bus(url, parsed, bus, owns_bus, clock=clock, sleep=sleep, recovery=recovery)
 
 
-def open_on_bus(url, parsed, bus, owns_bus=False, *, clock=time.monotonic, sleep=time.sleep, **source_options):
+def open_on_bus(url, parsed, bus, owns_bus=False, *, clock=time.monotonic, sleep=time.sleep, recovery=None):
     """The BNO055Source for the chip the URL's address and query name, on an open SMBus-like `bus`."""
     _, netloc, path, query = parsed
     bus_number = netloc or "?"
@@ -80,7 +90,7 @@ def open_on_bus(url, parsed, bus, owns_bus=False, *, clock=time.monotonic, sleep
         _close_if_owned(bus, owns_bus)
         raise
     return BNO055Source(chip, tracker, rate, url=url, clock=clock, sleep=sleep,
-                        on_close=bus.close if owns_bus else None, **source_options)
+                        recovery=recovery, on_close=bus.close if owns_bus else None)
 
 
 def set_up(chip, sleep, attempts=SET_UP_ATTEMPTS):
@@ -173,8 +183,7 @@ class BNO055Source(Source):
     """Polls an initialised BNO055 at `rate` Hz and turns each read into a TrackerSample."""
 
     def __init__(self, chip, tracker=DEFAULT_TRACKER, rate=DEFAULT_RATE_HZ, *, url="", clock=time.monotonic,
-                 sleep=time.sleep, reinit_after=REINIT_AFTER_FAILURES, first_backoff=FIRST_BACKOFF_S,
-                 max_backoff=MAX_BACKOFF_S, on_close=None):
+                 sleep=time.sleep, recovery=None, on_close=None):
         super().__init__(clock)
         self.stats["reinits"] = 0
         self.last_error = None
@@ -182,9 +191,10 @@ class BNO055Source(Source):
         self.chip = chip
         self.tracker = tracker
         self.period = 1.0 / rate
-        self.reinit_after = reinit_after
-        self.first_backoff = first_backoff
-        self.max_backoff = max_backoff
+        recovery = Recovery() if recovery is None else recovery
+        self.reinit_after = recovery.reinit_after
+        self.first_backoff = recovery.first_backoff
+        self.max_backoff = recovery.max_backoff
         self._clock = clock
         self._sleep = sleep
         self._on_close = on_close
