@@ -169,7 +169,7 @@ def board_service(cfg, samples, feeder, steps):
     return service
 
 
-def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None, steps=None):  # noqa: C901
+def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None, steps=None):
     """Real-time frames at cfg['hz'] through the board service's tick (sources -> sync -> calibration ->
     Pipeline.step -> POSE_FRAME), paced by the service's Pacer. Returns (stats, pipeline).
 
@@ -177,99 +177,136 @@ def paced_run(cfg, samples, frames, bar_desc, adaptive=False, hog=None, steps=No
     target is live every frame. adaptive: edge.governor picks N and K after every frame (samples and
     cfg['refine_steps'] are the largest). hog: (first frame, frames, processes) of a CPU hog during
     the measured frames."""
-    import numpy as np
-    from edge.governor import SampleGovernor
-    from edge.pipeline import STAGES
-    from edge.progress import Progress
-    from firmware_bridge.service import Pacer
-    hz = cfg["hz"]
-    period = 1.0 / hz
-    feeder = Feeder(hz, f"profile{os.getpid()}-{samples}-{frames}")
-    steps = cfg.get("refine_steps", 0) if steps is None else steps
-    service = board_service(cfg, samples, feeder, steps)
-    pipe = service.pipeline
-    hog_proc = Hog(hog[2], cfg.get("cgroup_root")) if hog else None
-    clock, cpu_clock = time.perf_counter, time.thread_time
-    pacer = Pacer(hz, clock)
-
-    def tick(k):
-        service.step(feeder.frame(k))        # poll the sources, then tick
-
+    run = PacedRun(cfg, samples, frames, adaptive, hog, steps)
     try:
-        warm = 60                                             # one second, paced like the run, not counted
-        pacer.start()
-        for k in range(warm):
-            pacer.wait()
-            tick(k)
-            if k == warm // 2 and pipe.refiner is not None:
+        run.warm_up()
+        run.measure(bar_desc)
+    finally:                 # never leave busy processes behind, whatever happened
+        run.close()
+    return run.stats(), run.pipe
+
+
+class PacedRun:
+    """One paced run's service, feeder, hog and per-frame records (paced_run)."""
+
+    WARM = 60               # frames: one second, paced like the run, not counted
+
+    def __init__(self, cfg, samples, frames, adaptive, hog, steps):
+        import numpy as np
+        from edge.governor import SampleGovernor
+        from edge.pipeline import STAGES
+        from firmware_bridge.service import Pacer
+        self.cfg, self.samples, self.frames, self.adaptive, self.hog = cfg, samples, frames, adaptive, hog
+        self.period = 1.0 / cfg["hz"]
+        self.feeder = Feeder(cfg["hz"], f"profile{os.getpid()}-{samples}-{frames}")
+        self.steps = cfg.get("refine_steps", 0) if steps is None else steps
+        self.service = board_service(cfg, samples, self.feeder, self.steps)
+        self.pipe = self.service.pipeline
+        self.hog_proc = Hog(hog[2], cfg.get("cgroup_root")) if hog else None
+        self.clock, self.cpu_clock = time.perf_counter, time.thread_time
+        self.pacer = Pacer(cfg["hz"], self.clock)
+        self.resp, self.comp, self.cpu = (np.full(frames, np.nan) for _ in range(3))
+        self.in_loop = {k: np.full(frames, np.nan) for k in ("sync", "pipeline_step", "output_encoding")}
+        self.stage_cpu = np.full((frames, len(STAGES)), np.nan)
+        self.live_n, self.live_k = np.empty(frames, np.int32), np.empty(frames, np.int32)
+        self.governor = (SampleGovernor(1000.0 * self.period, samples, max_steps=cfg.get("refine_steps", 0))
+                         if adaptive else None)
+        self.misses = self.late_starts = self.skipped = 0
+        self.refined_before = 0
+
+    def tick(self, k):
+        self.service.step(self.feeder.frame(k))        # poll the sources, then tick
+
+    def warm_up(self):
+        pipe = self.pipe
+        self.pacer.start()
+        for k in range(self.WARM):
+            self.pacer.wait()
+            self.tick(k)
+            if k == self.WARM // 2 and pipe.refiner is not None:
                 # A target that never ends, 45 cm from the left toe: refined every frame from here, so the
                 # refiner's first frame (its sessions' first calls: 0.7 ms of CPU against 0.3 after)
                 # falls in the warm-up, not in the measured frames.
                 from edge.skeleton import JOINT
                 pipe.refiner.add_target("l_toe", pipe.out.positions[JOINT["l_toe"]] + [0.0, 0.4, 0.2], radius=0.0,
                                         first=0, last=1 << 40)
-        resp, comp, cpu = (np.full(frames, np.nan) for _ in range(3))
-        st = {k: np.full(frames, np.nan) for k in ("sync", "pipeline_step", "output_encoding")}
-        stage_cpu = np.full((frames, len(STAGES)), np.nan)
-        live_n, live_k = np.empty(frames, np.int32), np.empty(frames, np.int32)
-        governor = SampleGovernor(1000.0 * period, samples, max_steps=cfg.get("refine_steps", 0)) if adaptive else None
-        refiner = pipe.refiner
-        refined_before = refiner.applied if refiner else 0     # the warm-up's refined frames are not counted
-        misses = late_starts = skipped = 0
+        self.refined_before = pipe.refiner.applied if pipe.refiner else 0     # the warm-up's are not counted
+
+    def measure(self, bar_desc):
+        from edge.progress import Progress
+        pipe, hog, frames = self.pipe, self.hog, self.frames
         pipe.timing = True
-        marks, stage_ns = service.tick_marks, pipe.stage_ns
         with Progress(frames, bar_desc) as bar:
             i = 0
             while i < frames:
-                if hog_proc and i == hog[0]:
-                    hog_proc.start()
-                elif hog_proc and i == hog[0] + hog[1]:
-                    hog_proc.stop()
-                release, late = pacer.wait()
-                for j in range(i, min(i + late, frames)):
-                    # Their deadline passed before they could start: skipped and missed, as `edge run`
-                    # does (a late service resynchronises to the next tick instead of bursting).
-                    live_n[j], live_k[j] = pipe.samples, refiner.steps if refiner else 0
-                    resp[j] = clock() - (release - (i + late - j) * period)
-                    skipped += 1
-                    misses += 1
+                if self.hog_proc and i == hog[0]:
+                    self.hog_proc.start()
+                elif self.hog_proc and i == hog[0] + hog[1]:
+                    self.hog_proc.stop()
+                release, late = self.pacer.wait()
+                self._skip(i, late, release)
                 i += late
                 if i >= frames:
                     break
-                now = clock()
-                late_starts += 1 if now > release + 0.001 else 0
-                live_n[i], live_k[i] = pipe.samples, refiner.steps if refiner else 0
-                ca = cpu_clock()
-                tick(warm + i)
-                d, cd = clock(), cpu_clock()
-                st["sync"][i], st["pipeline_step"][i], st["output_encoding"][i] = np.diff(marks)
-                stage_cpu[i] = np.diff(stage_ns) / 1e6
-                resp[i], comp[i], cpu[i] = d - release, d - now, cd - ca
-                misses += 1 if resp[i] > period else 0
-                if governor is not None:
-                    governor.steer(pipe, resp[i] * 1e3)
+                self._frame(i, release)
                 if i % 30 == 29 or i == frames - 1:
                     # cheap on purpose: this runs inside the measured process between frames
-                    bar.update(30 if i % 30 == 29 else (i % 30) + 1,
-                               postfix=f"N={pipe.samples} K={live_k[i]} last {resp[i] * 1e3:.2f} ms misses {misses}")
+                    bar.update(30 if i % 30 == 29 else (i % 30) + 1, postfix=f"N={pipe.samples} K={self.live_k[i]} "
+                               f"last {self.resp[i] * 1e3:.2f} ms misses {self.misses}")
                 i += 1
         pipe.timing = False
-    finally:                 # never leave busy processes behind, whatever happened
-        if hog_proc:
-            hog_proc.reap()
-        service.close()
-        feeder.close()
-    ms = lambda x: x * 1e3  # noqa: E731
-    stats = {"samples": samples, "refine_steps": steps, "frames": frames, "deadline_misses": misses,
-             "late_starts": late_starts,
-             "skipped_frames": skipped,
-             "frame_ms": _pct(ms(resp)), "compute_ms": _pct(ms(comp)), "cpu_ms": _pct(ms(cpu)),
-             "stages_in_loop_ms": {k: _pct(ms(v)) for k, v in st.items()},
-             "stages_cpu_ms": {name: _pct(stage_cpu[:, k]) for k, name in enumerate(STAGES)},
-             "ssi_switches": pipe.switch_count, "refined_frames": pipe.refiner.applied - refined_before if pipe.refiner else 0}
-    if adaptive or hog:
-        stats["contention"] = contention_report(resp, live_n, period, hog, governor, live_k)
-    return stats, pipe
+
+    def _live(self, j):
+        refiner = self.pipe.refiner
+        self.live_n[j], self.live_k[j] = self.pipe.samples, refiner.steps if refiner else 0
+
+    def _skip(self, i, late, release):
+        """Frames whose deadline passed before they could start: skipped and missed, as `edge run` does
+        (a late service resynchronises to the next tick instead of bursting)."""
+        for j in range(i, min(i + late, self.frames)):
+            self._live(j)
+            self.resp[j] = self.clock() - (release - (i + late - j) * self.period)
+            self.skipped += 1
+            self.misses += 1
+
+    def _frame(self, i, release):
+        import numpy as np
+        clock, cpu_clock = self.clock, self.cpu_clock
+        now = clock()
+        self.late_starts += 1 if now > release + 0.001 else 0
+        self._live(i)
+        ca = cpu_clock()
+        self.tick(self.WARM + i)
+        d, cd = clock(), cpu_clock()
+        st = self.in_loop
+        st["sync"][i], st["pipeline_step"][i], st["output_encoding"][i] = np.diff(self.service.tick_marks)
+        self.stage_cpu[i] = np.diff(self.pipe.stage_ns) / 1e6
+        self.resp[i], self.comp[i], self.cpu[i] = d - release, d - now, cd - ca
+        self.misses += 1 if self.resp[i] > self.period else 0
+        if self.governor is not None:
+            self.governor.steer(self.pipe, self.resp[i] * 1e3)
+
+    def close(self):
+        if self.hog_proc:
+            self.hog_proc.reap()
+        self.service.close()
+        self.feeder.close()
+
+    def stats(self):
+        from edge.pipeline import STAGES
+        pipe = self.pipe
+        ms = lambda x: x * 1e3  # noqa: E731
+        stats = {"samples": self.samples, "refine_steps": self.steps, "frames": self.frames,
+                 "deadline_misses": self.misses, "late_starts": self.late_starts, "skipped_frames": self.skipped,
+                 "frame_ms": _pct(ms(self.resp)), "compute_ms": _pct(ms(self.comp)), "cpu_ms": _pct(ms(self.cpu)),
+                 "stages_in_loop_ms": {k: _pct(ms(v)) for k, v in self.in_loop.items()},
+                 "stages_cpu_ms": {name: _pct(self.stage_cpu[:, k]) for k, name in enumerate(STAGES)},
+                 "ssi_switches": pipe.switch_count,
+                 "refined_frames": pipe.refiner.applied - self.refined_before if pipe.refiner else 0}
+        if self.adaptive or self.hog:
+            stats["contention"] = contention_report(self.resp, self.live_n, self.period, self.hog, self.governor,
+                                                    self.live_k)
+        return stats
 
 
 def _timeline(values):

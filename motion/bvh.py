@@ -66,40 +66,63 @@ def load(path):
 
 
 def parse(text, path="<bvh>"):
-    lines = text.splitlines()
-    names, parents, offsets, channels = [], [], [], []
-    stack = []
-    i = 0
+    """A BVH file's text -> BvhClip; anything malformed raises BvhError naming the file and line."""
+    src = _Lines(text.splitlines(), path)
+    names, parents, offsets, channels = _hierarchy(src)
+    n_frames, frame_time = _motion_header(src)
+    data = _frames(src, n_frames, sum(len(c) for c in channels))
+    rotations, positions = _pose_channels(data, np.array(offsets, dtype=np.float64), channels)
+    return BvhClip(path, names, np.array(parents), np.array(offsets, dtype=np.float64), 1.0 / frame_time,
+                   rotations, positions)
 
-    def fail(msg, line=None):
+
+class _Lines:
+    """The file's lines and the reader's place in them; fail() raises BvhError at a line."""
+
+    def __init__(self, lines, path):
+        self.lines, self.path, self.i = lines, path, 0
+
+    def fail(self, msg, line=None):
         where = f" line {line + 1}" if line is not None else ""
-        raise BvhError(f"{path}:{where}: {msg}")
+        raise BvhError(f"{self.path}:{where}: {msg}")
 
-    while i < len(lines) and not lines[i].strip():
-        i += 1
-    if i >= len(lines) or lines[i].strip() != "HIERARCHY":
-        fail("file does not start with HIERARCHY", i if i < len(lines) else None)
-    i += 1
+    def skip_blank(self):
+        while self.i < len(self.lines) and not self.lines[self.i].strip():
+            self.i += 1
+
+    def here(self):
+        """The current line's index, or None past the end (for fail)."""
+        return self.i if self.i < len(self.lines) else None
+
+
+def _hierarchy(src):
+    """HIERARCHY ... MOTION -> joint names, parents, offsets, channels (in file order)."""
+    names, parents, offsets, channels, stack = [], [], [], [], []
+    fail, lines = src.fail, src.lines
+    src.skip_blank()
+    if src.here() is None or lines[src.i].strip() != "HIERARCHY":
+        fail("file does not start with HIERARCHY", src.here())
+    src.i += 1
     pending = None  # joint declared, waiting for '{'
-    while i < len(lines):
-        tok = lines[i].split()
-        i += 1
+    while src.i < len(lines):
+        tok, at = lines[src.i].split(), src.i
+        src.i += 1
         if not tok:
             continue
         key = tok[0]
         if key in ("ROOT", "JOINT"):
             if len(tok) < 2:
-                fail(f"{key} without a name", i - 1)
+                fail(f"{key} without a name", at)
             if key == "ROOT" and stack:
-                fail("ROOT inside another joint", i - 1)
+                fail("ROOT inside another joint", at)
             pending = (" ".join(tok[1:]), stack[-1] if stack else -1)
         elif key == "End":
             if not stack:
-                fail("End Site outside a joint", i - 1)
+                fail("End Site outside a joint", at)
             pending = (names[stack[-1]] + "_end", stack[-1])
         elif key == "{":
             if pending is None:
-                fail("'{' without a joint", i - 1)
+                fail("'{' without a joint", at)
             names.append(pending[0])
             parents.append(pending[1])
             offsets.append(None)
@@ -108,62 +131,83 @@ def parse(text, path="<bvh>"):
             pending = None
         elif key == "}":
             if not stack:
-                fail("unbalanced '}'", i - 1)
+                fail("unbalanced '}'", at)
             j = stack.pop()
             if offsets[j] is None:
-                fail(f"joint {names[j]!r} has no OFFSET", i - 1)
+                fail(f"joint {names[j]!r} has no OFFSET", at)
         elif key == "OFFSET":
-            if not stack or len(tok) != 4:
-                fail("OFFSET needs three numbers inside a joint", i - 1)
-            try:
-                offsets[stack[-1]] = [float(v) for v in tok[1:]]
-            except ValueError:
-                fail(f"OFFSET values are not numbers: {' '.join(tok[1:])}", i - 1)
+            offsets[_inside(stack, src, at)] = _offset(tok, src, at)
         elif key == "CHANNELS":
-            if not stack or len(tok) < 2:
-                fail("CHANNELS outside a joint", i - 1)
-            try:
-                n = int(tok[1])
-            except ValueError:
-                fail(f"CHANNELS count is not a number: {tok[1]}", i - 1)
-            ch = tok[2:]
-            if n != len(ch):
-                fail(f"CHANNELS says {n} but lists {len(ch)}", i - 1)
-            bad = [c for c in ch if c not in _ROT and c not in _POS]
-            if bad:
-                fail(f"unknown channel {bad[0]!r}", i - 1)
-            channels[stack[-1]] = ch
+            channels[_inside(stack, src, at, "CHANNELS outside a joint")] = _channels(tok, src, at)
         elif key == "MOTION":
             break
         else:
-            fail(f"unexpected {key!r} in HIERARCHY", i - 1)
+            fail(f"unexpected {key!r} in HIERARCHY", at)
     else:
         fail("no MOTION section (file truncated?)")
     if stack:
         fail(f"hierarchy not closed: joint {names[stack[-1]]!r} is missing its '}}'")
     if not names:
         fail("hierarchy has no joints")
+    return names, parents, offsets, channels
 
+
+def _inside(stack, src, at, msg="OFFSET needs three numbers inside a joint"):
+    """The joint a line belongs to (the innermost open one)."""
+    if not stack:
+        src.fail(msg, at)
+    return stack[-1]
+
+
+def _offset(tok, src, at):
+    if len(tok) != 4:
+        src.fail("OFFSET needs three numbers inside a joint", at)
+    try:
+        return [float(v) for v in tok[1:]]
+    except ValueError:
+        src.fail(f"OFFSET values are not numbers: {' '.join(tok[1:])}", at)
+
+
+def _channels(tok, src, at):
+    if len(tok) < 2:
+        src.fail("CHANNELS outside a joint", at)
+    try:
+        n = int(tok[1])
+    except ValueError:
+        src.fail(f"CHANNELS count is not a number: {tok[1]}", at)
+    ch = tok[2:]
+    if n != len(ch):
+        src.fail(f"CHANNELS says {n} but lists {len(ch)}", at)
+    bad = [c for c in ch if c not in _ROT and c not in _POS]
+    if bad:
+        src.fail(f"unknown channel {bad[0]!r}", at)
+    return ch
+
+
+def _motion_header(src):
+    """Frames: and Frame Time: after MOTION -> (frames, seconds a frame), both positive."""
     def header(prefix):
-        nonlocal i
-        while i < len(lines) and not lines[i].strip():
-            i += 1
-        if i >= len(lines) or not lines[i].strip().startswith(prefix):
-            fail(f"expected '{prefix}' after MOTION", i if i < len(lines) else None)
-        value = lines[i].split(":", 1)[1].strip()
-        i += 1
+        src.skip_blank()
+        if src.here() is None or not src.lines[src.i].strip().startswith(prefix):
+            src.fail(f"expected '{prefix}' after MOTION", src.here())
+        value = src.lines[src.i].split(":", 1)[1].strip()
+        src.i += 1
         return value
 
     try:
         n_frames = int(header("Frames"))
         frame_time = float(header("Frame Time"))
     except ValueError:
-        fail("Frames / Frame Time are not numbers", i - 1)
+        src.fail("Frames / Frame Time are not numbers", src.i - 1)
     if n_frames <= 0 or not (frame_time > 0):
-        fail(f"Frames ({n_frames}) and Frame Time ({frame_time}) must be positive", i - 1)
+        src.fail(f"Frames ({n_frames}) and Frame Time ({frame_time}) must be positive", src.i - 1)
+    return n_frames, frame_time
 
-    n_ch = sum(len(c) for c in channels)
-    body = [ln for ln in lines[i:] if ln.strip()]
+
+def _frames(src, n_frames, n_ch):
+    """The motion rows -> [frames, channels] float64, every value finite."""
+    fail = src.fail
+    body = [ln for ln in src.lines[src.i:] if ln.strip()]
     if len(body) < n_frames:
         fail(f"header says {n_frames} frames but only {len(body)} are present (file truncated?)")
     try:
@@ -179,9 +223,13 @@ def parse(text, path="<bvh>"):
     if not np.all(np.isfinite(data)):
         r, c = np.argwhere(~np.isfinite(data))[0]
         fail(f"frame {r} channel {c} is not a finite number ({data[r, c]})")
+    return data
 
-    J = len(names)
-    offsets = np.array(offsets, dtype=np.float64)
+
+def _pose_channels(data, offsets, channels):
+    """The channels' values -> local rotations [T,J,4] (quaternions) and positions [T,J,3] (the offsets
+    where a joint has no position channel)."""
+    n_frames, J = len(data), len(channels)
     rotations = np.zeros((n_frames, J, 4))
     rotations[..., 0] = 1.0
     positions = np.broadcast_to(offsets, (n_frames, J, 3)).copy()
@@ -195,4 +243,4 @@ def parse(text, path="<bvh>"):
         if rot_order:
             rotations[:, j] = quat.from_euler(data[:, rot_cols], rot_order)
         col += len(ch)
-    return BvhClip(path, names, np.array(parents), offsets, 1.0 / frame_time, rotations, positions)
+    return rotations, positions

@@ -243,7 +243,8 @@ def flip_bits(data, ber, rng):
 def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, seed=0, seconds=None,
                trackers=None):
     """Device traffic for a take. The headset always speaks serial; IMUs go where `placement` puts them.
-    The extra IMUs `trackers` carry IMU noise (edge.imus.ImuNoise), as `edge eval` and training have it."""
+    The extra IMUs `trackers` carry IMU noise (edge.imus.ImuNoise), as `edge eval` and training have it.
+    One seeded generator draws everything, in a fixed order: the same arguments make the same bytes."""
     faults = faults or {}
     rng = np.random.default_rng(seed)
     place = placement(transports, trackers)
@@ -252,101 +253,139 @@ def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, see
     if missing:
         raise ValueError(f"{take.name} carries no orientation for {', '.join(missing)} (an older sample file: "
                          f"replay the BVH clip, or rebuild the sample with python -m edgetools.make_sample)")
-    imu_rng = np.random.default_rng([seed, 13])
-    imus = {}
-    if trackers:
-        noisy = ImuNoise().apply(np.stack([take.imu[n] for n in trackers], axis=1), take.fps, imu_rng)
-        imus = {n: noisy[:, k] for k, n in enumerate(trackers)}
-    fps = take.fps
-    duration = take.frames / fps if seconds is None else min(seconds, take.frames / fps)
-    sig = take.signals
-    if faults.get("noise"):
-        sig = DeviceNoise().apply(sig, fps, rng)
-    clocks = {name: DeviceClock(rng.uniform(-50, 50), rng.normal(0, 50e-6), 0.0005) for name in RATES}
-    if "clock_jump_at" in faults:
-        clocks["headset"].jump = (faults["clock_jump_at"], faults["clock_jump_s"])
-    frames60 = int(np.ceil(duration * fps)) + 1
-    dropped = {}
-    for tracker in ("waist",) + IMU_LOCATIONS:
-        dropped[tracker] = np.zeros(frames60, bool)
-    if "disconnect" in faults:      # DragPoser's protocol: each frame one worn IMU drops w.p. p, back after n frames
-        worn = ["waist", *trackers]
-        n = int(faults.get("disconnect_frames", 100))
-        for f in np.flatnonzero(rng.random(frames60) < faults["disconnect"]):
-            dropped[worn[rng.integers(len(worn))]][f:f + n] = True
-    if faults.get("tracker_unplug") in dropped:
-        dropped[faults["tracker_unplug"]][int(faults["tracker_unplug_at"] * fps):] = True
-    hands_gone = [gaps(rng, frames60, faults["hand_loss"], lambda r: r.uniform(*faults.get("hand_gap_s", [0.5, 2.0])) * fps)
-                  if "hand_loss" in faults else np.zeros(frames60, bool) for _ in range(2)]
-    loss, ber = faults.get("loss", 0.0), faults.get("ber", 0.0)
+    tx = _Traffic(take, place, faults, rng, _noisy_imus(take, trackers, seed), seconds)
+    tx.plan_faults(trackers)
+    headset, hub = tx.headset_log(), tx.hub_log()
+    can_t, can_id, can_data = tx.can_frames()
+    slimevr = tx.slimevr_logs()
+    i2c_t, i2c_q, i2c_a = tx.i2c_samples("i2c" in transports)
+    duration = tx.duration
+    gt = None if take.gt_pos is None else take.gt_pos[:int(round(duration * tx.fps))]
+    meta = {"faults": faults, "seed": seed, "placement": place, "trackers": ["waist", *trackers],
+            "clocks": {k: {"offset": c.offset, "drift": c.drift} for k, c in tx.clocks.items()},
+            "source": take.name, "slimevr_trackers": {SLIMEVR_MACS[n]: n for n in place["slimevr"]}}
+    return Session(take.name, tx.fps, duration, tuple(transports), headset, hub, np.array(can_t),
+                   np.array(can_id, np.int64), np.array(can_data, np.uint8).reshape(-1, 8), i2c_t, i2c_q, i2c_a,
+                   gt, meta, slimevr)
 
-    def device_time(name, t):
-        c = clocks[name]
+
+def _noisy_imus(take, trackers, seed):
+    """The extra IMUs' orientations with ImuNoise, from a generator of their own ({name: [T,4]})."""
+    if not trackers:
+        return {}
+    noisy = ImuNoise().apply(np.stack([take.imu[n] for n in trackers], axis=1), take.fps, np.random.default_rng([seed, 13]))
+    return {n: noisy[:, k] for k, n in enumerate(trackers)}
+
+
+class _Traffic:
+    """One take's traffic being made: the signals, the device clocks, the fault plan and the generator,
+    shared by each device's log below (called in synthesize's order, which fixes the random draws)."""
+
+    def __init__(self, take, place, faults, rng, imus, seconds):
+        self.take, self.place, self.faults, self.rng, self.imus = take, place, faults, rng, imus
+        self.fps = fps = take.fps
+        self.duration = take.frames / fps if seconds is None else min(seconds, take.frames / fps)
+        self.sig = DeviceNoise().apply(take.signals, fps, rng) if faults.get("noise") else take.signals
+        self.clocks = {name: DeviceClock(rng.uniform(-50, 50), rng.normal(0, 50e-6), 0.0005) for name in RATES}
+        if "clock_jump_at" in faults:
+            self.clocks["headset"].jump = (faults["clock_jump_at"], faults["clock_jump_s"])
+        self.frames60 = int(np.ceil(self.duration * fps)) + 1
+        self.loss, self.ber = faults.get("loss", 0.0), faults.get("ber", 0.0)
+
+    def plan_faults(self, trackers):
+        """Which tracker is silent on which frame, and when each hand is lost."""
+        faults, rng, n60, fps = self.faults, self.rng, self.frames60, self.fps
+        self.dropped = {tracker: np.zeros(n60, bool) for tracker in ("waist",) + IMU_LOCATIONS}
+        if "disconnect" in faults:      # DragPoser's protocol: each frame one worn IMU drops w.p. p, back after n frames
+            worn = ["waist", *trackers]
+            n = int(faults.get("disconnect_frames", 100))
+            for f in np.flatnonzero(rng.random(n60) < faults["disconnect"]):
+                self.dropped[worn[rng.integers(len(worn))]][f:f + n] = True
+        if faults.get("tracker_unplug") in self.dropped:
+            self.dropped[faults["tracker_unplug"]][int(faults["tracker_unplug_at"] * fps):] = True
+        self.hands_gone = [gaps(rng, n60, faults["hand_loss"], lambda r: r.uniform(*faults.get("hand_gap_s", [0.5, 2.0])) * fps)
+                           if "hand_loss" in faults else np.zeros(n60, bool) for _ in range(2)]
+
+    def device_time(self, name, t):
+        c = self.clocks[name]
         jump = getattr(c, "jump", None)
         return c.stamp(t) + (jump[1] if jump and t >= jump[0] else 0.0)
 
-    headset = SerialLog()
-    for k, t in enumerate(emission_times(RATES["headset"], duration, clocks["headset"].jitter, rng)):
-        f = min(int(t * fps), frames60 - 1)
-        hp, hr, cp, cr, _, _ = signal_at(sig, fps, t)
-        valid = np.array([not hands_gone[0][f], not hands_gone[1][f]])
-        data = messages.encode_headset_pose(HeadsetSample(device_time("headset", t), hp, hr, cp, cr, valid), k & 0xFFFF)
-        if rng.random() >= loss:
-            headset.add(t, flip_bits(data, ber, rng))
+    def emissions(self, device, clock=None):
+        """(k, t, frame) of each message `device` sends at its rate, with its clock's jitter."""
+        jitter = self.clocks[clock or device].jitter
+        for k, t in enumerate(emission_times(RATES[device], self.duration, jitter, self.rng)):
+            yield k, t, min(int(t * self.fps), self.frames60 - 1)
 
-    has = lambda name: name == "waist" or name in imus
-    hub = SerialLog()
-    if place["hub"]:
-        for k, t in enumerate(emission_times(RATES["hub"], duration, clocks["hub"].jitter, rng)):
-            f = min(int(t * fps), frames60 - 1)
-            samples = [TrackerSample(n, device_time("hub", t), imu_at(take, n, t, imus)) for n in place["hub"]
-                       if has(n) and not dropped[n][f]]
-            if samples and rng.random() >= loss:
-                hub.add(t, flip_bits(messages.encode_tracker_samples(samples, k & 0xFFFF, HUB_IDS), ber, rng))
+    def has(self, name):
+        return name == "waist" or name in self.imus
 
-    can_t, can_id, can_data = [], [], []
-    if place["can"]:
+    def headset_log(self):
+        log, rng = SerialLog(), self.rng
+        for k, t, f in self.emissions("headset"):
+            hp, hr, cp, cr, _, _ = signal_at(self.sig, self.fps, t)
+            valid = np.array([not self.hands_gone[0][f], not self.hands_gone[1][f]])
+            data = messages.encode_headset_pose(HeadsetSample(self.device_time("headset", t), hp, hr, cp, cr, valid), k & 0xFFFF)
+            if rng.random() >= self.loss:
+                log.add(t, flip_bits(data, self.ber, rng))
+        return log
+
+    def hub_log(self):
+        log, rng, names = SerialLog(), self.rng, self.place["hub"]
+        if not names:
+            return log
+        for k, t, f in self.emissions("hub"):
+            samples = [TrackerSample(n, self.device_time("hub", t), imu_at(self.take, n, t, self.imus)) for n in names
+                       if self.has(n) and not self.dropped[n][f]]
+            if samples and rng.random() >= self.loss:
+                log.add(t, flip_bits(messages.encode_tracker_samples(samples, k & 0xFFFF, HUB_IDS), self.ber, rng))
+        return log
+
+    def can_frames(self):
+        can_t, can_id, can_data = [], [], []
+        if not self.place["can"]:
+            return can_t, can_id, can_data
+        rng, faults = self.rng, self.faults
         busoff = (faults.get("busoff_at", np.inf), faults.get("busoff_at", np.inf) + faults.get("busoff_s", 0))
-        for k, t in enumerate(emission_times(RATES["can"], duration, clocks["can"].jitter, rng)):
-            f = min(int(t * fps), frames60 - 1)
+        for k, t, f in self.emissions("can"):
             if busoff[0] <= t < busoff[1]:
                 continue
             for node, name in CAN_NODES.items():
-                if name not in place["can"] or not has(name) or dropped[name][f] or rng.random() < loss:
+                if name not in self.place["can"] or not self.has(name) or self.dropped[name][f] or rng.random() < self.loss:
                     continue
-                for m in encode_node_frames(node, imu_at(take, name, t, imus), np.zeros(3), 0xFF, k & 0xFF):
+                for m in encode_node_frames(node, imu_at(self.take, name, t, self.imus), np.zeros(3), 0xFF, k & 0xFF):
                     can_t.append(t)
                     can_id.append(m.arbitration_id)
-                    can_data.append(np.frombuffer(flip_bits(bytes(m.data), ber, rng), np.uint8))
+                    can_data.append(np.frombuffer(flip_bits(bytes(m.data), self.ber, rng), np.uint8))
+        return can_t, can_id, can_data
 
-    slimevr = {}
-    from firmware_bridge.wire.slimevr import TrackerEncoder
-    from firmware_bridge.transports.slimevr import AXES_OFFSET
-    to_wire = quat.inv(AXES_OFFSET)            # the board turns Z-up to Y-up; the tracker sends Z-up
-    for name in place["slimevr"]:
-        log, enc = SerialLog(), TrackerEncoder(SLIMEVR_MACS[name])
-        log.add(0.0, enc.sensor_info(0))
-        for k, t in enumerate(emission_times(RATES["slimevr"], duration, clocks["hub"].jitter, rng)):
-            f = min(int(t * fps), frames60 - 1)
-            if dropped[name][f] or rng.random() < loss:
-                enc.number += 1                    # a lost datagram still used its number
-                continue
-            q = quat.mul(to_wire, imu_at(take, name, t, imus))
-            log.add(t, flip_bits(enc.rotation(0, q), ber, rng))
-            if k % 100 == 99:
-                log.add(t, enc.battery(3.9, 0.8))
-        slimevr[SLIMEVR_MACS[name]] = log
-    i2c_t = np.arange(0.0, duration, 1.0 / RATES["i2c"]) if "i2c" in transports else np.zeros(0)
-    i2c_q = np.array([imu_at(take, "waist", t) for t in i2c_t]).reshape(-1, 4)
-    i2c_a = np.array([signal_at(sig, fps, t)[5] for t in i2c_t]).reshape(-1, 3)
-    if "i2c" in transports:
-        i2c_q = quat.normalize(np.array([signal_at(sig, fps, t)[4] for t in i2c_t]))
-        gone = dropped["waist"][np.minimum((i2c_t * fps).astype(int), frames60 - 1)]
-        i2c_q[gone] = np.nan                                   # the puck stops answering (see replay)
-    gt = None if take.gt_pos is None else take.gt_pos[:int(round(duration * fps))]
-    meta = {"faults": faults, "seed": seed, "placement": place, "trackers": ["waist", *trackers],
-            "clocks": {k: {"offset": c.offset, "drift": c.drift} for k, c in clocks.items()},
-            "source": take.name}
-    meta["slimevr_trackers"] = {SLIMEVR_MACS[n]: n for n in place["slimevr"]}
-    return Session(take.name, fps, duration, tuple(transports), headset, hub, np.array(can_t), np.array(can_id, np.int64),
-                   np.array(can_data, np.uint8).reshape(-1, 8), i2c_t, i2c_q, i2c_a, gt, meta, slimevr)
+    def slimevr_logs(self):
+        from firmware_bridge.transports.slimevr import AXES_OFFSET
+        from firmware_bridge.wire.slimevr import TrackerEncoder
+        to_wire = quat.inv(AXES_OFFSET)            # the board turns Z-up to Y-up; the tracker sends Z-up
+        out = {}
+        for name in self.place["slimevr"]:
+            log, enc = SerialLog(), TrackerEncoder(SLIMEVR_MACS[name])
+            log.add(0.0, enc.sensor_info(0))
+            for k, t, f in self.emissions("slimevr", clock="hub"):
+                if self.dropped[name][f] or self.rng.random() < self.loss:
+                    enc.number += 1                    # a lost datagram still used its number
+                    continue
+                q = quat.mul(to_wire, imu_at(self.take, name, t, self.imus))
+                log.add(t, flip_bits(enc.rotation(0, q), self.ber, self.rng))
+                if k % 100 == 99:
+                    log.add(t, enc.battery(3.9, 0.8))
+            out[SLIMEVR_MACS[name]] = log
+        return out
+
+    def i2c_samples(self, on_i2c):
+        """The waist BNO055's polls: times, orientations (NaN while it is dropped) and linear acceleration."""
+        sig, fps = self.sig, self.fps
+        i2c_t = np.arange(0.0, self.duration, 1.0 / RATES["i2c"]) if on_i2c else np.zeros(0)
+        i2c_q = np.array([imu_at(self.take, "waist", t) for t in i2c_t]).reshape(-1, 4)
+        i2c_a = np.array([signal_at(sig, fps, t)[5] for t in i2c_t]).reshape(-1, 3)
+        if on_i2c:
+            i2c_q = quat.normalize(np.array([signal_at(sig, fps, t)[4] for t in i2c_t]))
+            gone = self.dropped["waist"][np.minimum((i2c_t * fps).astype(int), self.frames60 - 1)]
+            i2c_q[gone] = np.nan                                   # the puck stops answering (see replay)
+        return i2c_t, i2c_q, i2c_a
