@@ -246,7 +246,7 @@ def validate(model, batches):
     return v
 
 
-def main(argv=None):
+def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default="../shared/mocap")
     ap.add_argument("--sources", nargs="*", default=None, choices=sorted(ds.SOURCE_FOLDERS),
@@ -288,180 +288,226 @@ def main(argv=None):
     ap.add_argument("--ckpt", default=".cache/train")
     ap.add_argument("--no-export", action="store_true", help="stop after saving the checkpoint")
     a = ap.parse_args(argv)
-
-    rank, world, local_rank = distributed()
-    device = pick_device(a.device, local_rank)
-    lead = rank == 0
-    out, ckpt = Path(a.out), Path(a.ckpt)
-    if lead:
-        ckpt.mkdir(parents=True, exist_ok=True)
-        out.mkdir(parents=True, exist_ok=True)
-    logf = open(out / "train_log.txt", "w") if lead else None
-
-    def log(msg):
-        if lead:
-            print(msg, flush=True)
-            logf.write(msg + "\n")
-            logf.flush()
-
-    torch.manual_seed(a.seed)
-    # on an accelerator the main process only feeds it: leave the cores to the batch makers
-    torch.set_num_threads(2 if device.type == "cuda" else max(1, (os.cpu_count() or 2) // world))
-    if device.type == "cuda":
-        torch.backends.cuda.matmul.allow_tf32 = True
-        torch.backends.cudnn.allow_tf32 = True
-    LOSS["lambda_kl"], LOSS["w_floor"], LOSS["w_clear"] = a.kl, a.floor, a.clearance
-    log(f"args: {vars(a)}  loss: {LOSS}  device: {device}  processes: {world}")
-    cs_train = ds.build(a.data, "train", a.sources)
-    cs_val = ds.build(a.data, "val", a.sources)
-    log(f"train: {len(cs_train.names)} clips, {len(cs_train.root) / 3600:.1f} min; val: {len(cs_val.names)} clips, "
-        f"{len(cs_val.root) / 3600:.1f} min (60 Hz)")
-
-    global _TRAIN
-    _TRAIN = cs_train
-    ctx = mp.get_context("fork")
-    q = ctx.Queue(maxsize=max(8, 2 * a.workers))
-    procs = [ctx.Process(target=_producer, args=(q, a.window, a.batch, a.seed + 1 + 1000 * rank + 100_000 * w,
-                                                 a.vigorous), daemon=True)
-             for w in range(a.workers)]
-    for p in procs:
-        p.start()
-    if world > 1:       # after the fork: the batch producer must not inherit the process group's threads
-        import torch.distributed as dist
-        dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
-
-    t0 = time.time()
-    ae_from = a.ae_from or a.resume or a.init
-    if ae_from:
-        import shutil
-        if lead and Path(ae_from).resolve() != ckpt.resolve():
-            shutil.copy(Path(ae_from) / "ae.pt", ckpt / "ae.pt")
-        threshold = json.loads((Path(ae_from) / "meta.json").read_text())["plausibility_threshold_m"]
-        log(f"autoencoder and threshold from {ae_from}")
-    elif lead:
-        ae, threshold = train_ae(cs_train, cs_val, a.ae_steps, a.seed, log)
-        torch.save(ae.state_dict(), ckpt / "ae.pt")
-        log(f"autoencoder trained in {time.time() - t0:.0f} s")
-    if world > 1:
-        dist.barrier()
-
-    # Validation (rank 0): fixed noisy windows of 4 s, latent at the prior mean (what N=1 runs), with
-    # no extra IMUs (the 4-point case) and with random sets of them; selection on their mean.
-    val_batches = {}
-    if lead:
-        vrng = np.random.default_rng(1234)
-        vstarts = ds.window_starts(cs_val, 240)
-        for kind in ("none", "imus"):
-            val_batches[kind] = [to_t(ds.make_batch(cs_val, vrng.choice(vstarts, a.val_windows), 240, vrng, DeviceNoise(),
-                                                    ImuNoise(), with_imus=kind == "imus"), device) for _ in range(4)]
-
     a.posterior = a.posterior or a.learned_prior
-    model = CVAE(posterior=a.posterior, learned_prior=a.learned_prior, hidden=a.hidden)
-    start_from = Path(a.resume) / "cvae_last.pt" if a.resume else Path(a.init) / "cvae.pt" if a.init else None
-    if start_from:
-        state = torch.load(start_from, weights_only=True, map_location="cpu")
-        width = state["dec_gru.weight_hh_l0"].shape[1]
-        if width != a.hidden:
-            raise SystemExit(f"{start_from} is a --hidden {width} model; pass --hidden {width}")
-        model.load_state_dict(state)
-    fit = [to_t(q.get()) for _ in range(8)]
-    if not start_from:
-        model.norm.fit(torch.cat([b["features"] for b in fit]))
-    if a.posterior:
-        model.target_norm.fit(torch.cat([b["gt_rel"].flatten(-2) for b in fit]))
-    model.to(device)
-    step = RecipeStep(model, a.best_of, a.eps)
-    if world > 1:      # DDP broadcasts rank 0's weights and buffers now and averages the gradients
-        step = torch.nn.parallel.DistributedDataParallel(step, find_unused_parameters=True)
-        torch.save({k: v.cpu() for k, v in model.state_dict().items()}, ckpt / f"initial_rank{rank}.pt")
-    opt = torch.optim.Adam(model.parameters(), lr=a.lr)
-    done_before = 0
-    if a.resume:
-        resumed = torch.load(Path(a.resume) / "train_state.pt", weights_only=True, map_location=device)
-        opt.load_state_dict(resumed["optimizer"])
-        done_before = int(resumed["iterations"])
-        log(f"resumed from {a.resume} after {done_before} steps")
-    budget = a.minutes * 60
-    best, best_it, it = float("inf"), -1, 0
+    return a
 
-    data_sha256 = _sha256(a.data) if Path(a.data).is_file() else None
 
-    def write_meta(it):
-        meta = {"plausibility_threshold_m": threshold, "iterations": done_before + it, "run_iterations": it,
-                "hidden": a.hidden, "resumed_from": a.resume, "wall_clock_s": time.time() - t1,
-                "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
-                "data": a.data, "data_sha256": data_sha256, "best_iteration": best_it,
-                "val_mpjpe_cm_training": best, "minutes": a.minutes, "sources": a.sources or sorted(ds.SOURCE_FOLDERS),
-                "licences": {s: ds.SOURCE_LICENCES[s] for s in (a.sources or sorted(ds.SOURCE_FOLDERS))},
-                "loss": LOSS, "best_of": a.best_of, "eps": a.eps, "vigorous": a.vigorous, "posterior_encoder": a.posterior,
-                "learned_prior": a.learned_prior, "init": a.init, "batch": a.batch, "window": a.window, "lr": a.lr,
-                "seed": a.seed, "processes": world, "device": str(device), "train_clips": len(cs_train.names),
-                "train_minutes": len(cs_train.root) / 3600, "features": "4-point + 7 IMUs (edge.features)"}
-        (ckpt / "meta.json").write_text(json.dumps(meta, indent=2))
+def main(argv=None):
+    trainer = Trainer(parse_args(argv))
+    trainer.load_data()
+    trainer.start_batch_makers()
+    trainer.autoencoder()
+    trainer.build_model()
+    trainer.fit()
+    trainer.finish()
 
-    t1 = time.time()
-    total = a.steps or int(budget)
-    bar = Progress(total, "cvae (steps)" if a.steps else "cvae (s)") if lead else None
-    stop = torch.zeros(1)
-    b, uses, waited = None, a.reuse, 0.0
-    while True:
-        done = it >= a.steps if a.steps else time.time() - t1 >= budget
-        if world > 1:      # rank 0's clock decides for everyone, so every process runs the same steps
-            stop.fill_(float(done))
+
+class Trainer:
+    """One training run (rank `rank` of `world` under torchrun): its data, batch makers, models and
+    checkpoints, in main's order."""
+
+    def __init__(self, a):
+        self.a = a
+        self.rank, self.world, local_rank = distributed()
+        self.device = device = pick_device(a.device, local_rank)
+        self.lead = self.rank == 0
+        self.out, self.ckpt = Path(a.out), Path(a.ckpt)
+        if self.lead:
+            self.ckpt.mkdir(parents=True, exist_ok=True)
+            self.out.mkdir(parents=True, exist_ok=True)
+        self.logf = open(self.out / "train_log.txt", "w") if self.lead else None
+        torch.manual_seed(a.seed)
+        # on an accelerator the main process only feeds it: leave the cores to the batch makers
+        torch.set_num_threads(2 if device.type == "cuda" else max(1, (os.cpu_count() or 2) // self.world))
+        if device.type == "cuda":
+            torch.backends.cuda.matmul.allow_tf32 = True
+            torch.backends.cudnn.allow_tf32 = True
+        LOSS["lambda_kl"], LOSS["w_floor"], LOSS["w_clear"] = a.kl, a.floor, a.clearance
+        self.log(f"args: {vars(a)}  loss: {LOSS}  device: {device}  processes: {self.world}")
+        self.t0 = self.t1 = time.time()
+        self.best, self.best_it, self.it, self.done_before = float("inf"), -1, 0, 0
+        self.data_sha256 = _sha256(a.data) if Path(a.data).is_file() else None
+
+    def log(self, msg):
+        if self.lead:
+            print(msg, flush=True)
+            self.logf.write(msg + "\n")
+            self.logf.flush()
+
+    def load_data(self):
+        a = self.a
+        self.cs_train = ds.build(a.data, "train", a.sources)
+        self.cs_val = ds.build(a.data, "val", a.sources)
+        self.log(f"train: {len(self.cs_train.names)} clips, {len(self.cs_train.root) / 3600:.1f} min; val: "
+                 f"{len(self.cs_val.names)} clips, {len(self.cs_val.root) / 3600:.1f} min (60 Hz)")
+
+    def start_batch_makers(self):
+        """Forked numpy processes filling a queue with training batches; then the process group."""
+        global _TRAIN
+        a, rank = self.a, self.rank
+        _TRAIN = self.cs_train
+        ctx = mp.get_context("fork")
+        self.q = ctx.Queue(maxsize=max(8, 2 * a.workers))
+        self.procs = [ctx.Process(target=_producer, args=(self.q, a.window, a.batch,
+                                                          a.seed + 1 + 1000 * rank + 100_000 * w, a.vigorous), daemon=True)
+                      for w in range(a.workers)]
+        for p in self.procs:
+            p.start()
+        if self.world > 1:       # after the fork: the batch producer must not inherit the process group's threads
+            import torch.distributed as dist
+            dist.init_process_group("nccl" if self.device.type == "cuda" else "gloo")
+
+    def autoencoder(self):
+        """The plausibility autoencoder and its threshold: trained here, or taken from a checkpoint folder;
+        then the validation batches."""
+        a, ckpt = self.a, self.ckpt
+        self.t0 = time.time()
+        ae_from = a.ae_from or a.resume or a.init
+        if ae_from:
+            import shutil
+            if self.lead and Path(ae_from).resolve() != ckpt.resolve():
+                shutil.copy(Path(ae_from) / "ae.pt", ckpt / "ae.pt")
+            self.threshold = json.loads((Path(ae_from) / "meta.json").read_text())["plausibility_threshold_m"]
+            self.log(f"autoencoder and threshold from {ae_from}")
+        elif self.lead:
+            ae, self.threshold = train_ae(self.cs_train, self.cs_val, a.ae_steps, a.seed, self.log)
+            torch.save(ae.state_dict(), ckpt / "ae.pt")
+            self.log(f"autoencoder trained in {time.time() - self.t0:.0f} s")
+        if self.world > 1:
+            import torch.distributed as dist
+            dist.barrier()
+        # Validation (rank 0): fixed noisy windows of 4 s, latent at the prior mean (what N=1 runs), with
+        # no extra IMUs (the 4-point case) and with random sets of them; selection on their mean.
+        self.val_batches = {}
+        if self.lead:
+            vrng = np.random.default_rng(1234)
+            vstarts = ds.window_starts(self.cs_val, 240)
+            for kind in ("none", "imus"):
+                self.val_batches[kind] = [
+                    to_t(ds.make_batch(self.cs_val, vrng.choice(vstarts, a.val_windows), 240, vrng, DeviceNoise(),
+                                       ImuNoise(), with_imus=kind == "imus"), self.device) for _ in range(4)]
+
+    def build_model(self):
+        """The CVAE (new, from --init or --resume), its normalisers, the recipe step and the optimizer."""
+        a, device = self.a, self.device
+        model = self.model = CVAE(posterior=a.posterior, learned_prior=a.learned_prior, hidden=a.hidden)
+        start_from = Path(a.resume) / "cvae_last.pt" if a.resume else Path(a.init) / "cvae.pt" if a.init else None
+        if start_from:
+            state = torch.load(start_from, weights_only=True, map_location="cpu")
+            width = state["dec_gru.weight_hh_l0"].shape[1]
+            if width != a.hidden:
+                raise SystemExit(f"{start_from} is a --hidden {width} model; pass --hidden {width}")
+            model.load_state_dict(state)
+        fit = [to_t(self.q.get()) for _ in range(8)]
+        if not start_from:
+            model.norm.fit(torch.cat([b["features"] for b in fit]))
+        if a.posterior:
+            model.target_norm.fit(torch.cat([b["gt_rel"].flatten(-2) for b in fit]))
+        model.to(device)
+        self.step = RecipeStep(model, a.best_of, a.eps)
+        if self.world > 1:      # DDP broadcasts rank 0's weights and buffers now and averages the gradients
+            self.step = torch.nn.parallel.DistributedDataParallel(self.step, find_unused_parameters=True)
+            torch.save({k: v.cpu() for k, v in model.state_dict().items()}, self.ckpt / f"initial_rank{self.rank}.pt")
+        self.opt = torch.optim.Adam(model.parameters(), lr=a.lr)
+        if a.resume:
+            resumed = torch.load(Path(a.resume) / "train_state.pt", weights_only=True, map_location=device)
+            self.opt.load_state_dict(resumed["optimizer"])
+            self.done_before = int(resumed["iterations"])
+            self.log(f"resumed from {a.resume} after {self.done_before} steps")
+
+    def _done(self):
+        a = self.a
+        done = self.it >= a.steps if a.steps else time.time() - self.t1 >= a.minutes * 60
+        if self.world > 1:      # rank 0's clock decides for everyone, so every process runs the same steps
+            import torch.distributed as dist
+            stop = torch.full((1,), float(done))
             dist.broadcast(stop, 0)
             done = bool(stop.item())
-        if done:
-            break
-        frac = it / a.steps if a.steps else (time.time() - t1) / budget
-        for g in opt.param_groups:
-            g["lr"] = float(1e-5 + 0.5 * (a.lr - 1e-5) * (1 + np.cos(np.pi * min(frac, 1.0))))  # a float: weights_only loads
-        t_wait = time.time()
-        if uses >= a.reuse or not q.empty():
-            b, uses = to_t(q.get(), device), 0
-        uses += 1
-        waited += time.time() - t_wait
-        model.train()
-        loss, t = step(b)
-        opt.zero_grad()
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
-        opt.step()
-        it += 1
-        if lead and it % 20 == 0:
-            bar.n = it - 1 if a.steps else int(time.time() - t1) - 1
-            bar.update(postfix=f"it {it} train {t['mpjpe'].item() * 100:.2f} cm bce {t['bce'].item():.3f}"
-                               + (f" floor {t['floor'].item() * 1e4:.2f} cm2" if "floor" in t else ""))
-        last = (it >= a.steps) if a.steps else (time.time() - t1 >= budget)
-        if lead and (it % a.val_every == 0 or last):
-            v = {k: validate(model, vb) for k, vb in val_batches.items()}
-            score = float(np.mean(list(v.values())))
-            log(f"it {it} t {time.time() - t1:.0f}s (data wait {waited:.0f}s) lr {opt.param_groups[0]['lr']:.2e} train mpjpe "
-                f"{t['mpjpe'].item() * 100:.2f} " + " ".join(f"{k} {x.item():.4f}" for k, x in t.items() if k != "mpjpe")
-                + f" | val mpjpe (head-anchored, no IK) none {v['none']:.2f} imus {v['imus']:.2f} cm")
-            if score < best:
-                best, best_it = score, it
-                torch.save(cpu_state(model), ckpt / "cvae.pt")
-            # where a later run continues from (--resume), whatever val said
-            torch.save(cpu_state(model), ckpt / "cvae_last.pt")
-            torch.save({"optimizer": opt.state_dict(), "iterations": done_before + it}, ckpt / "train_state.pt")
-            write_meta(it)
-    if bar:
-        bar.close()
-    for p in procs:
-        p.terminate()
-    if world > 1:      # every process ends with the same weights: rank r saves its own copy to show it
-        torch.save({k: v.cpu() for k, v in model.state_dict().items()}, ckpt / f"final_rank{rank}.pt")
-        dist.barrier()
-        dist.destroy_process_group()
-    if not lead:
-        return
-    log(f"cvae: {it} iterations in {time.time() - t1:.0f} s; best val {best:.2f} cm at it {best_it}")
-    write_meta(it)
-    if a.no_export:
-        return
-    from models.export import export_all
-    export_all(ckpt, out)
-    log("exported ONNX models and manifest")
+        return done
+
+    def fit(self):
+        """Adam steps on the recipe's loss with a cosine learning rate, until the step count or the
+        wall-clock budget; validation and checkpoints every --val-every steps and at the end."""
+        a, opt, model = self.a, self.opt, self.model
+        budget = a.minutes * 60
+        self.t1 = time.time()
+        bar = Progress(a.steps or int(budget), "cvae (steps)" if a.steps else "cvae (s)") if self.lead else None
+        b, uses, self.waited = None, a.reuse, 0.0
+        while not self._done():
+            frac = self.it / a.steps if a.steps else (time.time() - self.t1) / budget
+            for g in opt.param_groups:
+                g["lr"] = float(1e-5 + 0.5 * (a.lr - 1e-5) * (1 + np.cos(np.pi * min(frac, 1.0))))  # a float: weights_only loads
+            t_wait = time.time()
+            if uses >= a.reuse or not self.q.empty():
+                b, uses = to_t(self.q.get(), self.device), 0
+            uses += 1
+            self.waited += time.time() - t_wait
+            model.train()
+            loss, t = self.step(b)
+            opt.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+            opt.step()
+            self.it += 1
+            it = self.it
+            if self.lead and it % 20 == 0:
+                bar.n = it - 1 if a.steps else int(time.time() - self.t1) - 1
+                bar.update(postfix=f"it {it} train {t['mpjpe'].item() * 100:.2f} cm bce {t['bce'].item():.3f}"
+                                   + (f" floor {t['floor'].item() * 1e4:.2f} cm2" if "floor" in t else ""))
+            last = (it >= a.steps) if a.steps else (time.time() - self.t1 >= budget)
+            if self.lead and (it % a.val_every == 0 or last):
+                self._validate_and_save(t)
+        if bar:
+            bar.close()
+
+    def _validate_and_save(self, t):
+        it, ckpt, model = self.it, self.ckpt, self.model
+        v = {k: validate(model, vb) for k, vb in self.val_batches.items()}
+        score = float(np.mean(list(v.values())))
+        self.log(f"it {it} t {time.time() - self.t1:.0f}s (data wait {self.waited:.0f}s) lr "
+                 f"{self.opt.param_groups[0]['lr']:.2e} train mpjpe {t['mpjpe'].item() * 100:.2f} "
+                 + " ".join(f"{k} {x.item():.4f}" for k, x in t.items() if k != "mpjpe")
+                 + f" | val mpjpe (head-anchored, no IK) none {v['none']:.2f} imus {v['imus']:.2f} cm")
+        if score < self.best:
+            self.best, self.best_it = score, it
+            torch.save(cpu_state(model), ckpt / "cvae.pt")
+        # where a later run continues from (--resume), whatever val said
+        torch.save(cpu_state(model), ckpt / "cvae_last.pt")
+        torch.save({"optimizer": self.opt.state_dict(), "iterations": self.done_before + it}, ckpt / "train_state.pt")
+        self.write_meta()
+
+    def write_meta(self):
+        a, device, sources = self.a, self.device, self.a.sources or sorted(ds.SOURCE_FOLDERS)
+        meta = {"plausibility_threshold_m": self.threshold, "iterations": self.done_before + self.it,
+                "run_iterations": self.it, "hidden": a.hidden, "resumed_from": a.resume,
+                "wall_clock_s": time.time() - self.t1,
+                "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
+                "data": a.data, "data_sha256": self.data_sha256, "best_iteration": self.best_it,
+                "val_mpjpe_cm_training": self.best, "minutes": a.minutes, "sources": sources,
+                "licences": {s: ds.SOURCE_LICENCES[s] for s in sources},
+                "loss": LOSS, "best_of": a.best_of, "eps": a.eps, "vigorous": a.vigorous, "posterior_encoder": a.posterior,
+                "learned_prior": a.learned_prior, "init": a.init, "batch": a.batch, "window": a.window, "lr": a.lr,
+                "seed": a.seed, "processes": self.world, "device": str(device), "train_clips": len(self.cs_train.names),
+                "train_minutes": len(self.cs_train.root) / 3600, "features": "4-point + 7 IMUs (edge.features)"}
+        (self.ckpt / "meta.json").write_text(json.dumps(meta, indent=2))
+
+    def finish(self):
+        for p in self.procs:
+            p.terminate()
+        if self.world > 1:      # every process ends with the same weights: rank r saves its own copy to show it
+            import torch.distributed as dist
+            torch.save({k: v.cpu() for k, v in self.model.state_dict().items()}, self.ckpt / f"final_rank{self.rank}.pt")
+            dist.barrier()
+            dist.destroy_process_group()
+        if not self.lead:
+            return
+        self.log(f"cvae: {self.it} iterations in {time.time() - self.t1:.0f} s; best val {self.best:.2f} cm at it {self.best_it}")
+        self.write_meta()
+        if self.a.no_export:
+            return
+        from models.export import export_all
+        export_all(self.ckpt, self.out)
+        self.log("exported ONNX models and manifest")
 
 
 if __name__ == "__main__":

@@ -251,66 +251,25 @@ def build(folder, data=None, methods=("dynamic", "static"), log=print):
         methods = tuple(m for m in methods if m != "static")
     if not methods:
         raise SystemExit("quantize: nothing to build")
-    train = val = None
+    windows = None
     if have_data:
         log("calibration and validation windows from the mocap data (train / val) ...")
-        train = mocap_windows(data, "train", CALIB_WINDOWS, CALIB_FRAMES, seed=11, n_features=manifest["features"])
-        val = mocap_windows(data, "val", VAL_WINDOWS, VAL_FRAMES, seed=12, n_features=manifest["features"])
+        windows = (mocap_windows(data, "train", CALIB_WINDOWS, CALIB_FRAMES, seed=11, n_features=manifest["features"]),
+                   mocap_windows(data, "val", VAL_WINDOWS, VAL_FRAMES, seed=12, n_features=manifest["features"]))
     report = {"methods_tried": list(methods), "selection": {}, "candidates": {}}
     entries, runtime = {}, {}
     earlier = manifest.get("precisions", {}).get("int8", {})      # the runtime files a previous build chose
-    call_us = {"decoder": decoder_call_us, "autoencoder": autoencoder_call_us}
     with tempfile.TemporaryDirectory(prefix="quantize-") as tmp:
         tmp = Path(tmp)
         for model in MODELS:
             src = folder / fp32_name(model)
-            report[f"{model}_fp32_call_us_n100"] = fp32_us = call_us[model](src, 100)["p50"]
-            cands = {}
-            for method in methods:
-                dst = tmp / f"{model}.{method}.onnx"
-                if method == "dynamic":
-                    quantize_dynamic_model(src, dst)
-                else:
-                    calib = decoder_calibration(src, train) if model == "decoder" else autoencoder_calibration(train)
-                    quantize_static_model(src, dst, calib)
-                cands[method] = {"bytes": dst.stat().st_size, "size_vs_fp32": dst.stat().st_size / src.stat().st_size,
-                                 "call_us_n100": call_us[model](dst, 100)["p50"]}
-                log(f"  {model} {method}: {cands[method]['bytes']:,} bytes ({cands[method]['size_vs_fp32']:.1%} of fp32)")
+            report[f"{model}_fp32_call_us_n100"] = fp32_us = call_us(model, src, 100)["p50"]
+            cands = build_candidates(model, src, tmp, methods, windows and windows[0], log)
             if have_data:
-                ref = None
-                for method in methods:
-                    p = tmp / f"{model}.{method}.onnx"
-                    if model == "decoder":
-                        ref, m = measure_decoder(p, src, val, ref)
-                    else:
-                        m = measure_autoencoder(p, src, val, manifest["plausibility_threshold_m"])
-                    cands[method].update(m)
-                    log(f"  {model} {method}: " + ", ".join(f"{k} {v:.4g}" for k, v in m.items()))
-                if model == "decoder":
-                    report["decoder_fp32_val_mpjpe_no_ik_cm"] = measure_decoder(src, src, val, ref)[1]["val_mpjpe_no_ik_cm"]
-                    ok = [k for k in methods if cands[k]["call_us_n100"] <= 1.1 * fp32_us] or list(methods)
-                    chosen = min(ok, key=lambda k: cands[k]["fk_pos_dev_mean_cm"])
-                    why = "smallest closed-loop FK deviation from fp32 on val among candidates no slower than fp32 at N=100"
-                else:
-                    chosen = min(methods, key=lambda k: cands[k]["score_dev_mean_cm"])
-                    why = "smallest plausibility-score deviation from fp32 on val poses"
+                chosen, why = choose_candidate(model, src, tmp, methods, cands, windows[1], manifest, report, fp32_us, log)
             else:
                 chosen, why = "dynamic", "no calibration data: dynamic is the only candidate"
-            # The int8 runtime uses this int8 file unless it is clearly slower than fp32 here: a 7-layer
-            # MLP as small as the autoencoder is all per-node overhead, and int8 adds quantize nodes.
-            # Timed in turns, best of 5 turns each. A rebuild keeps the folder's earlier choice unless
-            # the times clearly say otherwise (hysteresis: int8 at <= 1.0x fp32 over an fp32 choice,
-            # fp32 at > 1.2x over an int8 one), so a busy machine near the 1.1x line does not flip it.
-            turns = {k: [] for k in ("fp32", "int8")}
-            for _ in range(5):
-                turns["fp32"].append(call_us[model](src, 100, frames=150, warmup=20)["p50"])
-                turns["int8"].append(call_us[model](tmp / f"{model}.{chosen}.onnx", 100, frames=150, warmup=20)["p50"])
-            best = {k: min(v) for k, v in turns.items()}
-            line = {int8_name(model): 1.2, fp32_name(model): 1.0}.get(earlier.get(model), 1.1)
-            runtime[model] = int8_name(model) if best["int8"] <= line * best["fp32"] else fp32_name(model)
-            report["selection"][model + "_runtime"] = {
-                "file": runtime[model],
-                "why": f"int8 {best['int8']:.1f} us vs fp32 {best['fp32']:.1f} us per call at N=100 (best of 5 turns)"}
+            runtime[model] = runtime_file(model, src, tmp / f"{model}.{chosen}.onnx", earlier, report)
             report["candidates"][model] = cands
             report["selection"][model] = {"method": chosen, "why": why}
             log(f"  {model}: keeping {chosen} ({why})")
@@ -329,3 +288,62 @@ def build(folder, data=None, methods=("dynamic", "static"), log=print):
     report["precisions"] = {"int8": runtime}
     report["files"] = {k: read_manifest(folder)["files"][k] for k in entries}
     return report
+
+
+def call_us(model, path, n, **kw):
+    """The call-time figures of `model`'s ONNX file at `path` with n rows (quantize.common)."""
+    return (decoder_call_us if model == "decoder" else autoencoder_call_us)(path, n, **kw)
+
+
+def build_candidates(model, src, tmp, methods, train, log):
+    """Each method's int8 build of `src` in tmp/{model}.{method}.onnx, with its size and call time."""
+    cands = {}
+    for method in methods:
+        dst = tmp / f"{model}.{method}.onnx"
+        if method == "dynamic":
+            quantize_dynamic_model(src, dst)
+        else:
+            calib = decoder_calibration(src, train) if model == "decoder" else autoencoder_calibration(train)
+            quantize_static_model(src, dst, calib)
+        cands[method] = {"bytes": dst.stat().st_size, "size_vs_fp32": dst.stat().st_size / src.stat().st_size,
+                         "call_us_n100": call_us(model, dst, 100)["p50"]}
+        log(f"  {model} {method}: {cands[method]['bytes']:,} bytes ({cands[method]['size_vs_fp32']:.1%} of fp32)")
+    return cands
+
+
+def choose_candidate(model, src, tmp, methods, cands, val, manifest, report, fp32_us, log):
+    """The candidate closest to fp32 on val (the decoder's among those no slower than fp32): (method, why)."""
+    ref = None
+    for method in methods:
+        p = tmp / f"{model}.{method}.onnx"
+        if model == "decoder":
+            ref, m = measure_decoder(p, src, val, ref)
+        else:
+            m = measure_autoencoder(p, src, val, manifest["plausibility_threshold_m"])
+        cands[method].update(m)
+        log(f"  {model} {method}: " + ", ".join(f"{k} {v:.4g}" for k, v in m.items()))
+    if model == "decoder":
+        report["decoder_fp32_val_mpjpe_no_ik_cm"] = measure_decoder(src, src, val, ref)[1]["val_mpjpe_no_ik_cm"]
+        ok = [k for k in methods if cands[k]["call_us_n100"] <= 1.1 * fp32_us] or list(methods)
+        return (min(ok, key=lambda k: cands[k]["fk_pos_dev_mean_cm"]),
+                "smallest closed-loop FK deviation from fp32 on val among candidates no slower than fp32 at N=100")
+    return (min(methods, key=lambda k: cands[k]["score_dev_mean_cm"]),
+            "smallest plausibility-score deviation from fp32 on val poses")
+
+
+def runtime_file(model, src, int8, earlier, report):
+    """The file the int8 runtime opens for `model`: the int8 build unless it is clearly slower than fp32
+    here (a 7-layer MLP as small as the autoencoder is all per-node overhead, and int8 adds quantize
+    nodes). Timed in turns, best of 5 turns each. A rebuild keeps the folder's earlier choice unless the
+    times clearly say otherwise (hysteresis: int8 at <= 1.0x fp32 over an fp32 choice, fp32 at > 1.2x
+    over an int8 one), so a busy machine near the 1.1x line does not flip it."""
+    turns = {k: [] for k in ("fp32", "int8")}
+    for _ in range(5):
+        turns["fp32"].append(call_us(model, src, 100, frames=150, warmup=20)["p50"])
+        turns["int8"].append(call_us(model, int8, 100, frames=150, warmup=20)["p50"])
+    best = {k: min(v) for k, v in turns.items()}
+    line = {int8_name(model): 1.2, fp32_name(model): 1.0}.get(earlier.get(model), 1.1)
+    chosen = int8_name(model) if best["int8"] <= line * best["fp32"] else fp32_name(model)
+    report["selection"][model + "_runtime"] = {
+        "file": chosen, "why": f"int8 {best['int8']:.1f} us vs fp32 {best['fp32']:.1f} us per call at N=100 (best of 5 turns)"}
+    return chosen
