@@ -57,8 +57,8 @@ class Board:
         self.used = {}                  # tick time (us) -> the headset position the service interpolated
         real_frame = self.service.sync.frame
 
-        def recording(t):
-            sig, health = real_frame(t)
+        def recording(t, out=None):
+            sig, health = real_frame(t, out)
             if sig is not None:
                 self.used[int(round(t * 1e6))] = sig.head_pos[0].copy()
             return sig, health

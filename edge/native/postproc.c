@@ -1303,3 +1303,82 @@ double ep_refine_step(const core_context *x, const refine_args *a, int slot, dou
     for (int p = 0; p < L; p++) z[p] += dz[p] * scale;
     return cost;
 }
+
+/* ---- POSE_FRAME on the wire (firmware_bridge/wire/protocol.md): the board's one message a tick.
+ * firmware_bridge.wire.messages.encode_pose_frame is the reference; PoseEncoder calls this and is
+ * tested to write the same bytes. Layout: header <BBHI (version, type, seq, t_us), POSE_RECORD
+ * (root mm <i2[3], Q14 quaternions <i2[J][4], contacts u1[2], N u1, SSI flags u1, lost <u2),
+ * CRC-16/CCITT-FALSE <H over both, all COBS-encoded, then the 0x00 delimiter. Rounding is numpy's
+ * np.round: half to even (nearbyint in the default rounding mode). Returns the bytes written, or
+ * -1 (a non-finite root or contact), -2 (a quaternion NaN, infinite or zero), -3 (out too small). */
+static void put_i16(uint8_t *p, double v) {
+    int16_t x = (int16_t)v;
+    p[0] = (uint8_t)(x & 0xFF);
+    p[1] = (uint8_t)((uint16_t)x >> 8);
+}
+
+static uint16_t crc_table[256];         /* CRC-16/CCITT-FALSE of each byte value, made on first use */
+
+static uint16_t crc_ccitt_false(const uint8_t *d, int n) {
+    if (!crc_table[1])
+        for (int v = 0; v < 256; v++) {
+            uint16_t c = (uint16_t)(v << 8);
+            for (int b = 0; b < 8; b++) c = (c & 0x8000) ? (uint16_t)((c << 1) ^ 0x1021) : (uint16_t)(c << 1);
+            crc_table[v] = c;
+        }
+    uint16_t crc = 0xFFFF;
+    for (int i = 0; i < n; i++) crc = (uint16_t)((crc << 8) ^ crc_table[((crc >> 8) ^ d[i]) & 0xFF]);
+    return crc;
+}
+
+static double clip16(double v) { return v < -32767.0 ? -32767.0 : v > 32767.0 ? 32767.0 : v; }
+
+int ep_encode_pose(int version, int msg_type, int seq, unsigned int t_us, const double *root, const double *quats,
+                   int joints, const double *contacts, int num_samples, int ssi_flags, int trackers_lost,
+                   unsigned char *out, int cap) {
+    uint8_t body[8 + 6 + 8 * MAX_JOINTS + 6 + 2];
+    int n = 0;
+    if (joints > MAX_JOINTS) return -3;
+    for (int k = 0; k < 3; k++) if (!isfinite(root[k])) return -1;
+    for (int k = 0; k < 2; k++) if (!isfinite(contacts[k])) return -1;
+    body[n++] = (uint8_t)version;
+    body[n++] = (uint8_t)msg_type;
+    body[n++] = (uint8_t)(seq & 0xFF); body[n++] = (uint8_t)((seq >> 8) & 0xFF);
+    for (int k = 0; k < 4; k++) body[n++] = (uint8_t)((t_us >> (8 * k)) & 0xFF);
+    for (int k = 0; k < 3; k++, n += 2) put_i16(body + n, clip16(nearbyint(root[k] * 1000.0)));
+    for (int j = 0; j < joints; j++) {
+        const double *q = quats + 4 * j;
+        for (int k = 0; k < 4; k++) if (!isfinite(q[k])) return -2;
+        double norm = sqrt(((q[0] * q[0] + q[1] * q[1]) + q[2] * q[2]) + q[3] * q[3]);
+        if (norm < 1e-6) return -2;
+        for (int k = 0; k < 4; k++, n += 2) put_i16(body + n, clip16(nearbyint(q[k] / norm * 16384.0)));
+    }
+    for (int k = 0; k < 2; k++) {
+        double c = contacts[k] < 0.0 ? 0.0 : contacts[k] > 1.0 ? 1.0 : contacts[k];
+        body[n++] = (uint8_t)nearbyint(c * 255.0);
+    }
+    body[n++] = (uint8_t)num_samples;
+    body[n++] = (uint8_t)ssi_flags;
+    body[n++] = (uint8_t)(trackers_lost & 0xFF); body[n++] = (uint8_t)((trackers_lost >> 8) & 0xFF);
+    uint16_t crc = crc_ccitt_false(body, n);
+    body[n++] = (uint8_t)(crc & 0xFF); body[n++] = (uint8_t)(crc >> 8);
+    /* COBS as framing.cobs_encode does it: each zero-free run (len + 1, run), runs of 254 or more cut
+       into 0xFF blocks of 254 that carry no implied zero. */
+    if (cap < n + n / 254 + 2) return -3;
+    int o = 0, start = 0;
+    for (int i = 0; i <= n; i++) {
+        if (i < n && body[i] != 0) continue;
+        int len = i - start;
+        const uint8_t *run = body + start;
+        while (len >= 254) {
+            out[o++] = 0xFF;
+            for (int k = 0; k < 254; k++) out[o++] = run[k];
+            run += 254; len -= 254;
+        }
+        out[o++] = (uint8_t)(len + 1);
+        for (int k = 0; k < len; k++) out[o++] = run[k];
+        start = i + 1;
+    }
+    out[o++] = 0;
+    return o;
+}

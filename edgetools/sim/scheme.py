@@ -17,7 +17,7 @@ from typing import Any, Callable
 
 from firmware_bridge.transports import i2c, slimevr
 from firmware_bridge.transports.base import Source, TransportError, register_scheme
-from firmware_bridge.wire.messages import encode_pose_frame
+from firmware_bridge.wire.messages import PoseEncoder
 
 BENCH = {}
 
@@ -42,6 +42,7 @@ class FeedSource(Source):
         self.url, self.queue = url, device.queue
         self.stats["sent"] = self.stats["sent_bytes"] = 0
         self._seq = 0
+        self._encoder = None
 
     def _recv_internal(self, timeout):
         if self.queue:
@@ -50,7 +51,9 @@ class FeedSource(Source):
         return None
 
     def send_pose(self, frame):
-        data = encode_pose_frame(frame, self._seq)
+        if self._encoder is None:
+            self._encoder = PoseEncoder()
+        data = self._encoder.encode(frame, self._seq)
         self._seq = (self._seq + 1) & 0xFFFF
         self.stats["sent"] += 1
         self.stats["sent_bytes"] += len(data)

@@ -48,7 +48,9 @@ class Source(ABC):
     def recv(self, timeout=None):
         """The next TrackerSample or HeadsetSample, or None if none arrived within `timeout` seconds
         (None: wait for one)."""
-        deadline = None if timeout is None else self.clock() + max(timeout, 0.0)
+        if timeout is not None and timeout <= 0.0:     # what has arrived, without waiting (every tick's drain)
+            return self._recv_internal(0.0)
+        deadline = None if timeout is None else self.clock() + timeout
         while True:
             left = None if deadline is None else max(deadline - self.clock(), 0.0)
             sample = self._recv_internal(left)

@@ -16,7 +16,7 @@ import serial
 
 from firmware_bridge.transports.base import DeviceUnavailable, Source, TransportError, id_names
 from firmware_bridge.wire.messages import (DEFAULT_TRACKER_NAMES, HEADSET_POSE, TARGET, TRACKER_SAMPLES, FrameReader,
-                                           encode_pose_frame)
+                                           PoseEncoder)
 
 DEFAULT_BAUD = 460800
 ROLES = {
@@ -68,6 +68,7 @@ class SerialSource(Source):
         self.reader = FrameReader(accept=ROLES[role], tracker_names=tracker_names, stats=self.stats)
         self._ready = deque()            # decoded samples not yet returned by recv
         self._pose_seq = 0
+        self._pose_encoder = None
         self._resync = False             # a write was cut short: end that partial frame first
         try:
             # exclusive: two programs reading one UART would each see half the bytes.
@@ -118,7 +119,9 @@ class SerialSource(Source):
 
     def send_pose(self, frame):
         """Encode a PoseFrame with this link's running sequence number and send it."""
-        data = encode_pose_frame(frame, self._pose_seq)
+        if self._pose_encoder is None:          # the first pose: only a headset link sends any
+            self._pose_encoder = PoseEncoder()
+        data = self._pose_encoder.encode(frame, self._pose_seq)
         self._pose_seq = (self._pose_seq + 1) & 0xFFFF
         return self.send(data)
 

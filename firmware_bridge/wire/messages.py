@@ -20,7 +20,7 @@ from firmware_bridge.samples import HeadsetSample, TargetSample, TrackerSample
 from firmware_bridge.wire import q14
 from firmware_bridge.wire.framing import (DELIMITER, HEADSET_POSE, MAX_ENCODED_FRAME, MESSAGE_TYPES, POSE_FRAME,
                                           TARGET, TRACKER_SAMPLES, ProtocolError, TimestampUnwrapper, decode_frame,
-                                          encode_frame, seconds_to_us, sequence_gap)
+                                          VERSION, encode_frame, seconds_to_us, sequence_gap)
 
 IDENTITY = np.array([1.0, 0.0, 0.0, 0.0])
 # A headset or controller position further than this from the origin (in any axis) is not one any
@@ -291,6 +291,49 @@ def pose_record(frame, record=None):
 def encode_pose_frame(frame, seq):
     """PoseFrame -> one POSE_FRAME frame. Raises ValueError on NaN or out-of-range counters."""
     return encode_frame(POSE_FRAME, seq, seconds_to_us(frame.t), pose_record(frame).tobytes())
+
+
+class PoseEncoder:
+    """encode_pose_frame for a sender that sends every tick: the compiled core (edge.native's
+    ep_encode_pose, the same bytes, a few microseconds) writing into one buffer, so a frame allocates
+    nothing; numpy's encode_pose_frame where the core is not there. encode() returns a memoryview of
+    the frame, good until the next call. Raises ValueError as encode_pose_frame does."""
+
+    def __init__(self):
+        from edge import native
+        self._lib = native.load()
+        self._out = np.zeros(2 * POSE_RECORD.itemsize + 64, np.uint8)
+        self._view = memoryview(self._out)
+        self._addr = native.addr(self._out)
+        self._bound = [(None, 0)] * 3        # (array, address) last passed as rotations, root, contacts
+
+    def _address(self, k, a, shape):
+        """The address of a float64 C-contiguous array of `shape` (taken once per array object), or None."""
+        held, address = self._bound[k]
+        if a is held:
+            return address
+        if not isinstance(a, np.ndarray) or a.dtype != np.float64 or a.shape != shape or not a.flags.c_contiguous:
+            return None
+        self._bound[k] = (a, a.ctypes.data)
+        return self._bound[k][1]
+
+    def encode(self, frame, seq):
+        rot = self._address(0, frame.rotations, (NUM_JOINTS, 4))
+        root = self._address(1, frame.root_pos, (3,))
+        contacts = self._address(2, frame.contacts, (2,))
+        if self._lib is None or rot is None or root is None or contacts is None:
+            return memoryview(encode_pose_frame(frame, seq))
+        n = self._lib.ep_encode_pose(VERSION, POSE_FRAME, seq & 0xFFFF, seconds_to_us(frame.t), root, rot, NUM_JOINTS,
+                                     contacts, check_range(frame.num_samples, "num_samples"),
+                                     check_range(frame.ssi_flags, "ssi_flags"),
+                                     check_range(frame.trackers_lost, "trackers_lost", 0xFFFF), self._addr, len(self._out))
+        if n == -1:
+            raise ValueError("cannot encode a pose frame with a NaN or infinite root or contact")
+        if n == -2:
+            raise ValueError("cannot encode a quaternion that is NaN, infinite or zero")
+        if n < 0:
+            raise ValueError(f"the compiled pose encoder refused the frame ({n})")
+        return self._view[:n]
 
 
 def decode_pose_frame(payload, t=0.0):
