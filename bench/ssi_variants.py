@@ -88,7 +88,7 @@ def variant_pipeline(variant):
                 cost = self.buffer.cost[s, :self.samples]
                 if not is_outlier(cost, c, margin):
                     return -1
-                total = cost + weight * foot_slide(self, self._pos[:self.samples])
+                total = cost + weight * foot_slide(self, self.bufs.pos[:self.samples])
                 total[c] = np.inf
                 return int(np.argmin(total))
             return switch_to

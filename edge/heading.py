@@ -25,13 +25,14 @@ seven, the pelvis relation's 2-12), and it reads the corrected IMU, so it leans 
 remaining error.
 """
 import copy
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
 from edge import quat
 from edge.imus import IMU_JOINTS, NUM_IMUS
 from edge.settings import settings_from
+from edge.signals import Signals
 from edge.skeleton import NUM_JOINTS
 
 
@@ -72,6 +73,9 @@ DECODER_SPREAD_DEG = np.array([5.2, 9.0, 5.4, 10.3, 15.7, 23.4, 18.3])
 MEASUREMENT_STD_DEG = np.array([6.0, 6.0, 6.0, 6.0, 6.0, 12.0, 12.0])
 
 
+SIGNAL_FIELDS = tuple(f.name for f in fields(Signals))
+
+
 @dataclass(frozen=True)
 class HeadingSettings:
     """The heading observer's filter: how often it updates, what it takes as the body's heading
@@ -102,7 +106,7 @@ class HeadingObserver:
     updates every `every` frames and ignores the rest). The reference is the body ("pelvis": each leg
     segment is taken to face where the waist puck faces, the chest halfway between the puck and the
     headset, up to a mean and a per-take bias; body_references) or the decoder
-    ("decoder": the shown sample's own segments, FK without the IMU override); observe_pipeline takes
+    ("decoder": the shown sample's own segments, FK without the IMU override); observe_frame takes
     either from a Pipeline. reset() at the start of a take.
 
     State per IMU: the IMU's heading offset o, the reference's bias b over the take (how far this
@@ -142,7 +146,9 @@ class HeadingObserver:
         self._waist_y = np.zeros(4)
         self._raw_views = (self.raw[:, :2], self.raw[:, 2:])
         self._swapped_views = (self._swapped[:, :2], self._swapped[:, 2:])
-        # observe_pipeline's FK of one decoder row, without the IMU override.
+        # observe_frame's FK of one decoder row, without the IMU override, and what fills it (the pipeline's).
+        self.decoder_fk = None
+        self._sig, self._imu_rot_view = None, None
         self._fk = (np.zeros((1, NUM_JOINTS, 3, 3)), np.zeros((1, NUM_JOINTS, 3, 3)), np.zeros((1, NUM_JOINTS, 3)))
         self.reset()
 
@@ -218,35 +224,36 @@ class HeadingObserver:
         self.apply_estimate()
         return True
 
-    def observe_pipeline(self, pipe, s, row):
-        """observe() on the frame a Pipeline just stepped: against the body (body_references: the waist
-        puck, the chest halfway to the headset), or against decoder row `row` of ring slot s (FK from
-        the waist without the IMU override, the path's forward_rows)."""
-        v = pipe._in
-        if pipe.t % self.every or not np.count_nonzero(v["imu_flag"]):     # not this frame, or no extra IMU worn
+    def observe_frame(self, t, inputs, s=None, row=None):
+        """observe() on a pipeline's frame t, from its inputs (edge.pipeline.FrameBuffers.inputs: the
+        named views of the frame's signals): against the body (body_references: the waist puck, the
+        chest halfway to the headset), or against decoder row `row` of ring slot s through
+        `decoder_fk(s, row, out)` (FK from the waist without the IMU override), which the pipeline
+        binds when it makes the observer."""
+        if t % self.every or not np.count_nonzero(inputs["imu_flag"]):     # not this frame, or no extra IMU worn
             return False
         if self.reference == "pelvis":
             # heading_of(a * b^-1) needs only that product's w and y: a . b and a . (-by, bz, bw, -bx).
-            w = v["waist_rot"]
+            w = inputs["waist_rot"]
             self._waist_y[:] = -w[2], w[3], w[0], -w[1]
             z = 2.0 * np.arctan2(self.raw @ self._waist_y, self.raw @ w)
-            z[0] -= 0.5 * wrap(2.0 * np.arctan2(v["head_rot"] @ self._waist_y, v["head_rot"] @ w))
-            return self.observe_heading(pipe.t, z, v["imu_flag"])
+            z[0] -= 0.5 * wrap(2.0 * np.arctan2(inputs["head_rot"] @ self._waist_y, inputs["head_rot"] @ w))
+            return self.observe_heading(t, z, inputs["imu_flag"])
         out = self._fk
-        pipe.path.forward_rows(s, pipe.buffer.rot6d[s, row:row + 1], 1, False, out)
-        return self.observe(pipe.t, quat.from_matrix(out[1][0, IMU_JOINTS]), v["imu_flag"])
+        self.decoder_fk(s, row, out)
+        return self.observe(t, quat.from_matrix(out[1][0, IMU_JOINTS]), inputs["imu_flag"])
 
-    def correct_frame(self, pipe, sig):
-        """correct() on a Pipeline's frame in (_frame_in's IMU views, which the compiled core reads), and
-        the frame's Signals with those corrected orientations (what the numpy path reads): one object
-        kept and refilled, no arrays made."""
-        v = pipe._in
-        if not np.count_nonzero(v["imu_flag"]):    # no extra IMU worn: nothing to turn (count_nonzero: a fifth of .any()'s cost)
+    def correct_frame(self, inputs, sig):
+        """correct() on a pipeline's frame (inputs: FrameBuffers.inputs, whose IMU view the compiled core
+        reads), and the frame's Signals with those corrected orientations (what the numpy path reads):
+        one Signals kept and refilled field by field, no arrays made."""
+        if not np.count_nonzero(inputs["imu_flag"]):    # no extra IMU worn: nothing to turn (count_nonzero: a fifth of .any()'s cost)
             return sig
-        self.correct(v["imu_rot"])
-        if getattr(self, "_sig_pipe", None) is not pipe:
-            self._sig_pipe, self._imu_rot_view, self._sig = pipe, v["imu_rot"][None], copy.copy(sig)
+        self.correct(inputs["imu_rot"])
+        if self._sig is None:                       # the first frame: the Signals kept (one pipeline's observer)
+            self._imu_rot_view, self._sig = inputs["imu_rot"][None], copy.copy(sig)
         out = self._sig
-        out.__dict__.update(sig.__dict__)
+        for name in SIGNAL_FIELDS:
+            setattr(out, name, getattr(sig, name))
         out.imu_rot = self._imu_rot_view
         return out

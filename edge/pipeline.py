@@ -139,6 +139,51 @@ def torso_segments(seg_m, seg_flag, waist_m, head_m):
         seg_m[NECK] = midway_rotation(seg_m[CHEST], head_m)
 
 
+class FrameBuffers:
+    """The memory a frame works in, allocated once and shared by the pipeline and its frame path
+    (NumpyFrame or CompiledFrame, which get it explicitly): every row's FK and IK (the N samples, the
+    transition row, the look-ahead's recompute), one frame's tracker inputs laid out for the C calls
+    (`frame_in`, with a named view of each signal in `inputs`), and a foot target's slots."""
+
+    def __init__(self, rows, lookahead, N, imus, arm_ik, ring):
+        """rows: the decoder's rows; ring: the look-ahead ring (each slot's waist rotation is every
+        sample's pelvis); imus: the extra IMUs the model reads (0: their inputs are not loaded)."""
+        R = max(rows, lookahead + 1)
+        self.local = np.zeros((R, NUM_JOINTS, 3, 3))
+        self.world = np.zeros((R, NUM_JOINTS, 3, 3))
+        self.pos = np.zeros((R, NUM_JOINTS, 3))
+        self.zero3 = np.zeros(3)
+        self.quats = np.zeros((4, 4))
+        self.targets = np.zeros((R, 2, 3))            # foot goals and IK weights, per row
+        self.weights = np.zeros((R, 2))
+        self.limb_targets = np.zeros((R, 4, 3))
+        self.limb_weights = np.zeros((R, 4))
+        self.limb_weights[:, 2:] = 1.0 if arm_ik else 0.0
+        self.limb_ends = np.zeros((R, 4, 3, 3))
+        self.floor_lift = np.zeros((R, 2))           # how far the floor lifted each row's feet (m), per frame
+        self.rest6d = np.tile(np.array([1, 0, 0, 0, 1, 0], np.float32), NUM_PREDICTED)   # the rest pose's 6D
+        self.toe_offsets = OFFSETS[TOES][:, :, None]
+        # Every sample's pelvis is the waist IMU's rotation: a read-only [N,3,3] view of slot s's.
+        self.pelvis = [np.broadcast_to(ring.waist_m[k], (N, 3, 3)) for k in range(lookahead + 1)]
+
+        # One frame's tracker signals in (the extra IMUs' orientations and flags after the 25): the C
+        # calls' input, and what step() checks before anything uses it (path.inputs).
+        self.frame_in = np.zeros(25 + 5 * NUM_IMUS)
+        self.good_in = np.zeros_like(self.frame_in)     # the last frame that passed
+        self.inputs = {k: self.frame_in[i:j].reshape(shape) for k, i, j, shape in (
+            ("head_pos", 0, 3, (3,)), ("head_rot", 3, 7, (4,)), ("hand_pos", 7, 13, (2, 3)),
+            ("hand_rot", 13, 21, (2, 4)), ("waist_rot", 21, 25, (4,)),
+            ("imu_rot", 25, 25 + 4 * NUM_IMUS, (NUM_IMUS, 4)), ("imu_flag", 25 + 4 * NUM_IMUS, 25 + 5 * NUM_IMUS, (NUM_IMUS,)))}
+        # The Signals fields _load_frame_in copies, each with its [1,...] view of _frame_in.
+        self.input_fields = [(k, v[None]) for k, v in self.inputs.items() if imus or not k.startswith("imu")]
+        # A live target on a foot of the refined row: the row (-1: none), per foot the target's joint
+        # (ankle or toe), point and pull on the leg's IK goal (edge.refine.Refiner.foot_pull).
+        self.target_row = np.full(1, -1, np.int64)
+        self.target_joint = np.array(ANKLES, np.int64)
+        self.target_goal = np.zeros((2, 3))
+        self.target_weight = np.zeros(2)
+
+
 class Pipeline:
     def __init__(self, options=None, models=None, criteria=None):
         """options: a PipelineOptions (edge.options; the defaults when None); models: the model folder
@@ -155,8 +200,8 @@ class Pipeline:
         self._open(dec_session, ae_session, o.use_native)
         self._choose(o.selection or self.manifest.get("selection", {}), criteria, o.use_native, o.seed)
         self._allocate_ssi()
-        self._allocate_rows(o.arm_ik)
-        self._allocate_frame_inputs()
+        self.bufs = FrameBuffers(self.rows, self.lookahead, self.samples, self.imus, o.arm_ik, self.buffer)
+        self.out = Pose()
         self._choose_paths(dec_session, models, o.use_native, o.threads)
         self.reset()
 
@@ -216,60 +261,19 @@ class Pipeline:
                                 "w_hidden": np.repeat(w[..., None], H, 2), "w_goal": np.tile(w[..., None, None], (1, 1, 2, 3))}
         self.feet = FootLock(N)
 
-    def _allocate_rows(self, arm_ik):
-        """Every row's FK and IK buffers (N samples, the transition row, the look-ahead's recompute)."""
-        N, lookahead = self.samples, self.lookahead
-        R = max(self.rows, lookahead + 1)
-        self._local = np.zeros((R, NUM_JOINTS, 3, 3))
-        self._world = np.zeros((R, NUM_JOINTS, 3, 3))
-        self._pos = np.zeros((R, NUM_JOINTS, 3))
-        self._zero3 = np.zeros(3)
-        self._quats = np.zeros((4, 4))
-        self._targets = np.zeros((R, 2, 3))            # foot goals and IK weights, per row
-        self._weights = np.zeros((R, 2))
-        self._limb_targets = np.zeros((R, 4, 3))
-        self._limb_weights = np.zeros((R, 4))
-        self._limb_weights[:, 2:] = 1.0 if arm_ik else 0.0
-        self._limb_ends = np.zeros((R, 4, 3, 3))
-        self._floor_lift = np.zeros((R, 2))           # how far the floor lifted each row's feet (m), per frame
-        self._rest6d = np.tile(np.array([1, 0, 0, 0, 1, 0], np.float32), NUM_PREDICTED)   # the rest pose's 6D
-        self._toe_offsets = OFFSETS[TOES][:, :, None]
-        # Every sample's pelvis is the waist IMU's rotation: a read-only [N,3,3] view of slot s's.
-        self._pelvis = [np.broadcast_to(self.buffer.waist_m[k], (N, 3, 3)) for k in range(lookahead + 1)]
-        self.out = Pose()
-
-    def _allocate_frame_inputs(self):
-        """One frame's tracker signals in, laid out for the C calls, and a foot target's slots."""
-        # One frame's tracker signals in (the extra IMUs' orientations and flags after the 25): the C
-        # calls' input, and what step() checks before anything uses it (path.inputs).
-        self._frame_in = np.zeros(25 + 5 * NUM_IMUS)
-        self._good_in = np.zeros_like(self._frame_in)     # the last frame that passed
-        self._in = {k: self._frame_in[i:j].reshape(shape) for k, i, j, shape in (
-            ("head_pos", 0, 3, (3,)), ("head_rot", 3, 7, (4,)), ("hand_pos", 7, 13, (2, 3)),
-            ("hand_rot", 13, 21, (2, 4)), ("waist_rot", 21, 25, (4,)),
-            ("imu_rot", 25, 25 + 4 * NUM_IMUS, (NUM_IMUS, 4)), ("imu_flag", 25 + 4 * NUM_IMUS, 25 + 5 * NUM_IMUS, (NUM_IMUS,)))}
-        # The Signals fields _load_frame_in copies, each with its [1,...] view of _frame_in.
-        self._in_fields = [(k, v[None]) for k, v in self._in.items() if self.imus or not k.startswith("imu")]
-        # A live target on a foot of the refined row: the row (-1: none), per foot the target's joint
-        # (ankle or toe), point and pull on the leg's IK goal (edge.refine.Refiner.foot_pull).
-        self._target_row = np.full(1, -1, np.int64)
-        self._target_joint = np.array(ANKLES, np.int64)
-        self._target_goal = np.zeros((2, 3))
-        self._target_weight = np.zeros(2)
-        self._ae_ready = None       # the scorer whose input the compiled core prepares (CompiledFrame)
-        self._fused_criteria = None     # the criteria CompiledFrame.judge computes in C (the defaults), if it can
-
     def _choose_paths(self, dec_session, models, use_native, threads):
         """The compiled core or the numpy reference, and the heading observer and refiner if asked."""
         m, fps, o = self.manifest, self.fps, self.options
         # The compiled core (edge/native) runs the whole frame around the two ONNX calls when a C
         # compiler is there; NumpyFrame is the reference and the fallback.
         self.native = native.load() if use_native else None
-        self.reference = NumpyFrame(self)
-        self.path = CompiledFrame(self, self.native) if self.native else self.reference
+        self.reference = NumpyFrame(self, self.bufs)
+        self.path = CompiledFrame(self, self.bufs, self.native) if self.native else self.reference
         self.timing, self.stage_ns = False, np.zeros(len(STAGES) + 1, np.int64)
         # The extra IMUs' heading observer (edge.heading), on when IMUs are worn and options.heading is set.
         self.heading = HeadingObserver(fps, o.heading) if o.heading is not None and self.imus else None
+        if self.heading is not None:
+            self.heading.decoder_fk = self._decoder_row_fk
         # Latent refinement of the shown sample (edge.refine), when options.refine is set.
         self.refiner = None
         if o.refine is not None:
@@ -340,7 +344,7 @@ class Pipeline:
         dec = self.decoder
         self._load_frame_in(sig)
         if self.heading is not None:    # the IMUs' headings corrected before anything reads them (edge.heading)
-            sig = self.heading.correct_frame(self, sig)
+            sig = self.heading.correct_frame(self.bufs.inputs, sig)
         # During a move the spare row carries it: both latents and GRU states eased (path.inputs does it).
         live = sw.live(t)
         blend = (sw.trans[0], sw.trans[1], sw.weight(t)) if live else None
@@ -362,7 +366,7 @@ class Pipeline:
         # goals (not lock positions, which are stale for a foot that is free) and, like the samples, runs
         # the leg IK at weight 1: the goals already carry each lock's pull, so the row's first and last
         # frames are the two samples' own poses.
-        fused = self.criteria.criteria == self._fused_criteria     # the default criteria: judged in one C call
+        fused = self.criteria.criteria == self.path.fused_criteria     # the default criteria: judged in one C call
         keep_world = not fused and self.criteria.needs_world_rot  # every joint's world rotation, only if a criterion asks
         rows = N + 1 if live else N
         if not self.path.poses(s, rows, N, blend, keep_world):   # a decoder row went non-finite: nothing was done
@@ -372,7 +376,7 @@ class Pipeline:
             b.override[s] = True
             b.trans_row[s] = N
         if self.heading is not None:    # each IMU against its reference (edge.heading), at the observer's rate
-            self.heading.observe_pipeline(self, s, sw.current)
+            self.heading.observe_frame(self.t, self.bufs.inputs, s, sw.current)
         if timing:
             mark[3] = time.thread_time_ns()
 
@@ -419,14 +423,19 @@ class Pipeline:
                                   self.buffer.seg_m[s], self.buffer.seg_flag[s], f.lock_pos[c], f.weight[c], row=c)
         if out is not None:
             dec.rot6d[c], dec.contacts[c], dec.state[c] = out
-        pulls = self.refiner.foot_pull(self.t, self._target_joint, self._target_goal, self._target_weight)
+        pulls = self.refiner.foot_pull(self.t, self.bufs.target_joint, self.bufs.target_goal, self.bufs.target_weight)
         self._set_target_row(c if pulls else -1)
 
     def _set_target_row(self, row):
         """The row whose leg goals a foot target pulls this frame (-1: none), for both paths' foot goals."""
-        if row != self._target_row[0]:
-            self._target_row[0] = row
+        if row != self.bufs.target_row[0]:
+            self.bufs.target_row[0] = row
             self.path.set_target_row(row)
+
+    def _decoder_row_fk(self, s, row, out):
+        """FK of decoder row `row` of ring slot s without the IMU override, into out (the heading
+        observer's reference when it is the decoder)."""
+        self.path.forward_rows(s, self.buffer.rot6d[s, row:row + 1], 1, False, out)
 
     def _forward_rows(self, rot6d, rows, segments, out):
         """FK of `rows` decoder rows (rot6d [R,D] float32) against the live frame's inputs, into out =
@@ -437,8 +446,8 @@ class Pipeline:
         """Any criteria (edge.criteria, composed): frame t's costs into ring slot s, then the sample to
         move to from c (c < 0: not asked). The default criteria take CompiledFrame.judge instead."""
         dec = self.decoder
-        ctx = FrameContext(self.t, self._pos[:N], self._world[:N] if keep_world else None, self._pelvis[s][:N],
-                           ae_ready=self._ae_ready, contacts=dec.contacts[:N], floor_lift=self._floor_lift[:N])
+        ctx = FrameContext(self.t, self.bufs.pos[:N], self.bufs.world[:N] if keep_world else None, self.bufs.pelvis[s][:N],
+                           ae_ready=self.path.ae_ready, contacts=dec.contacts[:N], floor_lift=self.bufs.floor_lift[:N])
         if self.criteria.needs_imu and self.imus:       # the extra IMUs the frame has, for SensorAgreement
             worn = np.flatnonzero(sig.imu_flag[0] > 0)
             m = quat.to_matrix(sig.imu_rot[0, worn])
@@ -451,12 +460,12 @@ class Pipeline:
         """Stand the last good frame in for this one (counted in inputs_held); before any, a neutral
         one: standing at the origin, facing +Z, no extra IMUs."""
         self.inputs_held += 1
-        if not self._good_in.any():
-            self._good_in[:] = 0.0
-            self._good_in[[1, 3, 13, 17, 21]] = [1.6, 1.0, 1.0, 1.0, 1.0]
-            self._good_in[7:13] = [0.3, 1.0, 0.2, -0.3, 1.0, 0.2]
-        np.copyto(self._frame_in, self._good_in)
-        v = self._in
+        if not self.bufs.good_in.any():
+            self.bufs.good_in[:] = 0.0
+            self.bufs.good_in[[1, 3, 13, 17, 21]] = [1.6, 1.0, 1.0, 1.0, 1.0]
+            self.bufs.good_in[7:13] = [0.3, 1.0, 0.2, -0.3, 1.0, 0.2]
+        np.copyto(self.bufs.frame_in, self.bufs.good_in)
+        v = self.bufs.inputs
         return Signals(v["head_pos"][None].copy(), v["head_rot"][None].copy(), v["hand_pos"][None].copy(),
                        v["hand_rot"][None].copy(), v["waist_rot"][None].copy(), np.zeros((1, 3)),
                        v["imu_rot"][None].copy(), v["imu_flag"][None].copy())
@@ -472,7 +481,7 @@ class Pipeline:
         held = self.buffer.frame[prev] == self.t - 1
         for r in np.flatnonzero(bad):
             dec.state[r] = 0.0
-            dec.rot6d[r] = self.buffer.rot6d[prev, r] if held else self._rest6d
+            dec.rot6d[r] = self.buffer.rot6d[prev, r] if held else self.bufs.rest6d
             dec.contacts[r] = 0.0
         if not np.isfinite(dec.features).all():     # the ring must not keep what a recompute would re-run
             self.buffer.features[s] = self.buffer.features[prev] if held else 0.0
@@ -480,7 +489,7 @@ class Pipeline:
 
     def _load_frame_in(self, sig):
         """One frame (T=1) of Signals into _frame_in, the C calls' input layout (no temporaries)."""
-        for name, dst in self._in_fields:
+        for name, dst in self.bufs.input_fields:
             dst[...] = getattr(sig, name)       # not np.copyto: its Python wrapper costs 3x as much
 
     def set_samples(self, n):
@@ -622,10 +631,13 @@ class Pipeline:
 
 class NumpyFrame:
     """The numpy reference of a frame's stages: what the compiled core is tested against, and what
-    runs without a C compiler. It works in the pipeline's scratch rows and ring buffer."""
+    runs without a C compiler. It works in the pipeline's FrameBuffers and ring buffer."""
 
-    def __init__(self, pipe):
-        self.p = pipe
+    ae_ready = None             # the scorer whose autoencoder input this path prepares (none: the scorer does)
+    fused_criteria = None       # the criteria this path judges in one call (none: each judges itself)
+
+    def __init__(self, pipe, bufs):
+        self.p, self.bufs = pipe, bufs
 
     def reset(self):
         self.prev_points = None     # the previous frame's body points (velocity features)
@@ -637,8 +649,7 @@ class NumpyFrame:
         pass                        # foot_goals reads the pipeline's _target_row
 
     def sane(self):
-        p = self.p
-        v, head, hands = p._frame_in, p._in["head_pos"], p._in["hand_pos"]
+        v, head, hands = self.bufs.frame_in, self.bufs.inputs["head_pos"], self.bufs.inputs["hand_pos"]
         total = float(v.sum())
         return (total - total == 0.0 and -POSITION_LIMIT_M < head.min() and head.max() < POSITION_LIMIT_M
                 and -POSITION_LIMIT_M < hands.min() and hands.max() < POSITION_LIMIT_M)
@@ -651,7 +662,7 @@ class NumpyFrame:
         p, b, dec = self.p, self.p.buffer, self.p.decoder
         if not self.sane():
             return False
-        np.copyto(p._good_in, p._frame_in)
+        np.copyto(self.bufs.good_in, self.bufs.frame_in)
         if blend is not None:
             c, n, a = blend
             a = np.float64(a)       # eased in float64, rounded once to the decoder's float32 (as ep_frame_inputs)
@@ -665,7 +676,7 @@ class NumpyFrame:
         feat = features(points, prev, yaw_q, p.fps)
         if p.imus:
             feat = np.concatenate([feat, imu_features(sig.imu_rot[0], sig.imu_flag[0], yaw_q)])
-        q = p._quats                         # waist, hands, head: one to_matrix call
+        q = self.bufs.quats                         # waist, hands, head: one to_matrix call
         q[0], q[1:3], q[3] = waist_rot, sig.hand_rot[0], sig.head_rot[0]
         m = quat.to_matrix(q)
         b.features[s] = feat
@@ -694,13 +705,13 @@ class NumpyFrame:
             goal, w = self.foot_goals(N)
             if blend is not None:
                 c, n, a = blend
-                p._targets[N] = (1 - a) * goal[c] + a * goal[n]
-                p._weights[N] = 1.0      # like the samples' own: their goals carry the locks' pull
+                self.bufs.targets[N] = (1 - a) * goal[c] + a * goal[n]
+                self.bufs.weights[N] = 1.0      # like the samples' own: their goals carry the locks' pull
         self.post(rows, b.wrists[s], b.hand_m[s], b.head_m[s])
         b.rot6d[s, :rows] = dec.rot6d[:rows]
         b.contacts[s, :rows] = dec.contacts[:rows]
-        b.leg_goal[s, :rows] = p._targets[:rows]
-        b.leg_weight[s, :rows] = p._weights[:rows]
+        b.leg_goal[s, :rows] = self.bufs.targets[:rows]
+        b.leg_weight[s, :rows] = self.bufs.weights[:rows]
         b.lock_weight[s, :N] = p.feet.weight[:N]
         return True
 
@@ -713,11 +724,11 @@ class NumpyFrame:
 
     def row_pose(self, s, row, positions, rotations):
         """The pose of one row of ring slot s, made again from what the ring keeps."""
-        p, b = self.p, self.p.buffer
+        b = self.p.buffer
         self.forward(b.rot6d[s, row][None], b.waist_m[s], b.anchor[s], b.seg_m[s], b.seg_flag[s])
-        p._targets[0], p._weights[0] = b.leg_goal[s, row], b.leg_weight[s, row]
+        self.bufs.targets[0], self.bufs.weights[0] = b.leg_goal[s, row], b.leg_weight[s, row]
         self.post(1, b.wrists[s], b.hand_m[s], b.head_m[s])
-        positions[:], rotations[:] = p._pos[0], p._local[0]
+        positions[:], rotations[:] = self.bufs.pos[0], self.bufs.local[0]
         return positions, rotations
 
     # ---- the stages
@@ -725,16 +736,15 @@ class NumpyFrame:
         """6D -> local rotations, FK with the waist IMU as root, body hung from the tracked head; the
         segments of worn IMUs take their measured rotations (fk_with_segments; seg_m [J,3,3], seg_flag [J]).
         waist_m [3,3] or per row [R,3,3]; anchor (the tracked head joint) [3] or [R,3]. Writes out =
-        (local, world, pos), by default the scratch rows _local, _world, _pos."""
-        p = self.p
+        (local, world, pos), by default the FrameBuffers' rows."""
         R = len(rot6d)
-        loc, W, P = (p._local[:R], p._world[:R], p._pos[:R]) if out is None else out
+        loc, W, P = (self.bufs.local[:R], self.bufs.world[:R], self.bufs.pos[:R]) if out is None else out
         loc[:, 0] = waist_m
         quat.matrix_from_6d(rot6d.reshape(R, NUM_PREDICTED, 6), out=loc[:, 1:])
         if seg_flag is not None and seg_flag.any():
             fk_with_segments(loc, W, P, seg_m, seg_flag)
         else:
-            fk(loc, p._zero3, out=(W, P))
+            fk(loc, self.bufs.zero3, out=(W, P))
         P += anchor[..., None, :] - P[:, HEAD:HEAD + 1]
 
     def forward_rows(self, s, rot6d, rows, segments, out):
@@ -748,18 +758,18 @@ class NumpyFrame:
         sample's foot goal (in _targets) is where its lock draws the ankle, so the leg IK runs at weight 1.
         Returns (goals [N,2,3], lock weights [N,2])."""
         p = self.p
-        goal, pos = p._targets[:N], p._pos
-        toe_drop = (p._world[:N, ANKLES] @ p._toe_offsets)[..., 1, 0]   # for the locks' floor snap
+        goal, pos = self.bufs.targets[:N], self.bufs.pos
+        toe_drop = (self.bufs.world[:N, ANKLES] @ self.bufs.toe_offsets)[..., 1, 0]   # for the locks' floor snap
         lock, w = p.feet.update(p.decoder.contacts[:N], pos[:N, ANKLES], toe_drop)
         ankle = pos[:N, ANKLES]
         np.subtract(lock, ankle, out=goal)
         goal *= w[..., None]
         goal += ankle
-        p._weights[:N] = 1.0
-        r = p._target_row[0]
+        self.bufs.weights[:N] = 1.0
+        r = self.bufs.target_row[0]
         if 0 <= r < N:              # a live target on a foot of the refined row pulls its leg goal (edge.refine)
-            tw = p._target_weight
-            want = p._target_goal - (pos[r, p._target_joint] - pos[r, ANKLES])
+            tw = self.bufs.target_weight
+            want = self.bufs.target_goal - (pos[r, self.bufs.target_joint] - pos[r, ANKLES])
             goal[r] += tw[:, None] * (want - goal[r])
         return goal, w
 
@@ -774,22 +784,22 @@ class NumpyFrame:
         p = self.p
         if not (p.foot_ik or p.arm_ik):
             return
-        loc, W, P = p._local[:rows], p._world[:rows], p._pos[:rows]
-        tgt, wts, ends = p._limb_targets[:rows], p._limb_weights[:rows], p._limb_ends[:rows]
-        tgt[:, :2] = p._targets[:rows]
+        loc, W, P = self.bufs.local[:rows], self.bufs.world[:rows], self.bufs.pos[:rows]
+        tgt, wts, ends = self.bufs.limb_targets[:rows], self.bufs.limb_weights[:rows], self.bufs.limb_ends[:rows]
+        tgt[:, :2] = self.bufs.targets[:rows]
         tgt[:, 2:] = wrists
-        wts[:, :2] = p._weights[:rows] if p.foot_ik else 0.0
+        wts[:, :2] = self.bufs.weights[:rows] if p.foot_ik else 0.0
         if p.foot_ik:               # the effective leg goals, lifted clear of the floor, at weight 1
             ankle = P[:, ANKLES]
             tgt[:, :2] = ankle + wts[:, :2, None] * (tgt[:, :2] - ankle)
-            lift = floor_lift(tgt[:, :2, 1], (W[:, ANKLES] @ p._toe_offsets)[..., 1, 0])
+            lift = floor_lift(tgt[:, :2, 1], (W[:, ANKLES] @ self.bufs.toe_offsets)[..., 1, 0])
             tgt[:, :2, 1] += lift
             wts[:, :2] = 1.0
-            p._floor_lift[:rows] = lift
+            self.bufs.floor_lift[:rows] = lift
         ends[:, :2] = W[:, ANKLES]
         ends[:, 2:] = hand_m if p.arm_ik else W[:, LIMB_CHAINS[2:, 2]]
         apply_limb_ik(loc, W, P, PARENTS, LIMB_CHAINS, tgt, wts, LIMB_POLES, ends, OFFSETS)
-        P[:, TOES] = P[:, ANKLES] + (W[:, ANKLES] @ p._toe_offsets)[..., 0]
+        P[:, TOES] = P[:, ANKLES] + (W[:, ANKLES] @ self.bufs.toe_offsets)[..., 0]
         if p.arm_ik:
             W[:, HEAD] = head_m
             loc[:, HEAD] = np.swapaxes(W[:, NECK], -1, -2) @ head_m
@@ -801,8 +811,9 @@ class CompiledFrame:
     The addresses they use are found once here: the skeleton, the scratch rows, FootLock's state,
     the ring buffer, the output pose and the decoder's buffers (native.CoreContext)."""
 
-    def __init__(self, pipe, lib):
-        self.p, self.lib = pipe, lib
+    def __init__(self, pipe, bufs, lib):
+        self.p, self.bufs, self.lib = pipe, bufs, lib
+        self.ae_ready = self.fused_criteria = None      # set below when the defaults allow (NumpyFrame's say)
         p, N, b = pipe, pipe.max_samples, pipe.buffer
         # Arrays the C calls read by address; held here so they live as long as the pipeline.
         self._c = {"parents": np.ascontiguousarray(PARENTS, np.int64), "offsets": OFFSETS,
@@ -810,12 +821,12 @@ class CompiledFrame:
                    "ankles": np.ascontiguousarray(ANKLES, np.int64), "imu_joints": np.ascontiguousarray(IMU_JOINTS, np.int64)}
         # Every array the core reads or writes is checked once here (dtype, layout, shape); the hot
         # path then passes addresses only.
-        J, R = NUM_JOINTS, len(p._local)
+        J, R = NUM_JOINTS, len(self.bufs.local)
         chk = native.checked_addr
         a = self.addr = {k: chk(v, np.int64 if v.dtype.kind == "i" else np.float64, None, k) for k, v in self._c.items()}
-        for k, shape in (("_local", (R, J, 3, 3)), ("_world", (R, J, 3, 3)), ("_pos", (R, J, 3)), ("_targets", (R, 2, 3)),
-                         ("_weights", (R, 2)), ("_floor_lift", (R, 2))):
-            a[k] = chk(getattr(p, k), np.float64, shape, k)
+        for k, shape in (("local", (R, J, 3, 3)), ("world", (R, J, 3, 3)), ("pos", (R, J, 3)), ("targets", (R, 2, 3)),
+                         ("weights", (R, 2)), ("floor_lift", (R, 2))):
+            a[k] = chk(getattr(bufs, k), np.float64, shape, k)
         for k, dtype in (("lock_pos", np.float64), ("locked", np.bool_), ("raw", np.bool_), ("since_release", np.float64),
                          ("weight", np.float64)):      # FootLock's state
             a[k] = chk(getattr(p.feet, k), dtype, (N,) + getattr(p.feet, k).shape[1:], k)
@@ -824,7 +835,7 @@ class CompiledFrame:
                 chk(arr, arr.dtype, None, "ring buffer")
         self._frame_offsets = np.concatenate([EYE_OFFSET[None], GRIP_OFFSET, (PELVIS_TO_HEAD * p.body_scale)[None]])
         self._prev = np.zeros((4, 3))
-        a["_frame_in"], a["_frame_offsets"], a["_prev"] = (native.addr(x) for x in (p._frame_in, self._frame_offsets,
+        a["frame_in"], a["frame_offsets"], a["prev"] = (native.addr(x) for x in (self.bufs.frame_in, self._frame_offsets,
                                                                                      self._prev))
         # The SSI decision reads ring-buffer slot s's costs: (base address, bytes per slot).
         self._cost_addr = (native.addr(b.cost), b.cost.strides[0])
@@ -832,7 +843,7 @@ class CompiledFrame:
         # The same call fills the plausibility scorer's autoencoder input when the default criterion is there.
         ae = p.scorer.buffers() if any(isinstance(c, Plausibility) and c.scorer is p.scorer
                                        for c in p.criteria.criteria) else None
-        p._ae_ready = p.scorer if ae else None
+        self.ae_ready = p.scorer if ae else None
         # The default criteria, judged in one call (judge): the plausibility score on the buffers filled
         # above, and the physical criterion when the manifest's selection has one.
         crit = p.criteria.criteria
@@ -844,9 +855,9 @@ class CompiledFrame:
                 ae_out=native.addr(p.autoencoder.out), ae_rot_dim=p.autoencoder.out.shape[1],
                 leg_rows=native.addr(sc._leg_rows), legs=native.addr(sc._legs), leg_err=native.addr(sc._err),
                 physical=ctypes.addressof(crit[1].params) if len(crit) > 1 else None,
-                physical_cost=native.addr(self._physical_cost), pos=a["_pos"], ring_cost=native.addr(b.cost),
+                physical_cost=native.addr(self._physical_cost), pos=a["pos"], ring_cost=native.addr(b.cost),
                 cost_stride=b.cost.shape[1])
-            p._fused_criteria = list(crit)
+            self.fused_criteria = list(crit)
         f, out = p.feet, p.out
         ring = {f"ring_{k}": native.addr(getattr(b, v)) for k, v in (
             ("waist", "waist_m"), ("anchor", "anchor"), ("wrists", "wrists"), ("hand", "hand_m"), ("head", "head_m"),
@@ -857,17 +868,17 @@ class CompiledFrame:
         locks = native.FootLocks(release_frames=f.release_frames, max_slip=f.max_slip, lock_pos=a["lock_pos"],
                                  since=a["since_release"], weight=a["weight"], locked=a["locked"], raw=a["raw"])
         ctx = native.CoreContext(
-            sk=sk, locks=locks, foot_ik=int(p.foot_ik), arm_ik=int(p.arm_ik), goals=a["_targets"], weights=a["_weights"],
+            sk=sk, locks=locks, foot_ik=int(p.foot_ik), arm_ik=int(p.arm_ik), goals=a["targets"], weights=a["weights"],
             ring_rows=N + 1, hidden=b.hidden_in.shape[2], **ring,
             out_local=native.addr(out.rotations), out_world=native.addr(self._emit_world),
             out_pos=native.addr(out.positions), out_contacts=native.addr(out.contacts),
-            frame_in=a["_frame_in"], frame_offsets=a["_frame_offsets"], prev=a["_prev"], fps=p.fps,
-            n_features=p.n_features, imus=p.imus, floor_lift=a["_floor_lift"],
+            frame_in=a["frame_in"], frame_offsets=a["frame_offsets"], prev=a["prev"], fps=p.fps,
+            n_features=p.n_features, imus=p.imus, floor_lift=a["floor_lift"],
             ring_seg_m=native.addr(b.seg_m), ring_seg_flag=native.addr(b.seg_flag), imu_joints=a["imu_joints"],
-            segments=int(p.segments), good_in=native.addr(p._good_in), frame_len=len(p._frame_in),
+            segments=int(p.segments), good_in=native.addr(self.bufs.good_in), frame_len=len(self.bufs.frame_in),
             position_limit=POSITION_LIMIT_M, latents=chk(p.latents, np.float32, (N, None), "latents"),
-            latent_dim=p.latents.shape[1], target_row=-1, target_joint=native.addr(p._target_joint),
-            target_goal=native.addr(p._target_goal), target_weight=native.addr(p._target_weight),
+            latent_dim=p.latents.shape[1], target_row=-1, target_joint=native.addr(self.bufs.target_joint),
+            target_goal=native.addr(self.bufs.target_goal), target_weight=native.addr(self.bufs.target_weight),
             **(dict(zip(("ae_in", "ae_local", "ae_root_local"), ae, strict=True)) if ae else {}))
         self.core = ctypes.pointer(ctx)
         self.bind_decoder(p.decoder)
@@ -905,8 +916,8 @@ class CompiledFrame:
         call, after its finite test of the decoder's rows (False: not finite, nothing done)."""
         dec = self.p.decoder
         c, n, a = blend if blend is not None else (0, 0, 0.0)
-        return self.lib.ep_frame_poses(self.core, s, rows, N, c, n, a, self.addr["_world"] if keep_world else None,
-                                       self.addr["_pos"], self._hidden_addr[1 - dec._cur],
+        return self.lib.ep_frame_poses(self.core, s, rows, N, c, n, a, self.addr["world"] if keep_world else None,
+                                       self.addr["pos"], self._hidden_addr[1 - dec._cur],
                                        self._hidden_addr[dec._cur], dec.rows) == 1
 
     def set_target_row(self, row):
@@ -929,7 +940,7 @@ class CompiledFrame:
         Pipeline._judge's Composite and switch_to in one C call."""
         p = self.p
         p.autoencoder.run()
-        crit = p._fused_criteria
+        crit = self.fused_criteria
         w_phys = crit[1].weight if len(crit) > 1 else 0.0
         return self.lib.ep_frame_costs(self.core, self._selection, s, N, crit[0].weight, w_phys, c, p.switch_margin)
 

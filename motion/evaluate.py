@@ -54,7 +54,7 @@ def run_take(pipe, take, max_frames=None, keep_samples=False, signals=None):
         pose = pipe.step(signals.slice(t, t + 1))
         run.cost[t] = pipe.buffer.cost[pipe.buffer.slot(t)]
         if run.samples is not None:         # frame t's poses of every sample, after IK
-            run.samples[t] = pipe._pos[:N]
+            run.samples[t] = pipe.bufs.pos[:N]
         if pose is not None:
             keep(pose)
     for pose in pipe.flush():

@@ -154,7 +154,7 @@ def test_pipeline_corrects_what_the_core_and_the_numpy_path_read(reference, kept
         for t in range(T):
             pose = pipe.step(sig.slice(t, t + 1))
             out.append(pose.positions.copy())
-            got.append(pipe._in["imu_rot"].copy())
+            got.append(pipe.bufs.inputs["imu_rot"].copy())
         poses[native], used[native] = np.array(out), np.array(got)
     np.testing.assert_allclose(poses[True], poses[False], atol=1e-4)
     late = slice(T // 2, None)

@@ -84,10 +84,10 @@ def test_limb_ik_matches_numpy_on_reachable_unreachable_and_straight_chains():
     results = []
     # NumpyFrame.post: legs to foot goals, arms onto controllers, head; and ep_post, its C form.
     pipe = Pipeline(PipelineOptions(samples=R, use_native=False))
-    pipe._local[:R], pipe._world[:R], pipe._pos[:R] = loc, W, P
-    pipe._targets[:R], pipe._weights[:R] = targets[:, :2], weights
+    pipe.bufs.local[:R], pipe.bufs.world[:R], pipe.bufs.pos[:R] = loc, W, P
+    pipe.bufs.targets[:R], pipe.bufs.weights[:R] = targets[:, :2], weights
     pipe.reference.post(R, targets[:, 2:].copy(), hand_m, head_m)
-    results.append([x[:R].copy() for x in (pipe._local, pipe._world, pipe._pos)])
+    results.append([x[:R].copy() for x in (pipe.bufs.local, pipe.bufs.world, pipe.bufs.pos)])
     cl, cw, cp = loc.copy(), W.copy(), P.copy()
     goals, goal_w = np.ascontiguousarray(targets[:, :2]), np.ascontiguousarray(weights)
     wrists = np.ascontiguousarray(targets[:, 2:])     # held: C reads it by address
@@ -241,10 +241,10 @@ def frame_inputs(pipe, sig, state):
                      mats=np.zeros((4, 3, 3)))
     pipe._load_frame_in(sig)
     pts, prev, feat, mats = state["points"], state["prev"], state["feat"], state["mats"]
-    lib.ep_frame_features(A(pipe._frame_in), A(pipe.path._frame_offsets), A(pts if first else prev), pipe.fps,
+    lib.ep_frame_features(A(pipe.bufs.frame_in), A(pipe.path._frame_offsets), A(pts if first else prev), pipe.fps,
                           A(pts), A(feat), A(mats))
     if pipe.imus:
-        lib.ep_imu_features(pipe.imus, A(pipe._in["imu_rot"]), A(pipe._in["imu_flag"]), A(pipe._in["waist_rot"]),
+        lib.ep_imu_features(pipe.imus, A(pipe.bufs.inputs["imu_rot"]), A(pipe.bufs.inputs["imu_flag"]), A(pipe.bufs.inputs["waist_rot"]),
                             feat.ctypes.data + 4 * 24)
     np.copyto(prev, pts)
     return pts, feat, mats

@@ -48,7 +48,7 @@ def test_foot_ik_never_leaves_a_foot_in_the_floor_on_either_path():
         for t in range(300):
             pose = pipe.step(sunk.slice(t, t + 1))
             low.append(min(pose.positions[ANKLES, 1].min() - FLOOR_ANKLE, pose.positions[TOES, 1].min() - FLOOR_TOE))
-            lifted.append(pipe._floor_lift[0].max())
+            lifted.append(pipe.bufs.floor_lift[0].max())
         assert min(low) > -1e-6, f"native={native}: a foot {-min(low) * 100:.1f} cm under the floor"
         assert max(lifted) > 0.02                 # the clamp did work: the raw feet were under
 
