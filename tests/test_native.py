@@ -10,7 +10,8 @@ import pytest
 from edge import native, quat
 from edge.inference import Autoencoder, open_models
 from edge.options import PipelineOptions
-from edge.pipeline import LIMB_CHAINS, LIMB_POLES, Pipeline
+from edge.frame import LIMB_CHAINS, LIMB_POLES
+from edge.pipeline import Pipeline
 from edge.plausibility import PlausibilityScorer
 from edge.skeleton import ANKLES, HEAD, JOINT, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS, fk
 from motion.takes import from_sample

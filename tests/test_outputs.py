@@ -8,7 +8,7 @@ import pytest
 
 from motion import bvh as edge_bvh
 from edge import quat
-from edge.pipeline import Pose
+from edge.frame import Pose
 from edge.signals import EYE_OFFSET
 from edge.skeleton import HEAD, JOINT, JOINT_NAMES, NUM_JOINTS, OFFSETS, PARENTS, fk
 from firmware_bridge.outputs import to_unity_matrix, to_unity_position, to_unity_quaternion

@@ -7,7 +7,8 @@ from motion import metrics
 from edge.criteria import FrameContext, PhysicalPlausibility
 from edge.physics import FLOOR_ANKLE, FLOOR_TOE, foot_height, leg_gap, segment_distance
 from edge.options import PipelineOptions
-from edge.pipeline import Pipeline, supported_contacts
+from edge.frame import supported_contacts
+from edge.pipeline import Pipeline
 from edge.skeleton import ANKLES, JOINT, REST, TOES, PELVIS_HEIGHT
 from motion.takes import from_sample
 from conftest import SAMPLE

@@ -5,7 +5,7 @@
     from firmware_bridge.outputs.bvh_writer import BvhWriter       # Blender, MotionBuilder, ...
 
     with VmcSender() as vmc, BvhWriter("take.bvh", fps=60) as bvh:
-        for pose in poses:                                         # edge.pipeline.Pose
+        for pose in poses:                                         # edge.frame.Pose
             vmc.send(pose)
             bvh.send(pose)
 
@@ -41,7 +41,7 @@ class PoseSink(ABC):
 
     @abstractmethod
     def send(self, pose):
-        """Output one edge.pipeline.Pose."""
+        """Output one edge.frame.Pose."""
 
     @abstractmethod
     def close(self):
