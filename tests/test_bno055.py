@@ -12,7 +12,7 @@ import pytest
 from firmware_bridge.transports import bno055
 from firmware_bridge.transports.bno055 import Mode, Reg
 from firmware_bridge.samples import TrackerSample
-from edgetools.sim.bno055_fake import FakeBNO055, ManualClock, motion_from_arrays
+from edgetools.sim.bno055_fake import ChipBehaviour, FakeBNO055, ManualClock, motion_from_arrays
 from firmware_bridge.transports import TransportError, open_source
 from firmware_bridge.transports.i2c import Recovery, backoff_delay, next_poll_time
 
@@ -24,8 +24,10 @@ def clock():
     return ManualClock(start=100.0)
 
 
-def make_fake(clock, **options):
-    return FakeBNO055(clock=clock, sleep=clock.sleep, **options)
+def make_fake(clock, motion=None, **behaviour):
+    """A fake on the manual clock; `behaviour`: ChipBehaviour's fields."""
+    return FakeBNO055(*(() if motion is None else (motion,)), clock=clock, sleep=clock.sleep,
+                      behaviour=ChipBehaviour(**behaviour))
 
 
 def open_fake(fake, clock, url="i2c://1/0x28?tracker=waist&rate=100", **options):

@@ -126,37 +126,50 @@ class _Switch:
     done_at: float
 
 
+@dataclass(frozen=True)
+class ChipBehaviour:
+    """How the fake chip behaves: its CHIP_ID, the (gyroscope, accelerometer, magnetometer) seconds of
+    fusion until each reads fully calibrated (0: calibrated from the start), its boot time, what it does
+    to a read during a mode switch ("nack" or "stale"), the share of transfers that fail (seeded), how
+    long a stuck bus holds, and how many transfers the log keeps."""
+    chip_id: int = bno055.CHIP_ID
+    calibration_seconds: tuple = (2.0, 6.0, 4.0)
+    boot_seconds: float = 0.0
+    during_switch: str = "nack"
+    error_rate: float = 0.0
+    seed: int = 0
+    stuck_timeout: float = STUCK_BUS_TIMEOUT_S
+    log_size: int = 10_000
+
+
 class FakeBNO055:
     """A BNO055 on a fake I2C bus. `motion(t)` -> (quat [4], linear acceleration [3] or None), with t in
-    seconds since the fake was created; `calibration_seconds` = (gyroscope, accelerometer, magnetometer)
-    seconds of fusion until each reads fully calibrated (0: calibrated from the start)."""
+    seconds since the fake was created; `behaviour`: a ChipBehaviour (the datasheet's defaults)."""
 
-    def __init__(self, motion=still, address=0x28, *, clock=time.monotonic, sleep=time.sleep,
-                 chip_id=bno055.CHIP_ID, calibration_seconds=(2.0, 6.0, 4.0), boot_seconds=0.0,
-                 during_switch="nack", error_rate=0.0, seed=0, stuck_timeout=STUCK_BUS_TIMEOUT_S,
-                 log_size=10_000):
-        if during_switch not in ("nack", "stale"):
+    def __init__(self, motion=still, address=0x28, *, clock=time.monotonic, sleep=time.sleep, behaviour=None):
+        b = self.behaviour = ChipBehaviour() if behaviour is None else behaviour
+        if b.during_switch not in ("nack", "stale"):
             raise ValueError("during_switch is 'nack' or 'stale'")
         self.motion = motion
         self.address = address
         self.clock = clock
         self.sleep = sleep
-        self.chip_id = chip_id
-        self.calibration_seconds = dict(zip(("gyr", "acc", "mag"), calibration_seconds, strict=True))
-        self.during_switch = during_switch
-        self.error_rate = error_rate
-        self.stuck_timeout = stuck_timeout
-        self.log = deque(maxlen=log_size)
+        self.chip_id = b.chip_id
+        self.calibration_seconds = dict(zip(("gyr", "acc", "mag"), b.calibration_seconds, strict=True))
+        self.during_switch = b.during_switch
+        self.error_rate = b.error_rate
+        self.stuck_timeout = b.stuck_timeout
+        self.log = deque(maxlen=b.log_size)
         self.ignored_writes = []
         self.max_block_read = 0
-        self._random = random.Random(seed)
+        self._random = random.Random(b.seed)
         self._fail_count = 0
         self._fail_errno = errno.EREMOTEIO
         self._fail_windows = []
         self._garble_count = 0
         self._stuck = False
         self._t0 = clock()
-        self._power_on_reset(self._t0, boot_seconds)
+        self._power_on_reset(self._t0, b.boot_seconds)
 
     # ---- the SMBus surface ---------------------------------------------------------------------
 

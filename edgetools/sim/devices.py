@@ -14,7 +14,7 @@ from pathlib import Path
 import can
 import numpy as np
 
-from edgetools.sim.bno055_fake import FakeBNO055
+from edgetools.sim.bno055_fake import ChipBehaviour, FakeBNO055
 
 
 class SimClock:
@@ -226,8 +226,8 @@ def bno055_for(session, clock, faults):
         i = min(int(t * rate), len(q) - 1)
         return q[last_good[i]], a[i]
 
-    chip = FakeBNO055(motion, clock=clock, sleep=clock.sleep, boot_seconds=0.0, calibration_seconds=(0, 0, 0),
-                      error_rate=faults.get("i2c_error_rate", 0.0), seed=1)
+    chip = FakeBNO055(motion, clock=clock, sleep=clock.sleep, behaviour=ChipBehaviour(
+        boot_seconds=0.0, calibration_seconds=(0, 0, 0), error_rate=faults.get("i2c_error_rate", 0.0), seed=1))
     edges = np.flatnonzero(np.diff(np.concatenate([[0], (~valid).astype(int), [0]])))
     for start, end in zip(edges[::2], edges[1::2], strict=True):            # a disconnected puck NACKs
         chip.fail_between(session.i2c_t[start], session.i2c_t[min(end, len(q) - 1)])
