@@ -131,7 +131,7 @@ class FrameBuffers:
             ("head_pos", 0, 3, (3,)), ("head_rot", 3, 7, (4,)), ("hand_pos", 7, 13, (2, 3)),
             ("hand_rot", 13, 21, (2, 4)), ("waist_rot", 21, 25, (4,)),
             ("imu_rot", 25, 25 + 4 * NUM_IMUS, (NUM_IMUS, 4)), ("imu_flag", 25 + 4 * NUM_IMUS, 25 + 5 * NUM_IMUS, (NUM_IMUS,)))}
-        # The Signals fields _load_frame_in copies, each with its [1,...] view of _frame_in.
+        # The Signals fields Pipeline._load_frame_in copies, each with its [1,...] view of frame_in.
         self.input_fields = [(k, v[None]) for k, v in self.inputs.items() if imus or not k.startswith("imu")]
         # A live target on a foot of the refined row: the row (-1: none), per foot the target's joint
         # (ankle or toe), point and pull on the leg's IK goal (edge.refine.Refiner.foot_pull).

@@ -15,12 +15,11 @@ from edge.skeleton import ANKLES, HEAD, NUM_JOINTS, OFFSETS, PARENTS, PELVIS_TO_
 class CompiledFrame(FramePath):
     """The frame the board runs: four C calls (edge/native/postproc.c) around the two ONNX Runtime
     calls, each bit-identical to NumpyFrame's stages up to float rounding (tests/test_native.py).
-    The addresses they use are found once here: the skeleton, the scratch rows, FootLock's state,
+    The addresses they use are found once here: the skeleton, the FrameBuffers, FootLock's state,
     the ring buffer, the output pose and the decoder's buffers (native.CoreContext)."""
 
     def __init__(self, pipe, bufs, lib):
         self.p, self.bufs, self.lib = pipe, bufs, lib
-        self.ae_ready = self.fused_criteria = None      # set below when the defaults allow (NumpyFrame's say)
         p, N, b = pipe, pipe.max_samples, pipe.buffer
         # Arrays the C calls read by address; held here so they live as long as the pipeline.
         self._c = {"parents": np.ascontiguousarray(PARENTS, np.int64), "offsets": OFFSETS,
@@ -108,7 +107,7 @@ class CompiledFrame(FramePath):
         self._hidden_addr = [chk(h, np.float32, (None, None), "decoder GRU state") for h in dec.hidden]
 
     def inputs(self, sig, s, N, blend):
-        """ep_frame_inputs: NumpyFrame.inputs on the frame's signals already in the pipeline's _frame_in."""
+        """ep_frame_inputs: NumpyFrame.inputs on the frame's signals already in FrameBuffers.frame_in."""
         state = self._hidden_addr[self.p.decoder._cur]
         if blend is None:
             ok = self.lib.ep_frame_inputs(self.core, s, self.first, N, -1, -1, 0.0, state)

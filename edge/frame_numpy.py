@@ -16,22 +16,15 @@ from edge.ssi import switch_to
 
 class NumpyFrame(FramePath):
     """The numpy reference of a frame's stages: what the compiled core is tested against, and what
-    runs without a C compiler. It works in the pipeline's FrameBuffers and ring buffer."""
-
-    ae_ready = None             # the scorer whose autoencoder input this path prepares (none: the scorer does)
-    fused_criteria = None       # the criteria this path judges in one call (none: each judges itself)
+    runs without a C compiler. It works in the pipeline's FrameBuffers and ring buffer; it reads the
+    decoder and a foot target's row from the pipeline each frame (bind_decoder, set_target_row: the
+    FramePath defaults)."""
 
     def __init__(self, pipe, bufs):
         self.p, self.bufs = pipe, bufs
 
     def reset(self):
         self.prev_points = None     # the previous frame's body points (velocity features)
-
-    def bind_decoder(self, dec):
-        pass
-
-    def set_target_row(self, row):
-        pass                        # foot_goals reads the pipeline's _target_row
 
     def sane(self):
         v, head, hands = self.bufs.frame_in, self.bufs.inputs["head_pos"], self.bufs.inputs["hand_pos"]
@@ -43,7 +36,7 @@ class NumpyFrame(FramePath):
         """Body points, features and tracker matrices of one frame into ring slot s and the decoder, and
         the spare row N's latent and GRU state eased between a live move's two samples (blend: from,
         to, weight; or None). False, doing nothing, when the frame is not sane (the pipeline's
-        _frame_in); a frame that is is kept in _good_in."""
+        FrameBuffers.frame_in); a frame that is is kept in good_in."""
         p, b, dec = self.p, self.p.buffer, self.p.decoder
         if not self.sane():
             return False

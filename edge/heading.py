@@ -225,7 +225,7 @@ class HeadingObserver:
         return True
 
     def observe_frame(self, t, inputs, s=None, row=None):
-        """observe() on a pipeline's frame t, from its inputs (edge.pipeline.FrameBuffers.inputs: the
+        """observe() on a pipeline's frame t, from its inputs (edge.frame.FrameBuffers.inputs: the
         named views of the frame's signals): against the body (body_references: the waist puck, the
         chest halfway to the headset), or against decoder row `row` of ring slot s through
         `decoder_fk(s, row, out)` (FK from the waist without the IMU override), which the pipeline

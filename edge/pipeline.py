@@ -364,7 +364,7 @@ class Pipeline:
         self.state_resets += int(bad.sum())
 
     def _load_frame_in(self, sig):
-        """One frame (T=1) of Signals into _frame_in, the C calls' input layout (no temporaries)."""
+        """One frame (T=1) of Signals into FrameBuffers.frame_in, the C calls' input layout (no temporaries)."""
         for name, dst in self.bufs.input_fields:
             dst[...] = getattr(sig, name)       # not np.copyto: its Python wrapper costs 3x as much
 

@@ -65,7 +65,7 @@ class Stream:
     where numpy would spend a microsecond a call on 7-element arrays and allocate its temporaries."""
 
     def __init__(self, width, capacity=32):
-        self.width, self.capacity = width, capacity
+        self.capacity = capacity
         self.t = []                               # kept times, ascending (at most `capacity`)
         self.rows = []                            # their rows, in the same order (recycled, never remade)
         self.rx = []                              # when each reached the board (its clock)
@@ -183,7 +183,7 @@ class FrameSynchronizer:
 
     A tick's work is scalar: every source is one 7-float row ([pos3, quat4]; an IMU's position is
     unused) in preallocated lists, and frame(t, out) writes the Signals and Health it is given, so the
-    board's tick allocates no arrays here (tests/test_sync.py counts).
+    board's tick allocates no arrays here (tests/test_tick.py counts).
     """
 
     HANDS = ("l_hand", "r_hand")
@@ -261,7 +261,7 @@ class FrameSynchronizer:
             if age == math.inf:
                 self._neutral_hand(head, k, hand)
                 hand[3:7] = head[3:7]
-            self._guard(name, hand, lost[name], t, k)
+            self._guard(name, hand, lost[name], t)
         self._trackers(t, head, lost, health.ages)
         self._write(sig, head, rows)
         dropped = backwards = 0
@@ -341,7 +341,7 @@ class FrameSynchronizer:
             turn = yaw_quat(head_yaw(head) - self._held_extra["waist_head_yaw"], self._scratch)
             quat_mul_into(turn[3:7], held[3:7], row)
 
-    def _guard(self, name, live, is_lost, t, hand=None):
+    def _guard(self, name, live, is_lost, t):
         """Hold (and decay) while lost; cosine-blend back from the shown value after recovery (in place)."""
         last = self._last.get(name)
         if is_lost:

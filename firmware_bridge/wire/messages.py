@@ -301,7 +301,7 @@ class PoseEncoder:
 
     def __init__(self):
         from edge import native
-        self._lib = native.load()
+        self._native, self._lib = native, native.load()
         self._out = np.zeros(2 * POSE_RECORD.itemsize + 64, np.uint8)
         self._view = memoryview(self._out)
         self._addr = native.addr(self._out)
@@ -312,10 +312,12 @@ class PoseEncoder:
         held, address = self._bound[k]
         if a is held:
             return address
-        if not isinstance(a, np.ndarray) or a.dtype != np.float64 or a.shape != shape or not a.flags.c_contiguous:
+        try:
+            address = self._native.checked_addr(a, np.float64, shape)
+        except (TypeError, ValueError):         # not an array the core can read: the numpy encoder takes it
             return None
-        self._bound[k] = (a, a.ctypes.data)
-        return self._bound[k][1]
+        self._bound[k] = (a, address)
+        return address
 
     def encode(self, frame, seq):
         rot = self._address(0, frame.rotations, (NUM_JOINTS, 4))
