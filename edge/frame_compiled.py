@@ -72,7 +72,8 @@ class CompiledFrame(FramePath):
         sk = native.Skeleton(J=NUM_JOINTS, head=HEAD, neck=NECK, parents=a["parents"], chains=a["chains"],
                              ankles=a["ankles"], offsets=a["offsets"], poles=a["poles"])
         locks = native.FootLocks(release_frames=f.release_frames, max_slip=f.max_slip, lock_pos=a["lock_pos"],
-                                 since=a["since_release"], weight=a["weight"], locked=a["locked"], raw=a["raw"])
+                                 since=a["since_release"], weight=a["weight"], locked=a["locked"], raw=a["raw"],
+                                 min_gap=f.min_gap)
         ctx = native.CoreContext(
             sk=sk, locks=locks, foot_ik=int(p.foot_ik), arm_ik=int(p.arm_ik), goals=a["targets"], weights=a["weights"],
             ring_rows=N + 1, hidden=b.hidden_in.shape[2], **ring,

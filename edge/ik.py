@@ -6,7 +6,7 @@ The arm pass puts the wrists on the controllers (the SSI paper's section 6 limit
 """
 import numpy as np
 
-from edge.physics import LOCK_SNAP_M, lowest_point, support
+from edge.physics import LOCK_GAP_M, LOCK_SNAP_M, lowest_point, support
 
 from edge.quat import cross
 
@@ -107,11 +107,13 @@ class FootLock:
     moved up or down onto it (a foot in contact stands on the floor, not above or under it). After
     release the IK weight eases from 1 to 0 over `release_frames` frames. A lock also lets go when the
     network's own ankle has moved more than `max_slip` metres from it across the floor: the contact
-    was wrong, and holding on would drag the leg.
+    was wrong, and holding on would drag the leg. Two planted feet stand at least `min_gap` apart across
+    the floor (LOCK_GAP_M: legs closer than edge.physics.INTERSECT_M pass through each other): a lock
+    taken closer to the other foot's is moved away from it (separate).
     """
 
-    def __init__(self, samples, feet=2, release_frames=10, max_slip=0.08):
-        self.release_frames, self.max_slip = release_frames, max_slip
+    def __init__(self, samples, feet=2, release_frames=10, max_slip=0.08, min_gap=LOCK_GAP_M):
+        self.release_frames, self.max_slip, self.min_gap = release_frames, max_slip, min_gap
         self.lock_pos = np.zeros((samples, feet, 3))
         self.locked = np.zeros((samples, feet), bool)
         self.raw = np.zeros((samples, feet), bool)
@@ -147,11 +149,30 @@ class FootLock:
             drawn[..., 1] -= np.where(np.abs(h) <= LOCK_SNAP_M, h, 0.0)
         lock_pos[start] = drawn[start]
         locked[:] = (locked & raw & ~slipped) | start
+        if start.any() and lock_pos.shape[1] == 2:
+            self.separate(lock_pos, locked, start)
         was_raw[:] = raw
         since[locked] = 0
         since[~locked] += 1
         weight[:] = np.where(locked, 1.0, 1.0 - smoothstep(since / self.release_frames))
         return lock_pos, weight
+
+    def separate(self, lock_pos, locked, start):
+        """Two locked feet of a row closer across the floor than min_gap, one locked this frame, are
+        moved apart to it along the line between them: the new lock, or both halfway when both are new."""
+        d = lock_pos[:, 1] - lock_pos[:, 0]
+        gap = np.hypot(d[:, 0], d[:, 2])
+        rows = start.any(1) & locked.all(1) & (gap < self.min_gap)
+        if not rows.any():
+            return
+        u = np.zeros((len(gap), 3))
+        u[:, 0] = 1.0                               # on top of each other: apart along x
+        far = gap > 1e-9
+        u[far, 0], u[far, 2] = d[far, 0] / gap[far], d[far, 2] / gap[far]
+        push = (self.min_gap - gap)[:, None] * u
+        share_a = np.where(start[:, 0], np.where(start[:, 1], 0.5, 1.0), 0.0)[:, None]
+        lock_pos[rows, 0] -= (share_a * push)[rows]
+        lock_pos[rows, 1] += ((1.0 - share_a) * push)[rows]
 
     def copy_rows(self, src, dst):
         """Give rows `dst` the lock state of row `src` (a revived sample starts from the shown one)."""

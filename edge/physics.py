@@ -21,6 +21,9 @@ SUPPORT_FULL_M = 0.03
 SUPPORT_NONE_M = 0.08
 # A foot lock taken with the foot's lowest point within this of the floor is set on the floor (edge.ik.FootLock).
 LOCK_SNAP_M = 0.12
+# Two planted feet's locks stand at least this far apart across the floor (edge.ik.FootLock.separate):
+# closer, the shins would be inside INTERSECT_M of each other.
+LOCK_GAP_M = INTERSECT_M + 0.005
 # Thigh (hip -> knee) and shin (knee -> ankle) of each leg: [side, segment, end].
 LEG_SEGMENTS = np.array([[[JOINT[f"{s}_hip"], JOINT[f"{s}_knee"]], [JOINT[f"{s}_knee"], JOINT[f"{s}_ankle"]]]
                          for s in "lr"])

@@ -156,6 +156,7 @@ class Pipeline:
             compiled = (self.native, self.path.core, lambda: self._slot_now) if self.native else None
             self.refiner = Refiner(dec_session, m, self._forward_rows, o.refine, fps, compiled=compiled,
                                    jacobian_session=open_jacobian(models, threads, self.precision))
+        self._legs = self.refiner.term("legs") if self.refiner is not None else None     # LegsApart, armed each frame
 
     def default_criteria(self, selection, use_native=True):
         """SSI's default selection cost: the autoencoder's plausibility score, plus the physical one
@@ -193,6 +194,8 @@ class Pipeline:
     def reset(self):
         self.decoder.reset()
         self.decoder.latent[:self.max_samples] = self.latents     # refinement moved the shown one
+        if self.refiner is not None:
+            self.refiner.reset()
         self.feet.reset()
         self.path.reset()
         self._pending = None        # a change of N waiting for a transition to be sent
@@ -251,6 +254,8 @@ class Pipeline:
         if live:
             b.override[s] = True
             b.trans_row[s] = N
+        if self._legs is not None:      # the legs' clearance for the next frame, from the pose shown now
+            self._legs.arm(self.bufs.pos[N if live else sw.current], self.feet.weight[sw.current])
         if self.heading is not None:    # each IMU against its reference (edge.heading), at the observer's rate
             self.heading.observe_frame(self.t, self.bufs.inputs, s, sw.current)
         if timing:

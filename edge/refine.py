@@ -35,13 +35,14 @@ from edge import native
 from edge.settings import settings_from
 from edge.imus import IMU_JOINTS
 from edge.physics import FLOOR_ANKLE, FLOOR_TOE     # the lowest a toe and an ankle joint may go (as the IK's floor)
+from edge.physics import LEG_SEGMENTS, leg_gap, segment_distance
 from edge.skeleton import ANKLES, JOINT, NUM_JOINTS, TOES
 
-# On by default: targets, guarded by KeepPose and FloorContact (guards join when a target moves the
-# latent and never move it alone). ImuOrientation is there to turn on: measured on val it did not pay
-# (models/MODEL_CARD.md: it raised thighs+shins' mpjpe).
-DEFAULT_TERMS = ("targets", "keep", "floor")
-COMPILED_TERMS = ("targets", "keep", "floor")       # what ep_refine_step computes (others: the numpy step)
+# On by default: targets and the legs' clearance, guarded by KeepPose and FloorContact (guards join when
+# a target or LegsApart moves the latent and never move it alone). ImuOrientation is there to turn on:
+# measured on val it did not pay (models/MODEL_CARD.md: it raised thighs+shins' mpjpe).
+DEFAULT_TERMS = ("targets", "keep", "floor", "legs")
+COMPILED_TERMS = ("targets", "keep", "floor", "legs")       # what ep_refine_step computes (others: the numpy step)
 MAX_REACH_M = 1.5           # a target farther than this from the pelvis is no reach of the user's
 
 
@@ -191,6 +192,59 @@ class KeepPose(object):
         return np.sqrt(self.weight) * d.reshape(len(d), -1)
 
 
+class LegsApart:
+    """SSI 5.3's collision avoidance as a constraint on the shown sample: each pair of a left-leg and a
+    right-leg segment (thigh, shin) closer than `clearance` pays the distance it is inside (4 residuals).
+
+    It is live only while `armed`, which the pipeline decides after each frame's pose (arm): the
+    shown pose's legs came within clearance + hysteresis of each other with a foot free to move (two
+    planted feet are where their locks hold them, and the latent cannot move them apart). So a frame
+    whose legs are apart pays nothing, and the refiner runs on the frames that need it (on val, at the
+    shipped settings, about 5 % of them; models/MODEL_CARD.md, "Present-frame output")."""
+    name = "legs"
+    needs_raw_world = False
+    guard = False
+    moves = tuple(JOINT[f"{s}_{k}"] for s in "lr" for k in ("knee", "ankle", "toe"))    # what KeepPose lets go
+
+    def __init__(self, weight=10.0, clearance=0.14, hysteresis=0.01):
+        self.weight, self.clearance, self.hysteresis = weight, clearance, hysteresis
+        self.armed = False
+        self.segs = np.ascontiguousarray(LEG_SEGMENTS.reshape(-1), np.int64)    # the compiled step's copy
+        self._lib = None
+
+    def bind(self, lib):
+        """Use the compiled core's ep_physical_cost (legs only, at clearance + hysteresis) for arm()."""
+        self._lib = lib
+        self._zero = np.zeros(2)
+        self._contacts = np.zeros(2, np.float32)
+        self._feet = np.zeros(4, np.int64)
+        self._cost = np.zeros(1)
+        self._params = native.PhysicalParams(native.addr(self.segs), native.addr(self._feet),
+                                             self.clearance + self.hysteresis, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0)
+        self._addrs = tuple(native.addr(v) for v in (self._contacts, self._zero, self._cost))
+
+    def arm(self, positions, lock_weight):
+        """Arm the term for the next frame from this frame's shown pose (positions [J,3], float64,
+        C-contiguous) and its foot locks' weights [2]."""
+        if lock_weight[0] >= 0.99 and lock_weight[1] >= 0.99:
+            self.armed = False
+        elif self._lib is None:
+            self.armed = bool(leg_gap(positions) < self.clearance + self.hysteresis)
+        else:
+            contacts, lift, cost = self._addrs
+            self._lib.ep_physical_cost(1, NUM_JOINTS, positions.ctypes.data, contacts, lift, self._params, cost)
+            self.armed = self._cost[0] > 0.0
+
+    def size(self, ctx):
+        return 4 if self.armed else 0
+
+    def residuals(self, ctx):
+        P = ctx.positions
+        L, R = P[:, LEG_SEGMENTS[0]], P[:, LEG_SEGMENTS[1]]                 # [B,2,2,3]
+        d = segment_distance(L[:, :, None, 0], L[:, :, None, 1], R[:, None, :, 0], R[:, None, :, 1])   # [B,2,2]
+        return np.sqrt(self.weight) * np.maximum(self.clearance - d.reshape(len(P), 4), 0.0)
+
+
 FOOT_OF = {int(a): f for f, a in enumerate(ANKLES)} | {int(t): f for f, t in enumerate(TOES)}
 # The joints a target on each joint may move: its limb from the hip or shoulder down.
 LIMB_OF = {}
@@ -260,12 +314,14 @@ class Refiner:
         self.z, self.z_prev, self.z_prior = np.zeros(L), np.zeros(L), np.zeros(L)
         self._z_addrs = tuple(native.addr(v) for v in (self.z, self.z_prev, self.z_prior))
         known = {"imus": ImuOrientation, "imus-tilt": lambda: ImuOrientation(tilt_only=True), "floor": FloorContact,
-                 "targets": TargetReach, "keep": KeepPose}
+                 "targets": TargetReach, "keep": KeepPose, "legs": LegsApart}
         terms = DEFAULT_TERMS if s.terms is None else s.terms
         self.terms = [known[t]() if isinstance(t, str) else t for t in terms]   # names or term objects
         for name, w in (s.weights or {}).items():       # {term name: weight}
             self.term(name).weight = w
         self._reach = self.term("targets")              # TargetReach, or None when it is not among the terms
+        self._legs = self.term("legs")                  # LegsApart, or None
+        self._legs_kept = False                         # whether KeepPose's mask lets the legs go
         self.ctx = RefineContext()
         self._live = None               # this frame's live targets (TargetReach.live), as KeepPose's mask was made for
         # The compiled step (ep_refine_step): compiled = (the C library, the pipeline's core context, a
@@ -275,21 +331,30 @@ class Refiner:
         if compiled is not None:
             self._c = compiled
             self._init_compiled(L, R)
+            if self._legs is not None:
+                self._legs.bind(compiled[0])
         self.refused = {"non_finite": 0, "unknown_joint": 0, "out_of_reach": 0}
         self.applied = 0            # frames refined
         self._displaced = False     # the latent is not yet back at the sample's own
         self.last_cost = (0.0, 0.0)     # the constraints' cost at the last frame's first and last step
+
+    def reset(self):
+        """A new take: no latent is displaced and no term is armed from the last take's pose."""
+        self._displaced = False
+        if self._legs is not None:
+            self._legs.armed = False
 
     # ---- the terms
     def term(self, name):
         return next((t for t in self.terms if t.name == name), None)
 
     def busy(self):
-        """Whether refine has anything to do: a target waiting or live, a latent still let go, or a term
-        that reads the sensors every frame. When not, the pipeline skips the stage (and pays nothing)."""
+        """Whether refine has anything to do: a target waiting or live, a latent still let go, an armed
+        LegsApart, or a term that reads the sensors every frame. When not, the pipeline skips the stage
+        (and pays nothing)."""
         reach = self._reach
         return bool(reach is not None and reach.targets) or self._displaced or any(
-            not t.guard and t.name != "targets" and t.weight > 0 for t in self.terms)
+            not t.guard and t.name != "targets" and t.weight > 0 and getattr(t, "armed", True) for t in self.terms)
 
     def holds(self, frame):
         """Whether the refined sample should stay shown: a target is live, or the latent is still being
@@ -369,15 +434,18 @@ class Refiner:
         ctx.frame, ctx.seg_m, ctx.seg_flag, ctx.lock_pos, ctx.lock_weight = frame, seg_m, seg_flag, lock_pos, lock_weight
         reach = self._reach
         live = reach.live(frame) if reach is not None else ()
-        if live is not self._live:          # a window opened or closed, or the targets changed
+        legs = self._legs is not None and self._legs.armed
+        if live is not self._live or legs != self._legs_kept:   # a window opened or closed, the targets changed
             if reach is not None and any(g.last < frame for g in reach.targets):
                 reach.forget(frame)
                 live = reach.live(frame)
             ctx.keep[:] = True
             for g in live:                      # KeepPose holds all but the live targets' limbs
                 ctx.keep[LIMB_OF.get(g.joint, [g.joint])] = False
+            if legs:                            # and the legs, while LegsApart moves them
+                ctx.keep[list(LegsApart.moves)] = False
             ctx.kept = int(ctx.keep.sum())
-            self._live = live
+            self._live, self._legs_kept = live, legs
         terms = self.live_terms(ctx)
         if all(t.guard for t in terms) or self.steps == 0:   # nothing to reach for (the guards alone would
             return self._let_go(latent, prior_latent, hidden, features)   # only hold), or no steps to spend
@@ -402,7 +470,7 @@ class Refiner:
 
     def _init_compiled(self, L, R):
         MAX_TARGETS = 8
-        self._c_max_m = (3 * MAX_TARGETS + 3 * NUM_JOINTS + 10 + 7) // 8 * 8     # the C step pads to 8
+        self._c_max_m = (3 * MAX_TARGETS + 3 * NUM_JOINTS + 10 + 4 + 7) // 8 * 8     # the C step pads to 8
         self._c_buf = {"pos": np.zeros((R, NUM_JOINTS, 3)), "r": np.zeros((R, self._c_max_m)), "A": np.zeros((L, L)),
                        "jt": np.zeros((L, self._c_max_m)),
                        "g": np.zeros(L), "joint": np.zeros(MAX_TARGETS, np.int64), "tpos": np.zeros((MAX_TARGETS, 3)),
@@ -421,6 +489,7 @@ class Refiner:
                            native.checked_addr(self.batch.latent, np.float32, (R, L), "refine batch latent"))
         self._c_on = False          # this frame's terms are all the compiled step's
         self._c_live = self._c_settings = None      # what the arguments were last filled for
+        self._c_legs_kept = False
 
     def _prepare_compiled(self, terms):
         """This frame's live terms into the compiled step's arguments; False if it cannot take them. The
@@ -432,24 +501,26 @@ class Refiner:
         live = self._live
         if len(live) > self._c_max_targets:
             return False
-        if live is not self._c_live:
+        if live is not self._c_live or self._legs_kept != self._c_legs_kept:     # KeepPose's mask changed
             for i, g in enumerate(live):
                 c["joint"][i], c["tpos"][i], c["radius"][i] = g.joint, g.position, g.radius
             c["keep"][:] = ctx.keep
-            self._c_live = live
+            self._c_live, self._c_legs_kept = live, self._legs_kept
         w, frame = c["w"], ctx.frame
         for i, g in enumerate(live):
             w[i] = math.sqrt(self._reach.weight * g.weight * g.pull(frame))
         settings = (self.prior, self.continuity, self.damping, self.max_step, self.eps)
         if settings != self._c_settings:
             a.prior, a.continuity, a.damping, a.max_step, a.eps = self._c_settings = settings
-        a.n_targets, a.keep_on, a.floor_on = len(live), 0, 0
+        a.n_targets, a.keep_on, a.floor_on, a.legs_on = len(live), 0, 0, 0
         for t in terms:
             if t.name == "keep":
                 a.keep_on, a.keep_w = 1, math.sqrt(t.weight)
             elif t.name == "floor":
                 a.floor_on, a.floor_w, a.planted_w = 1, math.sqrt(t.weight), math.sqrt(t.planted)
                 a.lock_row = self._row          # the C step reads the row's locks from the core's FootLock state
+            elif t.name == "legs":
+                a.legs_on, a.legs_w, a.legs_clear, a.legs_segs = 1, math.sqrt(t.weight), t.clearance, t.segs.ctypes.data
         return True
 
     def step(self, z=None, z_prev=None, zp=None):

@@ -16,7 +16,7 @@ def add_refine_flags(p, what="refine the shown sample's latent against the live 
     p.add_argument("--refine", action="store_true", help=what)
     p.add_argument("--refine-steps", type=int, default=2, help="Gauss-Newton steps a frame (K)")
     p.add_argument("--refine-terms", default=None,
-                   help="comma-separated terms (default targets,keep,floor; also imus, imus-tilt)")
+                   help="comma-separated terms (default targets,keep,floor,legs; also imus, imus-tilt)")
 
 
 def _add_eval(sub):

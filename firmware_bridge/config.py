@@ -28,9 +28,9 @@
     models = "models"                 # optional, default: the shipped models
 
     [refine]                          # latent refinement of the shown sample (edge.refine)
-    enabled = true                    # the headset's TARGET messages need it; without a live target it does nothing
+    enabled = true                    # the headset's TARGET messages need it; "legs" keeps the legs apart
     steps = 2                         # Gauss-Newton steps a frame (K), the most: adaptive lowers it with N
-    terms = ["targets", "keep", "floor"]   # also "imus" or "imus-tilt"
+    terms = ["targets", "keep", "floor", "legs"]   # also "imus" or "imus-tilt"
 
 Every mistake is reported at start-up with the file, the key and what to write instead.
 """
@@ -56,7 +56,7 @@ SECTIONS = {
                 "calibration", "models"},
     "refine": {"enabled", "steps", "terms"},
 }
-REFINE_TERMS = ("targets", "keep", "floor", "imus", "imus-tilt")
+REFINE_TERMS = ("targets", "keep", "floor", "legs", "imus", "imus-tilt")
 
 
 @dataclass
@@ -206,7 +206,7 @@ def refine_section(ref, where):
     steps = ref.get("steps", 2)
     if not isinstance(steps, int) or isinstance(steps, bool) or not 1 <= steps <= 8:
         raise ConfigError(f"{where}: [refine] steps must be a whole number 1..8, got {steps!r}")
-    terms = ref.get("terms", ["targets", "keep", "floor"])
+    terms = ref.get("terms", ["targets", "keep", "floor", "legs"])
     if not isinstance(terms, list) or not terms or any(t not in REFINE_TERMS for t in terms):
         raise ConfigError(f"{where}: [refine] terms is a list of {', '.join(REFINE_TERMS)}; got {terms!r}")
     return {"steps": steps, "terms": list(terms)} if enabled else None

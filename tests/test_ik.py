@@ -74,3 +74,27 @@ def test_foot_lock_lets_go_when_the_network_foot_slips_away():
         _, w = lock.update(np.array([[1.0, 1.0]]), ankle)
     assert not lock.locked[0, 0] or np.linalg.norm(lock.lock_pos[0, 0] - ankle[0, 0]) <= 0.08
     assert lock.locked[0, 1]
+
+
+def test_two_planted_feet_are_locked_at_least_the_lock_gap_apart():
+    """A foot that plants closer than LOCK_GAP_M across the floor to the other, planted, foot is
+    locked that far from it, along the line between them; the foot planted first stays; a foot that
+    plants far enough away is locked where it is; two feet planting together move apart halfway each."""
+    from edge.ik import FootLock
+    from edge.physics import LOCK_GAP_M
+    f = FootLock(1)
+    ankles = np.array([[[0.04, 0.09, 0.0], [-0.50, 0.30, 0.0]]])
+    f.update(np.array([[1.0, 0.0]]), ankles)               # left plants; right in the air
+    ankles[0, 1] = [-0.04, 0.09, 0.0]
+    lock, w = f.update(np.array([[1.0, 1.0]]), ankles)     # right plants 8 cm from the left
+    np.testing.assert_allclose(lock[0, 0], [0.04, 0.09, 0.0])
+    np.testing.assert_allclose(lock[0, 1], [0.04 - LOCK_GAP_M, 0.09, 0.0])
+    g = FootLock(1)
+    lock, _ = g.update(np.array([[1.0, 1.0]]), np.array([[[0.02, 0.09, 0.03], [-0.02, 0.09, 0.0]]]))
+    d = lock[0, 1] - lock[0, 0]
+    assert abs(np.hypot(d[0], d[2]) - LOCK_GAP_M) < 1e-12
+    np.testing.assert_allclose(lock[0].mean(0), [0.0, 0.09, 0.015])      # halfway each
+    h = FootLock(1)
+    far = np.array([[[0.10, 0.09, 0.0], [-0.10, 0.09, 0.0]]])
+    lock, _ = h.update(np.array([[1.0, 1.0]]), far)
+    np.testing.assert_allclose(lock, far)

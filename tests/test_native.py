@@ -212,7 +212,7 @@ def test_foot_locks_match_numpy_through_contacts_releases_and_slips():
     rng = np.random.default_rng(10)
     ref, nat = FootLock(B), FootLock(B)
     locks = native.FootLocks(nat.release_frames, nat.max_slip, A(nat.lock_pos), A(nat.since_release), A(nat.weight),
-                             A(nat.locked), A(nat.raw))
+                             A(nat.locked), A(nat.raw), nat.min_gap)
     pos = np.zeros((B, NUM_JOINTS, 3))
     goal = np.zeros((B, 2, 3))
     contacts = np.zeros((B, 2), np.float32)

@@ -126,7 +126,7 @@ def test_a_bad_target_is_refused_counted_and_never_applied(take, position, joint
     assert pipe.refiner.refused[why] == 1 and sum(pipe.refiner.refused.values()) == 1
     assert pipe.refiner.term("targets").targets == []
     got = run_take(pipe, take, max_frames=120).pred
-    want = run_take(Pipeline(PipelineOptions(samples=1)), take, max_frames=120).pred
+    want = run_take(Pipeline(PipelineOptions(samples=1, refine=True)), take, max_frames=120).pred   # no target asked
     assert np.array_equal(got, want)
 
 
@@ -176,9 +176,10 @@ def test_live_targets_are_one_list_until_a_window_opens_or_closes_or_the_targets
 
 @pytest.mark.parametrize("samples", [1, 8])
 def test_without_a_live_constraint_the_refiner_changes_nothing(take, samples):
-    """4-point input and no target: every output pose is bit for bit the unrefined pipeline's (the
-    guards never move the latent alone)."""
-    got = run_take(Pipeline(PipelineOptions(samples=samples, refine=True)), take, max_frames=240).pred
+    """4-point input, no target and no LegsApart: every output pose is bit for bit the unrefined
+    pipeline's (the guards never move the latent alone)."""
+    guards = {"terms": ("targets", "keep", "floor")}
+    got = run_take(Pipeline(PipelineOptions(samples=samples, refine=guards)), take, max_frames=240).pred
     want = run_take(Pipeline(PipelineOptions(samples=samples)), take, max_frames=240).pred
     assert np.array_equal(got, want)
 
@@ -230,7 +231,7 @@ def test_the_latent_lets_go_after_the_window_and_the_pose_returns(take):
     unrefined one to 3 mm on average and 2 cm at most."""
     frame = 100
     goal, _ = lifted_toe_target(take, frame)
-    pipe = Pipeline(PipelineOptions(samples=1, refine=True))
+    pipe = Pipeline(PipelineOptions(samples=1, refine={"terms": ["targets", "keep", "floor"]}))   # the target's alone
     pipe.refiner.add_target("l_toe", goal, first=frame - 20, last=frame)
     got = run_take(pipe, take, max_frames=frame + 150).pred
     want = run_take(Pipeline(PipelineOptions(samples=1)), take, max_frames=frame + 150).pred
@@ -241,9 +242,9 @@ def test_the_latent_lets_go_after_the_window_and_the_pose_returns(take):
 
 
 @pytest.mark.skipif(not __import__("edge.native").native.load(), reason="needs the compiled core")
-@pytest.mark.parametrize("imus", ["none", "all seven"])
-def test_the_compiled_step_is_the_numpy_step(take, imus):
-    """ep_refine_step (FK in float32 with the worn IMUs' segments, the targets, keep and floor
+@pytest.mark.parametrize("imus, legs", [("none", False), ("all seven", False), ("none", True)])
+def test_the_compiled_step_is_the_numpy_step(take, imus, legs):
+    """ep_refine_step (FK in float32 with the worn IMUs' segments, the targets, keep, floor and legs
     residuals, the Jacobian and the Cholesky solve in C) moves the latent where the numpy step does,
     from the same batch (to 1 % of the step)."""
     from dataclasses import replace
@@ -252,11 +253,18 @@ def test_the_compiled_step_is_the_numpy_step(take, imus):
     if imus != "none":
         take = replace(take, signals=wear(take.signals, mask(IMU_LOCATIONS), take.fps, np.random.default_rng(0),
                                           ImuNoise()))
-    pipe = Pipeline(PipelineOptions(samples=1, precision="fp32", refine={"steps": 1, "terms": ["targets", "keep", "floor"]}))
+    terms = ["targets", "keep", "floor"] + (["legs"] if legs else [])
+    pipe = Pipeline(PipelineOptions(samples=1, precision="fp32", refine={"steps": 1, "terms": terms}))
     goal, _ = lifted_toe_target(take, 60)
     pipe.refiner.add_target(L_TOE, goal, radius=0.02, first=40, last=60)
     run_to(pipe, take, 55)
     r = pipe.refiner
+    if legs:            # armed, at a clearance every frame's legs are inside (the hips are 18 cm apart)
+        lg = r.term("legs")
+        lg.armed, lg.clearance = True, 0.30
+        r._terms = r.live_terms(r.ctx)
+        r._c_on = r._prepare_compiled(r._terms)
+        assert lg in r._terms
     assert r._c_on, "this frame's terms are all the compiled step's"
     assert (pipe.buffer.seg_flag[pipe.buffer.slot(pipe.t)] > 0).any() == (imus != "none")   # segments set
     z0 = pipe.decoder.latent[0].astype(np.float64) + 0.1
@@ -285,3 +293,60 @@ def test_the_compiled_batch_fill_is_numpys_to_the_bit(take):
     r._fill_batch(r.z, r._steps)
     np.testing.assert_array_equal(compiled, r.batch.latent[:L + 1])
     assert np.abs(np.diag(compiled[1:] - compiled[0])).min() > 0      # each row steps along its axis
+
+
+def crossed_frames(pred):
+    from edge.physics import INTERSECT_M, leg_gap
+    return int((leg_gap(pred) < INTERSECT_M).sum())
+
+
+def test_legs_apart_keeps_crossing_legs_apart_and_costs_nothing_while_they_are(take):
+    """LegsApart: on the bundled walk, whose N=1 legs pass inside 10 cm of each other in 38 frames,
+    at a 20 cm clearance no frame's legs cross (at the shipped 14 cm, chosen on val for mpjpe, fewer
+    than without it); the refiner runs only on frames whose shown legs came close with a foot free
+    (armed), and until the first of them the output is the unrefined one to the bit."""
+    plain = run_take(Pipeline(PipelineOptions(samples=1)), take).pred
+    assert crossed_frames(plain) >= 10, "the take should have crossings for this test to mean anything"
+    shipped = run_take(Pipeline(PipelineOptions(samples=1, refine=True)), take).pred
+    assert crossed_frames(shipped) < crossed_frames(plain)
+    pipe = Pipeline(PipelineOptions(samples=1, refine=True))
+    pipe.refiner.term("legs").clearance = 0.20
+    got = run_take(pipe, take).pred
+    assert crossed_frames(got) == 0
+    assert 0 < pipe.refiner.applied < 0.25 * len(got)
+    first = int(np.argmax(np.abs(got - plain).max(axis=(1, 2)) > 0))
+    assert first > 10 and np.array_equal(got[:first], plain[:first])
+
+
+def test_legs_apart_is_not_armed_while_both_feet_are_planted():
+    """Two planted feet are where their locks hold them: the latent cannot move them apart, so the
+    term does not arm (and the refiner does not run) however close the legs are."""
+    from edge.refine import LegsApart
+    from edge.skeleton import NUM_JOINTS
+    lg = LegsApart()
+    pos = np.zeros((NUM_JOINTS, 3))         # every joint at one point: the legs on top of each other
+    lg.arm(pos, np.array([1.0, 1.0]))
+    assert not lg.armed
+    lg.arm(pos, np.array([1.0, 0.3]))
+    assert lg.armed
+
+
+@pytest.mark.skipif(not __import__("edge.native").native.load(), reason="needs the compiled core")
+def test_the_compiled_steps_keep_mask_follows_legs_apart_arming(take):
+    """While LegsApart moves the legs, KeepPose lets them go, in the compiled step's copy of the mask as
+    in the numpy one, frame by frame, as the term arms and disarms (at 20 cm it does often on the walk)
+    within a hand target's window (the live targets stay the same while the mask changes)."""
+    pipe = Pipeline(PipelineOptions(samples=1, refine=True))
+    r = pipe.refiner
+    r.term("legs").clearance = 0.20
+    pipe.reset()
+    wrist = take.signals.hand_pos[200, 0] + np.array([0.0, 0.3, 0.0])
+    assert r.add_target("l_wrist", wrist, radius=0.02, first=0, last=400) is not None
+    seen, applied = set(), 0
+    for t in range(400):
+        pipe.step(take.signals.slice(t, t + 1))
+        if r.applied > applied and r._c_on:         # the compiled step ran this frame
+            assert np.array_equal(r._c_buf["keep"].astype(bool), r.ctx.keep)
+            seen.add(bool(r._legs_kept))
+        applied = r.applied
+    assert seen == {False, True}, "LegsApart should arm and disarm during the window"

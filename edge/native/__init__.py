@@ -118,7 +118,8 @@ LimbGoals = _struct("LimbGoals", "postproc.c's limb_goals (NumpyFrame.post's arg
                      ("lift", _P)])
 FootLocks = _struct("FootLocks", "postproc.c's foot_locks: edge.ik.FootLock's settings and arrays.",
                     [("release_frames", _D), ("max_slip", _D)] + [(k, _P) for k in ("lock_pos", "since", "weight",
-                                                                                       "locked", "raw")])
+                                                                                       "locked", "raw")]
+                    + [("min_gap", _D)])
 PhysicalParams = _struct("PhysicalParams", "postproc.c's physical_params (edge.criteria.PhysicalPlausibility).",
                          [("segs", _P), ("feet", _P)] + [(k, _D) for k in ("gap", "float_m", "toe_h", "ankle_h",
                                                                            "w_floor", "w_legs", "w_support")])
@@ -127,7 +128,8 @@ RefineArgs = _struct("RefineArgs", "postproc.c's refine_args: what ep_refine_ste
                       ("g", _P), ("jt", _P), ("max_m", _I), ("n_targets", _I), ("target_joint", _P), ("target_pos", _P),
                       ("target_radius", _P), ("target_w", _P), ("keep_on", _I), ("keep", _P), ("keep_w", _D),
                       ("floor_on", _I), ("floor_w", _D), ("planted_w", _D), ("lock_row", _I),
-                      ("prior", _D), ("continuity", _D), ("damping", _D), ("max_step", _D)])
+                      ("prior", _D), ("continuity", _D), ("damping", _D), ("max_step", _D),
+                      ("legs_on", _I), ("legs_w", _D), ("legs_clear", _D), ("legs_segs", _P)])
 Selection = _struct("Selection", "postproc.c's selection: what ep_frame_costs reads besides the core context.",
                     [("ae_out", _P), ("ae_rot_dim", _I), ("leg_rows", _P), ("legs", _P), ("leg_err", _P),
                      ("physical", _P), ("physical_cost", _P), ("pos", _P), ("ring_cost", _P), ("cost_stride", _I)])

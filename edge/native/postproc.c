@@ -226,6 +226,7 @@ typedef struct {
     double release_frames, max_slip;
     double *lock_pos, *since, *weight;
     uint8_t *locked, *raw;
+    double min_gap;
 } foot_locks;
 
 /* edge.criteria.PhysicalPlausibility's settings: the legs' segments [2 sides][2 segments][2 ends] and
@@ -241,8 +242,9 @@ typedef struct {
  * scratch pos [R,J,3], r [R, max_m], A [L,L], g [L], jt [L, max_m] (the Jacobian); the live terms: n_targets targets (joint, point
  * [3], radius, sqrt weight incl. the window's pull), KeepPose (keep [J] 0/1 and its sqrt weight, when
  * keep_on), FloorContact (sqrt weights of the floor and the planted feet; the shown sample's locks
- * FootLock's lock_pos [2,3] and weight [2] of row lock_row, when floor_on); and the step's prior, continuity, damping and
- * largest step. */
+ * FootLock's lock_pos [2,3] and weight [2] of row lock_row, when floor_on); the step's prior, continuity, damping and
+ * largest step; and LegsApart (when legs_on: its sqrt weight, its clearance, and the legs' thigh and shin
+ * segments legs_segs [2 sides][2 segments][2 ends] joint indices). */
 typedef struct {
     const float *rot6d;
     int rot6d_stride, L;
@@ -258,6 +260,9 @@ typedef struct {
     double floor_w, planted_w;
     int lock_row;
     double prior, continuity, damping, max_step;
+    int legs_on;
+    double legs_w, legs_clear;
+    const int64_t *legs_segs;
 } refine_args;
 
 /* What SSI's default selection cost reads besides the core context (ep_frame_costs): the autoencoder's
@@ -591,8 +596,8 @@ static double lowest_point(double ankle_y, double toe_drop) {
 /* edge.ik.FootLock.update for foot i (state arrays FootLock's; locked and raw are numpy bools) at
  * this ankle position (toe_drop: its toe's height relative to it, for the floor snap; NULL: none), and the foot goal the pipeline hands the leg IK: the ankle drawn towards its
  * lock by the lock's weight (edge.pipeline.NumpyFrame.foot_goals). */
-static void foot_lock(int i, double p, const double *ankle, const double *toe_drop, const foot_locks *st,
-                      double *goal) {
+static int foot_lock(int i, double p, const double *ankle, const double *toe_drop, const foot_locks *st,
+                     double *goal) {
     const double release_frames = st->release_frames, max_slip = st->max_slip;
     double *since = st->since, *weight = st->weight;
     uint8_t *locked = st->locked, *raw = st->raw;
@@ -614,6 +619,23 @@ static void foot_lock(int i, double p, const double *ankle, const double *toe_dr
     double x = clamp(since[i] / release_frames, 0.0, 1.0);
     weight[i] = locked[i] ? 1.0 : 1.0 - x * x * (3 - 2 * x);
     for (int k = 0; k < 3; k++) goal[(int64_t)i * 3 + k] = (lock[k] - ankle[k]) * weight[i] + ankle[k];
+    return start;
+}
+
+/* edge.ik.FootLock.separate for one row (feet i0 = 2 r, i0 + 1): two locked feet whose locks are closer
+ * across the floor than st->min_gap, one of them locked this frame (started[f]), are moved apart to it
+ * along the line between them, the new lock or both halfway; a moved foot's goal is its lock (weight 1). */
+static void separate_locks(int64_t i0, const int *started, const foot_locks *st, double *goal) {
+    if (!(started[0] || started[1]) || !st->locked[i0] || !st->locked[i0 + 1]) return;
+    double *a = st->lock_pos + i0 * 3, *b = a + 3;
+    double dx = b[0] - a[0], dz = b[2] - a[2], d = sqrt(dx * dx + dz * dz);
+    if (d >= st->min_gap) return;
+    double push = st->min_gap - d, ux = 1.0, uz = 0.0;      /* on top of each other: apart along x */
+    if (d > 1e-9) { ux = dx / d; uz = dz / d; }
+    double wa = started[0] ? (started[1] ? 0.5 : 1.0) : 0.0, wb = 1.0 - wa;
+    a[0] -= wa * push * ux; a[2] -= wa * push * uz;
+    b[0] += wb * push * ux; b[2] += wb * push * uz;
+    for (int k = 0; k < 3; k++) { goal[i0 * 3 + k] = a[k]; goal[(i0 + 1) * 3 + k] = b[k]; }
 }
 
 /* edge.ik.FootLock.update for B samples' two feet from the decoder's contacts [B,2] float and the FK
@@ -621,10 +643,13 @@ static void foot_lock(int i, double p, const double *ankle, const double *toe_dr
  * the foot goals [B,2,3] as NumpyFrame.foot_goals draws them. */
 void ep_foot_locks(const skeleton *sk, int B, const float *contacts, const double *pos, const double *toe_drop,
                    const foot_locks *st, double *goal) {
-    for (int r = 0; r < B; r++)
+    for (int r = 0; r < B; r++) {
+        int started[2];
         for (int f = 0; f < 2; f++)
-            foot_lock(r * 2 + f, contacts[r * 2 + f], pos + ((int64_t)r * sk->J + sk->ankles[f]) * 3,
-                      toe_drop ? toe_drop + r * 2 + f : 0, st, goal);
+            started[f] = foot_lock(r * 2 + f, contacts[r * 2 + f], pos + ((int64_t)r * sk->J + sk->ankles[f]) * 3,
+                                   toe_drop ? toe_drop + r * 2 + f : 0, st, goal);
+        separate_locks((int64_t)r * 2, started, st, goal);
+    }
 }
 
 /* ------------------------------------------------------------------ the live frame in one call */
@@ -766,15 +791,20 @@ int ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n, 
         int nl = R - r0 < LANES ? R - r0 : LANES;
         block_forward(&k, r0, nl, sk, &fin);
         if (x->foot_ik) {
-            for (int l = 0; l < nl && r0 + l < N; l++)
+            for (int l = 0; l < nl && r0 + l < N; l++) {
+                int started[2];
                 for (int f = 0; f < 2; f++) {
                     int i = (r0 + l) * 2 + f;
                     int a = (int)sk->ankles[f], toe = toe_of(sk, f);
                     const double *o = sk->offsets + toe * 3;
                     double ankle[3] = {k.P[a][0][l], k.P[a][1][l], k.P[a][2][l]};
                     double drop = k.W[a][3][l] * o[0] + k.W[a][4][l] * o[1] + k.W[a][5][l] * o[2];
-                    foot_lock(i, x->contacts[i], ankle, &drop, &x->locks, x->goals);
+                    started[f] = foot_lock(i, x->contacts[i], ankle, &drop, &x->locks, x->goals);
                     x->weights[i] = 1.0;
+                }
+                separate_locks((int64_t)(r0 + l) * 2, started, &x->locks, x->goals);
+                for (int f = 0; f < 2; f++) {
+                    int i = (r0 + l) * 2 + f, a = (int)sk->ankles[f];
                     double tw = r0 + l == x->target_row ? x->target_weight[f] : 0.0;
                     if (tw > 0.0) {             /* NumpyFrame.foot_goals: the target's pull on the leg goal */
                         int tj = (int)x->target_joint[f];
@@ -784,6 +814,7 @@ int ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n, 
                         }
                     }
                 }
+            }
             if (R > N && r0 + nl > N)
                 for (int f = 0; f < 2; f++) {
                     for (int i = 0; i < 3; i++)
@@ -1185,8 +1216,8 @@ static void block_positions_f32(int r0, int nl, const skeleton *sk, const forwar
                 pos[((int64_t)(r0 + l) * J + j) * 3 + i] = in->anchor[i] + (double)(P[j][i][l] - P[head][i][l]);
 }
 
-/* One row's residuals of the live terms (edge.refine's TargetReach, KeepPose, FloorContact, in that
- * order) from its positions P [J,3] and the reference row's ref [J,3], into r; returns how many. */
+/* One row's residuals of the live terms (edge.refine's TargetReach, KeepPose, FloorContact, LegsApart,
+ * in that order) from its positions P [J,3] and the reference row's ref [J,3], into r; returns how many. */
 static int refine_residuals(const core_context *x, const refine_args *a, const double *P, const double *ref, double *r) {
     const skeleton *sk = &x->sk;
     int m = 0;
@@ -1215,6 +1246,13 @@ static int refine_residuals(const core_context *x, const refine_args *a, const d
                 r[m++] = (P[j * 3 + c] - lock_pos[f * 3 + c]) * (a->planted_w * lock_weight[f]);
         }
     }
+    if (a->legs_on)                             /* each left segment against each right one */
+        for (int i = 0; i < 2; i++)
+            for (int k = 0; k < 2; k++) {
+                const int64_t *Ls = a->legs_segs + i * 2, *Rs = a->legs_segs + 4 + k * 2;
+                double inside = a->legs_clear - segment_distance(P + Ls[0] * 3, P + Ls[1] * 3, P + Rs[0] * 3, P + Rs[1] * 3);
+                r[m++] = a->legs_w * (inside > 0.0 ? inside : 0.0);
+            }
     return m;
 }
 
@@ -1242,7 +1280,7 @@ double ep_refine_step(const core_context *x, const refine_args *a, int slot, dou
                       const double *zp) {
     const skeleton *sk = &x->sk;
     const int J = sk->J, L = a->L, R = L + 2;
-    int m = a->n_targets * 3 + (a->floor_on ? 10 : 0);
+    int m = a->n_targets * 3 + (a->floor_on ? 10 : 0) + (a->legs_on ? 4 : 0);
     if (a->keep_on)
         for (int j = 0; j < J; j++) m += a->keep[j] ? 3 : 0;
     if (((m + 7) & ~7) > a->max_m || L > 64)
