@@ -157,6 +157,8 @@ class Pipeline:
             self.refiner = Refiner(dec_session, m, self._forward_rows, o.refine, fps, compiled=compiled,
                                    jacobian_session=open_jacobian(models, threads, self.precision))
         self._legs = self.refiner.term("legs") if self.refiner is not None else None     # LegsApart, armed each frame
+        if self._legs is not None:
+            self._legs.watch(self.bufs.pos)
 
     def default_criteria(self, selection, use_native=True):
         """SSI's default selection cost: the autoencoder's plausibility score, plus the physical one
@@ -255,7 +257,7 @@ class Pipeline:
             b.override[s] = True
             b.trans_row[s] = N
         if self._legs is not None:      # the legs' clearance for the next frame, from the pose shown now
-            self._legs.arm(self.bufs.pos[N if live else sw.current], self.feet.weight[sw.current])
+            self._legs.arm(N if live else sw.current, self.feet.weight[sw.current])
         if self.heading is not None:    # each IMU against its reference (edge.heading), at the observer's rate
             self.heading.observe_frame(self.t, self.bufs.inputs, s, sw.current)
         if timing:

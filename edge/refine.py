@@ -211,6 +211,13 @@ class LegsApart:
         self.armed = False
         self.segs = np.ascontiguousarray(LEG_SEGMENTS.reshape(-1), np.int64)    # the compiled step's copy
         self._lib = None
+        self._pos = None
+
+    def watch(self, pos):
+        """The rows arm() reads the shown pose from: the pipeline's FrameBuffers.pos [R,J,3] (float64,
+        C-contiguous; their addresses are taken once)."""
+        self._pos = pos
+        self._pos_addr, self._row_bytes = native.addr(pos), pos.strides[0]
 
     def bind(self, lib):
         """Use the compiled core's ep_physical_cost (legs only, at clearance + hysteresis) for arm()."""
@@ -223,16 +230,17 @@ class LegsApart:
                                              self.clearance + self.hysteresis, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0)
         self._addrs = tuple(native.addr(v) for v in (self._contacts, self._zero, self._cost))
 
-    def arm(self, positions, lock_weight):
-        """Arm the term for the next frame from this frame's shown pose (positions [J,3], float64,
-        C-contiguous) and its foot locks' weights [2]."""
+    def arm(self, row, lock_weight):
+        """Arm the term for the next frame from this frame's shown pose (row `row` of the watched
+        positions) and its foot locks' weights [2]."""
         if lock_weight[0] >= 0.99 and lock_weight[1] >= 0.99:
             self.armed = False
         elif self._lib is None:
-            self.armed = bool(leg_gap(positions) < self.clearance + self.hysteresis)
+            self.armed = bool(leg_gap(self._pos[row]) < self.clearance + self.hysteresis)
         else:
             contacts, lift, cost = self._addrs
-            self._lib.ep_physical_cost(1, NUM_JOINTS, positions.ctypes.data, contacts, lift, self._params, cost)
+            self._lib.ep_physical_cost(1, NUM_JOINTS, self._pos_addr + row * self._row_bytes, contacts, lift,
+                                       self._params, cost)
             self.armed = self._cost[0] > 0.0
 
     def size(self, ctx):

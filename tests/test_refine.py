@@ -324,10 +324,10 @@ def test_legs_apart_is_not_armed_while_both_feet_are_planted():
     from edge.refine import LegsApart
     from edge.skeleton import NUM_JOINTS
     lg = LegsApart()
-    pos = np.zeros((NUM_JOINTS, 3))         # every joint at one point: the legs on top of each other
-    lg.arm(pos, np.array([1.0, 1.0]))
+    lg.watch(np.zeros((1, NUM_JOINTS, 3)))      # every joint at one point: the legs on top of each other
+    lg.arm(0, np.array([1.0, 1.0]))
     assert not lg.armed
-    lg.arm(pos, np.array([1.0, 0.3]))
+    lg.arm(0, np.array([1.0, 0.3]))
     assert lg.armed
 
 
