@@ -109,7 +109,7 @@ class CompiledFrame(FramePath):
 
     def inputs(self, sig, s, N, blend):
         """ep_frame_inputs: NumpyFrame.inputs on the frame's signals already in FrameBuffers.frame_in."""
-        state = self._hidden_addr[self.p.decoder._cur]
+        state = self._hidden_addr[self.p.decoder.current]
         if blend is None:
             ok = self.lib.ep_frame_inputs(self.core, s, self.first, N, -1, -1, 0.0, state)
         else:
@@ -124,8 +124,8 @@ class CompiledFrame(FramePath):
         dec = self.p.decoder
         c, n, a = blend if blend is not None else (0, 0, 0.0)
         return self.lib.ep_frame_poses(self.core, s, rows, N, c, n, a, self.addr["world"] if keep_world else None,
-                                       self.addr["pos"], self._hidden_addr[1 - dec._cur],
-                                       self._hidden_addr[dec._cur], dec.rows) == 1
+                                       self.addr["pos"], self._hidden_addr[dec.last_read],
+                                       self._hidden_addr[dec.current], dec.rows) == 1
 
     def set_target_row(self, row):
         self.core.contents.target_row = row

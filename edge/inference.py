@@ -76,6 +76,11 @@ class Decoder:
         return self.hidden[self._cur]
 
     @property
+    def current(self):
+        """Which of `hidden` the next step reads (after a recurrent step: the one it wrote)."""
+        return self._cur
+
+    @property
     def last_read(self):
         """Which of `hidden` the last recurrent step read (its input; the step wrote the other)."""
         return 1 - self._cur
