@@ -186,8 +186,11 @@ def test_a_frame_makes_no_arrays_at_any_n_and_a_switch_none_either(take):
     (which re-runs the look-ahead) adds no more than another call's worth."""
     frames = [take.signals.slice(t, t + 1) for t in range(take.frames)]
     runs = {}
+    # The physical criterion at 6 (the shipped 1 switches once here): the test needs a few switches.
+    selection = Pipeline(PipelineOptions()).manifest["selection"]
+    selection = {**selection, "physical": {**selection["physical"], "weight": 6.0}}
     for n in (2, 128):
-        pipe = Pipeline(PipelineOptions(samples=n))
+        pipe = Pipeline(PipelineOptions(samples=n, selection=selection))
         for t in range(200):
             pipe.step(frames[t % len(frames)])
         tracemalloc.start()
