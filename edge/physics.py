@@ -43,11 +43,17 @@ def segment_distance(p0, p1, q0, q1):
     return np.linalg.norm(p0 + d1 * s[..., None] - (q0 + d2 * t[..., None]), axis=-1)
 
 
-def leg_gap(pos):
-    """The smallest distance between a left-leg and a right-leg segment (thighs and shins) [...] (m)."""
+def leg_pair_distances(pos):
+    """The distance between each left-leg and each right-leg segment [...,4] (m): left thigh to right
+    thigh, left thigh to right shin, left shin to right thigh, left shin to right shin."""
     L, R = pos[..., LEG_SEGMENTS[0], :], pos[..., LEG_SEGMENTS[1], :]      # [...,2,2,3]
     d = segment_distance(L[..., :, None, 0, :], L[..., :, None, 1, :], R[..., None, :, 0, :], R[..., None, :, 1, :])
-    return d.reshape(d.shape[:-2] + (4,)).min(-1)
+    return d.reshape(d.shape[:-2] + (4,))
+
+
+def leg_gap(pos):
+    """The smallest distance between a left-leg and a right-leg segment (thighs and shins) [...] (m)."""
+    return leg_pair_distances(pos).min(-1)
 
 
 def foot_height(pos):

@@ -35,7 +35,7 @@ from edge import native
 from edge.settings import settings_from
 from edge.imus import IMU_JOINTS
 from edge.physics import FLOOR_ANKLE, FLOOR_TOE     # the lowest a toe and an ankle joint may go (as the IK's floor)
-from edge.physics import LEG_SEGMENTS, leg_gap, segment_distance
+from edge.physics import LEG_SEGMENTS, leg_gap, leg_pair_distances
 from edge.skeleton import ANKLES, JOINT, NUM_JOINTS, TOES
 
 # On by default: targets and the legs' clearance, guarded by KeepPose and FloorContact (guards join when
@@ -90,6 +90,7 @@ class ImuOrientation:
     name = "imus"
     needs_raw_world = True
     guard = False
+    armed = True                # it reads the sensors every frame
 
     def __init__(self, weight=1.0, tilt_only=False):
         self.weight, self.tilt_only = weight, tilt_only
@@ -200,7 +201,7 @@ class LegsApart:
     shown pose's legs came within clearance + hysteresis of each other with a foot free to move (two
     planted feet are where their locks hold them, and the latent cannot move them apart). So a frame
     whose legs are apart pays nothing, and the refiner runs on the frames that need it (on val, at the
-    shipped settings, about 5 % of them; models/MODEL_CARD.md, "Present-frame output")."""
+    shipped settings, about 4 % of them; models/MODEL_CARD.md, "Present-frame output")."""
     name = "legs"
     needs_raw_world = False
     guard = False
@@ -210,6 +211,7 @@ class LegsApart:
         self.weight, self.clearance, self.hysteresis = weight, clearance, hysteresis
         self.armed = False
         self.segs = np.ascontiguousarray(LEG_SEGMENTS.reshape(-1), np.int64)    # the compiled step's copy
+        self.segs_addr = native.addr(self.segs)
         self._lib = None
         self._pos = None
 
@@ -226,7 +228,7 @@ class LegsApart:
         self._contacts = np.zeros(2, np.float32)
         self._feet = np.zeros(4, np.int64)
         self._cost = np.zeros(1)
-        self._params = native.PhysicalParams(native.addr(self.segs), native.addr(self._feet),
+        self._params = native.PhysicalParams(self.segs_addr, native.addr(self._feet),
                                              self.clearance + self.hysteresis, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0)
         self._addrs = tuple(native.addr(v) for v in (self._contacts, self._zero, self._cost))
 
@@ -247,10 +249,7 @@ class LegsApart:
         return 4 if self.armed else 0
 
     def residuals(self, ctx):
-        P = ctx.positions
-        L, R = P[:, LEG_SEGMENTS[0]], P[:, LEG_SEGMENTS[1]]                 # [B,2,2,3]
-        d = segment_distance(L[:, :, None, 0], L[:, :, None, 1], R[:, None, :, 0], R[:, None, :, 1])   # [B,2,2]
-        return np.sqrt(self.weight) * np.maximum(self.clearance - d.reshape(len(P), 4), 0.0)
+        return np.sqrt(self.weight) * np.maximum(self.clearance - leg_pair_distances(ctx.positions), 0.0)
 
 
 FOOT_OF = {int(a): f for f, a in enumerate(ANKLES)} | {int(t): f for f, t in enumerate(TOES)}
@@ -362,7 +361,7 @@ class Refiner:
         (and pays nothing)."""
         reach = self._reach
         return bool(reach is not None and reach.targets) or self._displaced or any(
-            not t.guard and t.name != "targets" and t.weight > 0 and getattr(t, "armed", True) for t in self.terms)
+            not t.guard and t.name != "targets" and t.weight > 0 and t.armed for t in self.terms)
 
     def holds(self, frame):
         """Whether the refined sample should stay shown: a target is live, or the latent is still being
@@ -528,7 +527,7 @@ class Refiner:
                 a.floor_on, a.floor_w, a.planted_w = 1, math.sqrt(t.weight), math.sqrt(t.planted)
                 a.lock_row = self._row          # the C step reads the row's locks from the core's FootLock state
             elif t.name == "legs":
-                a.legs_on, a.legs_w, a.legs_clear, a.legs_segs = 1, math.sqrt(t.weight), t.clearance, t.segs.ctypes.data
+                a.legs_on, a.legs_w, a.legs_clear, a.legs_segs = 1, math.sqrt(t.weight), t.clearance, t.segs_addr
         return True
 
     def step(self, z=None, z_prev=None, zp=None):
