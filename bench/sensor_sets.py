@@ -12,6 +12,7 @@ IMUs' heading observer (edge.heading) runs, as it does by default; --no-heading 
 observer could give).
 """
 import argparse
+from dataclasses import replace
 import json
 import sys
 from concurrent.futures import ProcessPoolExecutor
@@ -33,7 +34,6 @@ def _run(job):
     if Path(path).exists():
         return name, json.loads(Path(path).read_text())
     r = evaluate([kwargs.pop("data")], kwargs.pop("options"), split="val", log=lambda *a: None, **kwargs)
-    r.pop("per_clip", None)
     Path(path).write_text(json.dumps(r, indent=2) + "\n")
     return name, r
 
@@ -56,12 +56,16 @@ def main():
                     help="IMU noise without its heading offset and drift (what a perfect heading observer would leave)")
     ap.add_argument("--max-clips", type=int, default=None, help="an even spread of this many val clips (a quick look)")
     ap.add_argument("--no-disconnect", action="store_true", help="skip the faulty-sensor runs")
+    ap.add_argument("--leg-guard", type=float, default=None,
+                    help="the foot IK's leg clearance in m (edge.ik.guard_legs; 0: off; default the runtime's)")
     a = ap.parse_args()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     refine = {"steps": a.refine_steps, **({"terms": a.refine_terms.split(",")} if a.refine_terms else {})} if a.refine else None
     heading = False if a.no_heading else (json.loads(a.heading_settings) if a.heading_settings else True)
     options = PipelineOptions(samples=a.samples, precision=a.precision, refine=refine, heading=heading)
+    if a.leg_guard is not None:
+        options = replace(options, leg_guard=a.leg_guard)
     common = {"data": a.data, "options": options, "max_clips": a.max_clips}
     if a.perfect_heading:
         common["imu_noise"] = ImuNoise(yaw_offset_std_deg=0.0, yaw_drift_deg_s=0.0)

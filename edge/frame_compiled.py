@@ -8,6 +8,7 @@ from edge import native
 from edge.criteria import PhysicalPlausibility, Plausibility
 from edge.frame import LIMB_CHAINS, LIMB_POLES, NECK, POSITION_LIMIT_M, FramePath
 from edge.imus import IMU_JOINTS
+from edge.physics import LEG_GUARD_MAX_PUSH_M, LEG_SEGMENTS
 from edge.signals import EYE_OFFSET, GRIP_OFFSET
 from edge.skeleton import ANKLES, HEAD, NUM_JOINTS, OFFSETS, PARENTS, PELVIS_TO_HEAD
 
@@ -24,7 +25,8 @@ class CompiledFrame(FramePath):
         # Arrays the C calls read by address; held here so they live as long as the pipeline.
         self._c = {"parents": np.ascontiguousarray(PARENTS, np.int64), "offsets": OFFSETS,
                    "chains": np.ascontiguousarray(LIMB_CHAINS, np.int64), "poles": LIMB_POLES,
-                   "ankles": np.ascontiguousarray(ANKLES, np.int64), "imu_joints": np.ascontiguousarray(IMU_JOINTS, np.int64)}
+                   "ankles": np.ascontiguousarray(ANKLES, np.int64), "imu_joints": np.ascontiguousarray(IMU_JOINTS, np.int64),
+                   "leg_segs": np.ascontiguousarray(LEG_SEGMENTS.reshape(-1), np.int64)}
         # Every array the core reads or writes is checked once here (dtype, layout, shape); the hot
         # path then passes addresses only.
         J, R = NUM_JOINTS, len(self.bufs.local)
@@ -73,7 +75,8 @@ class CompiledFrame(FramePath):
                              ankles=a["ankles"], offsets=a["offsets"], poles=a["poles"])
         locks = native.FootLocks(release_frames=f.release_frames, max_slip=f.max_slip, lock_pos=a["lock_pos"],
                                  since=a["since_release"], weight=a["weight"], locked=a["locked"], raw=a["raw"],
-                                 min_gap=f.min_gap)
+                                 min_gap=f.min_gap, leg_guard=f.leg_guard, leg_guard_max=LEG_GUARD_MAX_PUSH_M,
+                                 leg_segs=a["leg_segs"])
         ctx = native.CoreContext(
             sk=sk, locks=locks, foot_ik=int(p.foot_ik), arm_ik=int(p.arm_ik), goals=a["targets"], weights=a["weights"],
             ring_rows=N + 1, hidden=b.hidden_in.shape[2], **ring,

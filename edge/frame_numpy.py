@@ -7,7 +7,7 @@ from edge import quat
 from edge.features import body_points, features, heading, imu_features
 from edge.frame import (LIMB_CHAINS, LIMB_POLES, NECK, POSITION_LIMIT_M, FramePath, fk_with_segments,
                         supported_contacts, torso_segments)
-from edge.ik import apply_limb_ik
+from edge.ik import apply_limb_ik, guard_legs
 from edge.imus import IMU_JOINTS
 from edge.physics import floor_lift
 from edge.skeleton import ANKLES, HEAD, NUM_PREDICTED, OFFSETS, PARENTS, TOES, fk
@@ -144,6 +144,8 @@ class NumpyFrame(FramePath):
         goal *= w[..., None]
         goal += ankle
         self.bufs.weights[:N] = 1.0
+        if p.feet.leg_guard > 0:
+            guard_legs(pos, goal, w, p.feet.leg_guard)
         r = self.bufs.target_row[0]
         if 0 <= r < N:              # a live target on a foot of the refined row pulls its leg goal (edge.refine)
             tw = self.bufs.target_weight

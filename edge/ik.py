@@ -2,11 +2,14 @@
 
 SSI 3.1: when a foot is in contact, lock it and solve the thigh/shin analytically; LoBSTR 3.4.1: on
 release, ease from the locked position back to the network's foot over 10 frames (slow-in/slow-out).
-The arm pass puts the wrists on the controllers (the SSI paper's section 6 limitation).
+The arm pass puts the wrists on the controllers (the SSI paper's section 6 limitation). guard_legs
+moves free feet's goals so the leg IK swings a leg around the other instead of through it.
 """
 import numpy as np
 
-from edge.physics import LOCK_GAP_M, LOCK_SNAP_M, lowest_point, support
+from edge.physics import (LEG_GUARD_M, LEG_GUARD_MAX_PUSH_M, LEG_SEGMENTS, LOCK_GAP_M, LOCK_SNAP_M, lowest_point,
+                          segment_closest, support)
+from edge.skeleton import JOINT
 
 from edge.quat import cross
 
@@ -99,6 +102,44 @@ def smoothstep(x):
     return x * x * (3 - 2 * x)
 
 
+def guard_legs(pos, goal, lock_weight, clearance=LEG_GUARD_M, max_push=LEG_GUARD_MAX_PUSH_M):
+    """The legs kept apart by the foot IK (SSI 5.3's collision avoidance, done geometrically).
+
+    Where a row's left and right thigh or shin segments come closer than `clearance`, the goals of
+    the feet free to move are moved apart across the floor, the shortfall shared by how free each is
+    (1 - its lock weight): the leg IK then swings the free leg around the other instead of through it.
+    Moving an ankle moves a leg's closest point only part of the way (none at the hip, half at the
+    knee), so the push is the shortfall over that part (at least 0.3), and at most `max_push`. A row
+    with both feet planted is left to FootLock.separate. pos [N,J,3] the rows' poses before the IK;
+    goal [N,2,3] their foot goals, moved in place; lock_weight [N,2]."""
+    N = len(goal)
+    L, R = pos[:N, LEG_SEGMENTS[0]], pos[:N, LEG_SEGMENTS[1]]          # [N, thigh/shin, end, 3]
+    on_l, on_r, s, t = segment_closest(L[:, :, None, 0], L[:, :, None, 1], R[:, None, :, 0], R[:, None, :, 1])
+    on_l, on_r, s, t = on_l.reshape(N, 4, 3), on_r.reshape(N, 4, 3), s.reshape(N, 4), t.reshape(N, 4)
+    gap = np.linalg.norm(on_l - on_r, axis=-1)
+    pair = gap.argmin(1)                        # left thigh/shin x right thigh/shin: pair // 2, pair % 2
+    rows = np.arange(N)
+    short = np.maximum(clearance - gap[rows, pair], 0.0)
+    free = 1.0 - lock_weight[:N]
+    total = free.sum(1)
+    short[total < 1e-3] = 0.0
+    if not short.any():
+        return
+    apart = on_l[rows, pair] - on_r[rows, pair]
+    apart[:, 1] = 0.0
+    hips = pos[:N, JOINT["l_hip"]] - pos[:N, JOINT["r_hip"]]      # left of the body, for legs on top of each other
+    hips[:, 1] = 0.0
+    apart = np.where(np.hypot(apart[:, 0], apart[:, 2])[:, None] > 0.01, apart, hips)
+    apart /= np.maximum(np.linalg.norm(apart, axis=-1, keepdims=True), 1e-9)
+    share = free / np.maximum(total, 1e-3)[:, None]
+    along = np.stack([s[rows, pair], t[rows, pair]], 1)                     # [N, side]
+    on_shin = np.stack([pair // 2, pair % 2], 1) == 1
+    reach = np.maximum(np.where(on_shin, 0.5 + 0.5 * along, 0.5 * along), 0.3)
+    push = np.minimum(short[:, None] * share / reach, max_push)             # [N, side]
+    goal[:N, 0] += apart * push[:, :1]
+    goal[:N, 1] -= apart * push[:, 1:]
+
+
 class FootLock:
     """Per-sample, per-foot contact locks with a smooth release (LoBSTR 3.4.1).
 
@@ -109,11 +150,13 @@ class FootLock:
     network's own ankle has moved more than `max_slip` metres from it across the floor: the contact
     was wrong, and holding on would drag the leg. Two planted feet stand at least `min_gap` apart across
     the floor (LOCK_GAP_M: legs closer than edge.physics.INTERSECT_M pass through each other): a lock
-    taken closer to the other foot's is moved away from it (separate).
+    taken closer to the other foot's is moved away from it (separate). `leg_guard`: the clearance
+    guard_legs keeps between the legs while a foot is free (0: off).
     """
 
-    def __init__(self, samples, feet=2, release_frames=10, max_slip=0.08, min_gap=LOCK_GAP_M):
+    def __init__(self, samples, feet=2, release_frames=10, max_slip=0.08, min_gap=LOCK_GAP_M, leg_guard=LEG_GUARD_M):
         self.release_frames, self.max_slip, self.min_gap = release_frames, max_slip, min_gap
+        self.leg_guard = leg_guard
         self.lock_pos = np.zeros((samples, feet, 3))
         self.locked = np.zeros((samples, feet), bool)
         self.raw = np.zeros((samples, feet), bool)

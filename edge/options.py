@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 from edge.heading import HeadingSettings
 from edge.inference import DEFAULT_PRECISION
+from edge.physics import LEG_GUARD_M
 from edge.refine import RefineSettings
 
 MAX_SAMPLES = 128
@@ -26,6 +27,7 @@ class PipelineOptions:
     transition: int = 10                # frames a move between samples is eased over
     ssi: bool = True                    # switch samples (N > 1); False keeps sample 0
     foot_ik: bool = True                # foot-contact locks and leg IK
+    leg_guard: float = LEG_GUARD_M      # the foot IK keeps a free leg this far from the other (m; 0: off)
     arm_ik: bool = True                 # arm IK to the controllers
     use_native: bool = True             # the compiled core when a C compiler is there
     segments: bool = True               # a worn IMU sets its segment's world rotation

@@ -24,14 +24,21 @@ LOCK_SNAP_M = 0.12
 # Two planted feet's locks stand at least this far apart across the floor (edge.ik.FootLock.separate):
 # closer, the shins would be inside INTERSECT_M of each other.
 LOCK_GAP_M = INTERSECT_M + 0.005
+# The foot IK keeps a free leg this far from the other (edge.ik.guard_legs). Wider than INTERSECT_M because
+# moving the ankle moves the closest point of a shin or thigh only part of the way (the hip stays put);
+# chosen on val (model card, "Legs kept apart by the foot IK").
+LEG_GUARD_M = 0.16
+# The most the guard moves a foot goal in one frame (m).
+LEG_GUARD_MAX_PUSH_M = 0.08
 # Thigh (hip -> knee) and shin (knee -> ankle) of each leg: [side, segment, end].
 LEG_SEGMENTS = np.array([[[JOINT[f"{s}_hip"], JOINT[f"{s}_knee"]], [JOINT[f"{s}_knee"], JOINT[f"{s}_ankle"]]]
                          for s in "lr"])
 
 
-def segment_distance(p0, p1, q0, q1):
-    """Closest distance between segments p0-p1 and q0-q1 [...,3] -> [...] (Ericson, Real-Time Collision
-    Detection 5.1.9, with the parallel case handled)."""
+def segment_closest(p0, p1, q0, q1):
+    """The closest points of segments p0-p1 and q0-q1 [...,3] and where they lie on them: (point on p,
+    point on q, s, t), the points p0 + s (p1 - p0) and q0 + t (q1 - q0), s and t in [0, 1] (Ericson,
+    Real-Time Collision Detection 5.1.9, with the parallel case handled)."""
     d1, d2, r = p1 - p0, q1 - q0, p0 - q0
     a, e, f = (d1 * d1).sum(-1), (d2 * d2).sum(-1), (d2 * r).sum(-1)
     c, b = (d1 * r).sum(-1), (d1 * d2).sum(-1)
@@ -40,7 +47,13 @@ def segment_distance(p0, p1, q0, q1):
     t = (b * s + f) / np.maximum(e, 1e-12)
     s = np.where(t < 0, np.clip(-c / np.maximum(a, 1e-12), 0, 1), np.where(t > 1, np.clip((b - c) / np.maximum(a, 1e-12), 0, 1), s))
     t = np.clip(t, 0, 1)
-    return np.linalg.norm(p0 + d1 * s[..., None] - (q0 + d2 * t[..., None]), axis=-1)
+    return p0 + d1 * s[..., None], q0 + d2 * t[..., None], s, t
+
+
+def segment_distance(p0, p1, q0, q1):
+    """Closest distance between segments p0-p1 and q0-q1 [...,3] -> [...]."""
+    a, b, _, _ = segment_closest(p0, p1, q0, q1)
+    return np.linalg.norm(a - b, axis=-1)
 
 
 def leg_pair_distances(pos):

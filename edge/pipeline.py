@@ -135,7 +135,7 @@ class Pipeline:
                                 "hidden": np.zeros((2, K, H)), "goal_in": np.zeros((2, K, 2, 3)),
                                 "goal": np.zeros((2, K, 2, 3)), "w_latent": np.repeat(w[..., None], L, 2),
                                 "w_hidden": np.repeat(w[..., None], H, 2), "w_goal": np.tile(w[..., None, None], (1, 1, 2, 3))}
-        self.feet = FootLock(N)
+        self.feet = FootLock(N, leg_guard=self.options.leg_guard)
 
     def _choose_paths(self, dec_session, models, use_native, threads):
         """The compiled core or the numpy reference, and the heading observer and refiner if asked."""

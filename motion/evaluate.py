@@ -162,13 +162,15 @@ class Tally:
             self.peaks[key + "quiet"] += quiet
         m = metrics.clip_metrics(pred[w:], gt[w:], take.fps, head[w:], wrists[w:], bad)
         self.parts.append(m)
-        self.phys.append(metrics.physical_metrics(pred[w:], run.contacts[w:]))
+        phys = metrics.physical_metrics(pred[w:], run.contacts[w:])
+        self.phys.append(phys)
         self.phys_gt.append(metrics.physical_metrics(gt[w:], contact_labels(gt[:, FEET], take.fps)[w:]))
         if run.samples is not None:
             self.div.append(metrics.diversity_metrics(run.samples[w:], gt[w:]))
         s = metrics.summarize([m])
         self.per_clip.append({"clip": str(f), "frames": s["frames"], "mpjpe_cm": round(s["mpjpe_cm"], 3),
-                              "implausible_rate": round(s["implausible_rate"], 4)})
+                              "implausible_rate": round(s["implausible_rate"], 4),
+                              "leg_intersect_frames": phys["intersect_n"], "float_frames": phys["float_n"]})
         if dump:
             np.savez_compressed(Path(dump) / (Path(f).stem + ".npz"), joint_names=np.array(JOINT_NAMES),
                                 parents=PARENTS, fps=take.fps, gt_pos=gt.astype(np.float32),

@@ -109,3 +109,64 @@ def test_the_output_never_says_contact_for_a_foot_in_the_air(native):
         lifted += int((bearable < 1).sum())
         assert np.all(pose.contacts <= bearable + 1e-12)
     assert lifted > 50                      # a walk lifts its feet: the check saw some
+
+
+def crossing_pose(inward):
+    """STANDING with the right leg swung `inward` (rad) across the body about the forward axis, and
+    5 cm forward, as a swing foot passes the planted one."""
+    from edge.quat import from_axis_angle, rotate
+    pose = STANDING.copy()
+    hip = pose[JOINT["r_hip"]]
+    q = from_axis_angle(np.array([0.0, 0.0, 1.0]), np.array(inward))
+    for j in ("r_knee", "r_ankle", "r_toe"):
+        pose[JOINT[j]] = hip + rotate(q, pose[JOINT[j]] - hip) + [0.0, 0.0, 0.05]
+    return pose
+
+
+def test_the_leg_guard_moves_a_free_foot_away_from_the_planted_leg_and_leaves_planted_feet():
+    """guard_legs: the right (free) foot's goal moves away from the left (planted) leg across the floor
+    by the shortfall over how much of an ankle's move reaches the closest point; the planted foot's goal
+    stays; two planted feet, legs far enough apart, or the guard at 0 move nothing."""
+    from edge.ik import guard_legs
+    from edge.physics import LEG_GUARD_M, LEG_GUARD_MAX_PUSH_M, leg_pair_distances
+    pose = crossing_pose(0.12)[None]
+    gap = leg_gap(pose)[0]
+    assert gap < LEG_GUARD_M - 0.03
+    goal = pose[:, ANKLES].copy()
+    guard_legs(pose, goal, np.array([[1.0, 0.0]]))
+    np.testing.assert_array_equal(goal[0, 0], pose[0, ANKLES[0]])
+    moved = goal[0, 1] - pose[0, ANKLES[1]]
+    assert moved[1] == 0.0 and moved[0] < -0.02            # across the floor, to the body's right (-x)
+    # At least the shortfall (the hip stays put, so the ankle must move further), at most the cap.
+    assert LEG_GUARD_M - gap - 1e-12 <= np.linalg.norm(moved) <= LEG_GUARD_MAX_PUSH_M + 1e-12
+    shin_shin = leg_pair_distances(pose)[0].argmin() == 3
+    assert shin_shin
+    for weights, clearance in (([1.0, 1.0], LEG_GUARD_M), ([0.0, 0.0], gap - 0.01), ([0.0, 1.0], 0.0)):
+        same = pose[:, ANKLES].copy()
+        guard_legs(pose, same, np.array([weights]), clearance)
+        np.testing.assert_array_equal(same, pose[:, ANKLES])
+
+
+def test_the_foot_ik_swings_a_free_leg_around_the_other_on_both_paths():
+    """On the bundled walk (a narrow gait the model makes narrower, its shins passing within 10 cm),
+    the leg guard leaves a fraction of the crossing frames, on the compiled and the numpy path alike,
+    without moving the rest of the body."""
+    from edge.physics import INTERSECT_M
+    take = from_sample(SAMPLE)
+    T = 600
+    crossing, guarded = {}, {}
+    for native in (True, False):
+        for guard in (0.0, None):
+            opts = PipelineOptions(samples=1, use_native=native)
+            pipe = Pipeline(opts if guard is None else PipelineOptions(samples=1, use_native=native, leg_guard=guard))
+            pos = np.array([pipe.step(take.signals.slice(t, t + 1)).positions.copy() for t in range(T)])
+            crossing[native, guard] = int((leg_gap(pos[60:]) < INTERSECT_M).sum())
+            if guard is None:
+                guarded[native] = pos
+            else:
+                unguarded = pos
+        upper = [JOINT[j] for j in ("pelvis", "spine", "chest", "neck", "head", "l_wrist", "r_wrist")]
+        assert np.abs(guarded[native][:, upper] - unguarded[:, upper]).max() < 1e-9
+    assert crossing[True, 0.0] >= 15, crossing
+    assert crossing[True, None] <= crossing[True, 0.0] / 4, crossing
+    np.testing.assert_allclose(guarded[True], guarded[False], rtol=0, atol=1e-9)

@@ -119,7 +119,7 @@ LimbGoals = _struct("LimbGoals", "postproc.c's limb_goals (NumpyFrame.post's arg
 FootLocks = _struct("FootLocks", "postproc.c's foot_locks: edge.ik.FootLock's settings and arrays.",
                     [("release_frames", _D), ("max_slip", _D)] + [(k, _P) for k in ("lock_pos", "since", "weight",
                                                                                        "locked", "raw")]
-                    + [("min_gap", _D)])
+                    + [("min_gap", _D), ("leg_guard", _D), ("leg_guard_max", _D), ("leg_segs", _P)])
 PhysicalParams = _struct("PhysicalParams", "postproc.c's physical_params (edge.criteria.PhysicalPlausibility).",
                          [("segs", _P), ("feet", _P)] + [(k, _D) for k in ("gap", "float_m", "toe_h", "ankle_h",
                                                                            "w_floor", "w_legs", "w_support")])

@@ -227,6 +227,10 @@ typedef struct {
     double *lock_pos, *since, *weight;
     uint8_t *locked, *raw;
     double min_gap;
+    /* edge.ik.guard_legs: the clearance it keeps (0: off), the most it moves a goal, and the legs'
+     * segments [2 sides][2 segments][2 ends] as joint indices */
+    double leg_guard, leg_guard_max;
+    const int64_t *leg_segs;
 } foot_locks;
 
 /* edge.criteria.PhysicalPlausibility's settings: the legs' segments [2 sides][2 segments][2 ends] and
@@ -584,6 +588,31 @@ void ep_leg_error(int B, int J, const float *ae_out, int rot_dim, const int64_t 
     }
 }
 
+/* edge.physics.segment_closest: the closest points a (on p0-p1) and b (on q0-q1) of two segments, at
+ * *s and *t along them (Ericson, Real-Time Collision Detection 5.1.9); returns their distance. */
+static double segment_closest(const double *p0, const double *p1, const double *q0, const double *q1,
+                              double *pa, double *pb, double *s, double *t) {
+    double d1[3], d2[3], r[3];
+    for (int i = 0; i < 3; i++) { d1[i] = p1[i] - p0[i]; d2[i] = q1[i] - q0[i]; r[i] = p0[i] - q0[i]; }
+    double a = vec3_dot(d1, d1), e = vec3_dot(d2, d2), f = vec3_dot(d2, r), c = vec3_dot(d1, r), b = vec3_dot(d1, d2);
+    double denom = a * e - b * b;
+    double sc = denom > 1e-12 ? clamp((b * f - c * e) / denom, 0, 1) : 0.0;
+    double tc = (b * sc + f) / (e > 1e-12 ? e : 1e-12);
+    double am = a > 1e-12 ? a : 1e-12;
+    if (tc < 0) sc = clamp(-c / am, 0, 1);
+    else if (tc > 1) sc = clamp((b - c) / am, 0, 1);
+    tc = clamp(tc, 0, 1);
+    double dd[3];
+    for (int i = 0; i < 3; i++) {
+        pa[i] = p0[i] + d1[i] * sc;
+        pb[i] = q0[i] + d2[i] * tc;
+        dd[i] = pa[i] - pb[i];
+    }
+    *s = sc;
+    *t = tc;
+    return sqrt(vec3_dot(dd, dd));
+}
+
 /* edge.physics.support of a foot's lowest point h above the floor */
 static double support(double h) { return clamp((SUPPORT_NONE - h) / (SUPPORT_NONE - SUPPORT_FULL), 0.0, 1.0); }
 
@@ -638,6 +667,45 @@ static void separate_locks(int64_t i0, const int *started, const foot_locks *st,
     for (int k = 0; k < 3; k++) { goal[i0 * 3 + k] = a[k]; goal[(i0 + 1) * 3 + k] = b[k]; }
 }
 
+/* edge.ik.guard_legs for one row (its feet i0 = 2 r, i0 + 1), given its legs' segment ends `legs`
+ * [2 sides][2 segments (thigh, shin)][2 ends][3] before the IK: where a left and a right segment come
+ * closer than st->leg_guard, the free feet's goals move apart across the floor, the shortfall shared by
+ * how free each is and divided by how much of an ankle's move reaches the closest point (0.5 s on a
+ * thigh, 0.5 + 0.5 s on a shin, at least 0.3), at most st->leg_guard_max. */
+static void guard_legs(const double legs[2][2][2][3], int64_t i0, const foot_locks *st, double *goal) {
+    double free_l = 1.0 - st->weight[i0], free_r = 1.0 - st->weight[i0 + 1], total = free_l + free_r;
+    if (st->leg_guard <= 0.0 || total < 1e-3) return;
+    double gap = INFINITY, on_l[3], on_r[3], along_l = 0.0, along_r = 0.0;
+    int shin_l = 0, shin_r = 0;
+    for (int a = 0; a < 2; a++)
+        for (int b = 0; b < 2; b++) {
+            double pa[3], pb[3], s, t;
+            double d = segment_closest(legs[0][a][0], legs[0][a][1], legs[1][b][0], legs[1][b][1], pa, pb, &s, &t);
+            if (d < gap) {
+                gap = d; shin_l = a; shin_r = b; along_l = s; along_r = t;
+                for (int i = 0; i < 3; i++) { on_l[i] = pa[i]; on_r[i] = pb[i]; }
+            }
+        }
+    double short_m = st->leg_guard - gap;
+    if (!(short_m > 0.0)) return;
+    double apart[3] = {on_l[0] - on_r[0], 0.0, on_l[2] - on_r[2]};
+    if (!(sqrt(apart[0] * apart[0] + apart[2] * apart[2]) > 0.01)) {     /* on top of each other: the body's left */
+        apart[0] = legs[0][0][0][0] - legs[1][0][0][0];
+        apart[2] = legs[0][0][0][2] - legs[1][0][0][2];
+    }
+    double n = sqrt(vec3_dot(apart, apart));
+    n = n > 1e-9 ? n : 1e-9;
+    double reach_l = shin_l ? 0.5 + 0.5 * along_l : 0.5 * along_l, reach_r = shin_r ? 0.5 + 0.5 * along_r : 0.5 * along_r;
+    double push_l = short_m * (free_l / total) / (reach_l > 0.3 ? reach_l : 0.3);
+    double push_r = short_m * (free_r / total) / (reach_r > 0.3 ? reach_r : 0.3);
+    push_l = push_l < st->leg_guard_max ? push_l : st->leg_guard_max;
+    push_r = push_r < st->leg_guard_max ? push_r : st->leg_guard_max;
+    for (int i = 0; i < 3; i++) {
+        goal[i0 * 3 + i] += apart[i] / n * push_l;
+        goal[(i0 + 1) * 3 + i] -= apart[i] / n * push_r;
+    }
+}
+
 /* edge.ik.FootLock.update for B samples' two feet from the decoder's contacts [B,2] float and the FK
  * positions [B,J,3] (the ankles'), with each toe's drop below its ankle [B,2] (NULL: no floor snap);
  * the foot goals [B,2,3] as NumpyFrame.foot_goals draws them. */
@@ -649,6 +717,12 @@ void ep_foot_locks(const skeleton *sk, int B, const float *contacts, const doubl
             started[f] = foot_lock(r * 2 + f, contacts[r * 2 + f], pos + ((int64_t)r * sk->J + sk->ankles[f]) * 3,
                                    toe_drop ? toe_drop + r * 2 + f : 0, st, goal);
         separate_locks((int64_t)r * 2, started, st, goal);
+        if (st->leg_guard > 0.0) {
+            double legs[2][2][2][3];
+            for (int q = 0; q < 8; q++)
+                for (int i = 0; i < 3; i++) legs[q >> 2][(q >> 1) & 1][q & 1][i] = pos[((int64_t)r * sk->J + st->leg_segs[q]) * 3 + i];
+            guard_legs(legs, (int64_t)r * 2, st, goal);
+        }
     }
 }
 
@@ -803,6 +877,12 @@ int ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n, 
                     x->weights[i] = 1.0;
                 }
                 separate_locks((int64_t)(r0 + l) * 2, started, &x->locks, x->goals);
+                if (x->locks.leg_guard > 0.0) {
+                    double legs[2][2][2][3];
+                    for (int q = 0; q < 8; q++)
+                        for (int i = 0; i < 3; i++) legs[q >> 2][(q >> 1) & 1][q & 1][i] = k.P[x->locks.leg_segs[q]][i][l];
+                    guard_legs(legs, (int64_t)(r0 + l) * 2, &x->locks, x->goals);
+                }
                 for (int f = 0; f < 2; f++) {
                     int i = (r0 + l) * 2 + f, a = (int)sk->ankles[f];
                     double tw = r0 + l == x->target_row ? x->target_weight[f] : 0.0;
@@ -972,19 +1052,8 @@ void ep_imu_features(int K, const double *imu_rot, const double *imu_flag, const
 
 /* edge.physics.segment_distance: closest distance between segments p0-p1 and q0-q1. */
 static double segment_distance(const double *p0, const double *p1, const double *q0, const double *q1) {
-    double d1[3], d2[3], r[3];
-    for (int i = 0; i < 3; i++) { d1[i] = p1[i] - p0[i]; d2[i] = q1[i] - q0[i]; r[i] = p0[i] - q0[i]; }
-    double a = vec3_dot(d1, d1), e = vec3_dot(d2, d2), f = vec3_dot(d2, r), c = vec3_dot(d1, r), b = vec3_dot(d1, d2);
-    double denom = a * e - b * b;
-    double sc = denom > 1e-12 ? clamp((b * f - c * e) / denom, 0, 1) : 0.0;
-    double t = (b * sc + f) / (e > 1e-12 ? e : 1e-12);
-    double am = a > 1e-12 ? a : 1e-12;
-    if (t < 0) sc = clamp(-c / am, 0, 1);
-    else if (t > 1) sc = clamp((b - c) / am, 0, 1);
-    t = clamp(t, 0, 1);
-    double dd[3];
-    for (int i = 0; i < 3; i++) dd[i] = p0[i] + d1[i] * sc - (q0[i] + d2[i] * t);
-    return sqrt(vec3_dot(dd, dd));
+    double a[3], b[3], s, t;
+    return segment_closest(p0, p1, q0, q1, a, b, &s, &t);
 }
 
 /* edge.criteria.PhysicalPlausibility.cost for N rows of world positions pos [N,J,3]: w_floor times how
