@@ -26,6 +26,7 @@
     sync_latency_ms = 20              # interpolate this far in the past (>= one headset period)
     calibration = "calibration.json"  # optional, from `edge calibrate`
     models = "models"                 # optional, default: the shipped models
+    leg_guard_cm = 16                 # the foot IK keeps a free leg this far from the other (0: off)
 
     [refine]                          # latent refinement of the shown sample (edge.refine)
     enabled = true                    # the headset's TARGET messages need it; "legs" keeps the legs apart
@@ -41,6 +42,7 @@ from pathlib import Path
 
 from edge.inference import DEFAULT_PRECISION
 from edge.options import PipelineOptions
+from edge.physics import LEG_GUARD_M
 from firmware_bridge.transports.base import TransportError, parse_url, tracker_names
 
 
@@ -53,7 +55,7 @@ SECTIONS = {
     "trackers": {"url"},
     "output": {"pose_stream", "vmc", "vmc_mode", "vrchat", "vrchat_trackers", "bvh"},
     "runtime": {"samples", "adaptive", "precision", "lookahead", "hz", "lost_after_ms", "sync_latency_ms",
-                "calibration", "models"},
+                "calibration", "models", "leg_guard_cm"},
     "refine": {"enabled", "steps", "terms"},
 }
 REFINE_TERMS = ("targets", "keep", "floor", "legs", "imus", "imus-tilt")
@@ -78,15 +80,16 @@ class Config:
     sync_latency: float = 0.02
     calibration: str = ""
     models: str = ""
+    leg_guard: float = LEG_GUARD_M  # m; [runtime] leg_guard_cm / 100
     path: str = ""
     tracker_names: list = field(default_factory=list)
     refine: dict = None             # [refine] as RefineSettings' fields (None: off)
 
     def pipeline_options(self):
-        """The board's Pipeline, as edge.options.PipelineOptions: [runtime]'s N, look-ahead, rate and
-        precision, and [refine]."""
+        """The board's Pipeline, as edge.options.PipelineOptions: [runtime]'s N, look-ahead, rate,
+        precision and leg guard, and [refine]."""
         return PipelineOptions(samples=self.samples, lookahead=self.lookahead, fps=self.hz, precision=self.precision,
-                               refine=self.refine)
+                               refine=self.refine, leg_guard=self.leg_guard)
 
 
 from edge.imus import TRACKER_NAMES  # noqa: E402  (the body locations a tracker may be named for)
@@ -180,12 +183,16 @@ def from_dict(raw, where="config"):
         cfg.hz = float(rt.get("hz", cfg.hz))
         cfg.lost_after = float(rt.get("lost_after_ms", 250)) / 1000.0
         cfg.sync_latency = float(rt.get("sync_latency_ms", 20)) / 1000.0
+        cfg.leg_guard = float(rt.get("leg_guard_cm", LEG_GUARD_M * 100)) / 100.0
     except (TypeError, ValueError) as e:
         raise ConfigError(f"{where}: [runtime] values must be numbers ({e})") from None
     if not 1 <= cfg.samples <= 128:
         raise ConfigError(f"{where}: [runtime] samples must be 1..128, got {cfg.samples}")
     if not 0 <= cfg.lookahead <= 60 or not 10 <= cfg.hz <= 240 or not 0.02 <= cfg.lost_after <= 5:
         raise ConfigError(f"{where}: [runtime] lookahead 0..60 frames, hz 10..240, lost_after_ms 20..5000")
+    if not 0 <= cfg.leg_guard <= 0.3:
+        raise ConfigError(f"{where}: [runtime] leg_guard_cm must be 0 (off) to 30, got {cfg.leg_guard * 100:g}; "
+                          f"the default, {LEG_GUARD_M * 100:g}, was chosen on val")
     cfg.adaptive = rt.get("adaptive", True)
     if not isinstance(cfg.adaptive, bool):
         raise ConfigError(f"{where}: [runtime] adaptive must be true or false, got {cfg.adaptive!r}")

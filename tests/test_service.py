@@ -103,6 +103,8 @@ def test_run_streams_poses_that_listen_decodes(tmp_path):
     ({"headset": {"url": "serial:///dev/null"}, "runtime": {"precision": "fp16"}}, "precision must be"),
     ({"headset": {"url": "serial:///dev/null"}, "runtime": {"sample": 4}}, "unknown key 'sample'"),
     ({"headset": {"url": "serial:///dev/null"}, "output": {"vmc": "localhost"}}, "HOST:PORT"),
+    ({"headset": {"url": "serial:///dev/null"}, "runtime": {"leg_guard_cm": 50}}, "leg_guard_cm must be 0 .off. to 30"),
+    ({"headset": {"url": "serial:///dev/null"}, "runtime": {"leg_guard_cm": "wide"}}, r"\[runtime\] values must be numbers"),
     ({"headset": {"url": "serial:///dev/null"}, "trackers": [{"url": "serial:///dev/x?trackers=waist"}]}, "ID:NAME"),
     ({"headset": {"url": "serial:///dev/null"}, "trackers": [{"url": "can://virtual/x?nodes=1:l_knee"}]},
      "unknown tracker name 'l_knee'; the model reads waist, chest, l_thigh, r_thigh, l_shin, r_shin, l_foot, r_foot"),
@@ -113,6 +115,14 @@ def test_run_streams_poses_that_listen_decodes(tmp_path):
 def test_bad_config_fails_at_start_with_what_to_fix(raw, message):
     with pytest.raises(config_mod.ConfigError, match=message):
         config_mod.from_dict(raw)
+
+
+def test_the_leg_guard_is_on_by_default_and_the_config_sets_or_turns_it_off():
+    from edge.physics import LEG_GUARD_M
+    base = {"headset": {"url": "serial:///dev/null"}}
+    assert config_mod.from_dict(base).pipeline_options().leg_guard == LEG_GUARD_M
+    assert config_mod.from_dict({**base, "runtime": {"leg_guard_cm": 12}}).pipeline_options().leg_guard == 0.12
+    assert config_mod.from_dict({**base, "runtime": {"leg_guard_cm": 0}}).pipeline_options().leg_guard == 0.0
 
 
 def test_run_without_its_headset_waits_for_it_and_says_which_device_and_why(tmp_path, capsys):
