@@ -2,6 +2,7 @@
 
     python bench/legs_apart.py [--data ../shared/mocap] [--samples 1,16,32] [--clearances 0.14]
                                [--seeds 0] [--precision int8] [--out out/legs_apart] [--jobs 2]
+                               [--models DIR]
 
 For each N: the plain run (N=1; N > 1 with --no-ssi), SSI without LegsApart (refinement's guards only:
 what the board ran before), and SSI with LegsApart at each --clearance (the board's default
@@ -28,10 +29,10 @@ GUARDS_ONLY = tuple(t for t in DEFAULT_TERMS if t != "legs")
 
 
 def _eval(job):
-    path, data, options = job
+    path, data, options, models = job
     if Path(path).exists():
         return json.loads(Path(path).read_text())
-    r = evaluate([data], options, split="val", log=lambda *a: None)
+    r = evaluate([data], options, split="val", models=models, log=lambda *a: None)
     r.pop("per_clip", None)
     Path(path).write_text(json.dumps(r, indent=2) + "\n")
     return r
@@ -62,6 +63,7 @@ def main():
     ap.add_argument("--precision", choices=("fp32", "int8"), default=DEFAULT_PRECISION)
     ap.add_argument("--out", default="out/legs_apart")
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--models", help="the model folder (default: the shipped models/); use its own --out")
     a = ap.parse_args()
     if not Path(a.data).is_dir():
         sys.exit(f"bench/legs_apart.py: no motion data at {a.data} (it needs ../shared/mocap's val split)")
@@ -75,7 +77,7 @@ def main():
         for seed in seeds if N > 1 else [0]:
             for name, o in variants(N, clearances, seed, a.precision):
                 slug = name.replace(", ", "-").replace(" ", "_")
-                jobs.append((N, seed, name, (str(out / f"N{N}-s{seed}-{slug}-{a.precision}.json"), a.data, o)))
+                jobs.append((N, seed, name, (str(out / f"N{N}-s{seed}-{slug}-{a.precision}.json"), a.data, o, a.models)))
     with ProcessPoolExecutor(a.jobs) as pool:
         results = list(pool.map(_eval, [j[3] for j in jobs]))
     rows = {(N, seed, name): r for (N, seed, name, _), r in zip(jobs, results, strict=True)}

@@ -102,6 +102,10 @@ def main():
     export_all(a.ckpt, a.out)
     print(f"wrote {a.out}/decoder.onnx, {a.out}/autoencoder.onnx, {a.out}/manifest.json; "
           f"now build the int8 models the runtime defaults to: python -m quantize --models {a.out}")
+    if "selection" not in json.loads((Path(a.out) / "manifest.json").read_text()):
+        print(f"note: {a.out}/manifest.json has no SSI selection settings, so N > 1 selects on the autoencoder "
+              f"alone; copy `selection` from models/manifest.json, or choose them on val "
+              f"(bench/tune_selection.py, bench/legs_apart.py --models {a.out})")
 
 
 if __name__ == "__main__":
