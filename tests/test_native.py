@@ -232,6 +232,41 @@ def test_foot_locks_match_numpy_through_contacts_releases_and_slips():
     assert ref.locked.any() and (~ref.locked).any()
 
 
+def test_the_leg_guard_in_c_moves_the_goals_numpy_moves_and_survives_legs_on_top_of_each_other():
+    """ep_foot_locks with the leg guard on: the goals guard_legs gives after FootLock.update, on legs
+    swung about at random (they pass within the clearance often) and on a pose with every joint at one
+    point (zero-length segments, no direction apart: the goals stay where they are, finite)."""
+    from edge.ik import FootLock, guard_legs
+    from edge.physics import LEG_GUARD_M, LEG_GUARD_MAX_PUSH_M, LEG_SEGMENTS
+    B, T = 16, 60
+    rng = np.random.default_rng(11)
+    segs = np.ascontiguousarray(LEG_SEGMENTS.reshape(-1), np.int64)
+    ref, nat = FootLock(B), FootLock(B)
+    locks = native.FootLocks(nat.release_frames, nat.max_slip, A(nat.lock_pos), A(nat.since_release), A(nat.weight),
+                             A(nat.locked), A(nat.raw), nat.min_gap, LEG_GUARD_M, LEG_GUARD_MAX_PUSH_M, A(segs))
+    goal = np.zeros((B, 2, 3))
+    contacts = np.zeros((B, 2), np.float32)
+    moved = 0
+    for t in range(T):
+        local = quat.to_matrix(quat.normalize(np.tile([1.0, 0, 0, 0], (B, NUM_JOINTS, 1))
+                                              + 0.25 * rng.standard_normal((B, NUM_JOINTS, 4))))
+        _, pos = fk(local, np.zeros((B, 3)) + [0, 0.95, 0])
+        if t == T - 1:
+            pos[:] = 0.0                                   # every joint at one point
+        pos = np.ascontiguousarray(pos)
+        contacts[:] = rng.uniform(size=(B, 2)) > 0.5
+        lock, w = ref.update(contacts, pos[:, ANKLES])
+        want = (lock - pos[:, ANKLES]) * w[..., None] + pos[:, ANKLES]
+        before = want.copy()
+        guard_legs(pos, want, w)
+        moved += int((np.abs(want - before).max(axis=(1, 2)) > 1e-6).sum())
+        lib.ep_foot_locks(SKELETON, B, A(contacts), A(pos), None, locks, A(goal))
+        assert np.isfinite(goal).all()
+        np.testing.assert_allclose(goal, want, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(goal, before)            # on top of each other: nothing to push along
+    assert moved > B * T / 10
+
+
 def frame_inputs(pipe, sig, state):
     """ep_frame_features and ep_imu_features (the first half of ep_frame_inputs) on one frame ->
     (body points [4,3], features [n_features] float32, matrices [4,3,3]: waist, hands, head). `state` is
