@@ -35,7 +35,7 @@ def one_pass(pipe, sig, T, times, armed, gaps):
         t0 = time.perf_counter_ns()
         pose = pipe.step(frame)
         times.append(time.perf_counter_ns() - t0)
-        armed.append(pipe._legs is not None and pipe._legs.armed)
+        armed.append(pipe.refiner.term("legs").armed)
         if pose is not None:
             gaps.append(leg_gap(pose.positions))
 

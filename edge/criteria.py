@@ -51,13 +51,12 @@ class PhysicalPlausibility:
 
     def __init__(self, weight=1.0, floor=1.0, legs=1.0, support=1.0, use_native=True, clearance=INTERSECT_M):
         self._native = native.load() if use_native else None
-        self._segs = np.ascontiguousarray(LEG_SEGMENTS.reshape(-1), np.int64)
         self._feet = np.ascontiguousarray(np.concatenate([FEET, ANKLES]), np.int64)
         self._out = np.zeros(128)
         # The compiled core's copy of the settings (None without it); the term weights below write through.
         self.params = None
         if self._native:
-            self.params = native.PhysicalParams(native.addr(self._segs), native.addr(self._feet), clearance, FLOAT_M,
+            self.params = native.PhysicalParams(native.addr(LEG_SEGMENTS), native.addr(self._feet), clearance, FLOAT_M,
                                                 TOE_HEIGHT, ANKLE_HEIGHT, floor, legs, support)
         self.weight, self.floor, self.legs, self.support = weight, floor, legs, support
         # Legs closer than `clearance` cost: above INTERSECT_M, a sample pays before its legs cross (with

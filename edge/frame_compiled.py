@@ -26,7 +26,7 @@ class CompiledFrame(FramePath):
         self._c = {"parents": np.ascontiguousarray(PARENTS, np.int64), "offsets": OFFSETS,
                    "chains": np.ascontiguousarray(LIMB_CHAINS, np.int64), "poles": LIMB_POLES,
                    "ankles": np.ascontiguousarray(ANKLES, np.int64), "imu_joints": np.ascontiguousarray(IMU_JOINTS, np.int64),
-                   "leg_segs": np.ascontiguousarray(LEG_SEGMENTS.reshape(-1), np.int64)}
+                   "leg_segs": LEG_SEGMENTS}
         # Every array the core reads or writes is checked once here (dtype, layout, shape); the hot
         # path then passes addresses only.
         J, R = NUM_JOINTS, len(self.bufs.local)

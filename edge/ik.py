@@ -9,7 +9,6 @@ import numpy as np
 
 from edge.physics import (LEG_GUARD_M, LEG_GUARD_MAX_PUSH_M, LEG_SEGMENTS, LOCK_GAP_M, LOCK_SNAP_M, lowest_point,
                           segment_closest, support)
-from edge.skeleton import JOINT
 
 from edge.quat import cross
 
@@ -127,7 +126,7 @@ def guard_legs(pos, goal, lock_weight, clearance=LEG_GUARD_M, max_push=LEG_GUARD
         return
     apart = on_l[rows, pair] - on_r[rows, pair]
     apart[:, 1] = 0.0
-    hips = pos[:N, JOINT["l_hip"]] - pos[:N, JOINT["r_hip"]]      # left of the body, for legs on top of each other
+    hips = L[:, 0, 0] - R[:, 0, 0]              # the body's left (hip to hip), for legs on top of each other
     hips[:, 1] = 0.0
     apart = np.where(np.hypot(apart[:, 0], apart[:, 2])[:, None] > 0.01, apart, hips)
     apart /= np.maximum(np.linalg.norm(apart, axis=-1, keepdims=True), 1e-9)

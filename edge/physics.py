@@ -30,9 +30,10 @@ LOCK_GAP_M = INTERSECT_M + 0.005
 LEG_GUARD_M = 0.16
 # The most the guard moves a foot goal in one frame (m).
 LEG_GUARD_MAX_PUSH_M = 0.08
-# Thigh (hip -> knee) and shin (knee -> ankle) of each leg: [side, segment, end].
+# Thigh (hip -> knee) and shin (knee -> ankle) of each leg: [side, segment, end]. C-contiguous int64: the
+# compiled core reads it by address as [2][2][2] joint indices.
 LEG_SEGMENTS = np.array([[[JOINT[f"{s}_hip"], JOINT[f"{s}_knee"]], [JOINT[f"{s}_knee"], JOINT[f"{s}_ankle"]]]
-                         for s in "lr"])
+                         for s in "lr"], np.int64)
 
 
 def segment_closest(p0, p1, q0, q1):

@@ -210,8 +210,7 @@ class LegsApart:
     def __init__(self, weight=10.0, clearance=0.14, hysteresis=0.01):
         self.weight, self.clearance, self.hysteresis = weight, clearance, hysteresis
         self.armed = False
-        self.segs = np.ascontiguousarray(LEG_SEGMENTS.reshape(-1), np.int64)    # the compiled step's copy
-        self.segs_addr = native.addr(self.segs)
+        self.segs_addr = native.addr(LEG_SEGMENTS)      # the compiled step's
         self._lib = None
         self._pos = None
 

@@ -240,10 +240,9 @@ def test_the_leg_guard_in_c_moves_the_goals_numpy_moves_and_survives_legs_on_top
     from edge.physics import LEG_GUARD_M, LEG_GUARD_MAX_PUSH_M, LEG_SEGMENTS
     B, T = 16, 60
     rng = np.random.default_rng(11)
-    segs = np.ascontiguousarray(LEG_SEGMENTS.reshape(-1), np.int64)
     ref, nat = FootLock(B), FootLock(B)
     locks = native.FootLocks(nat.release_frames, nat.max_slip, A(nat.lock_pos), A(nat.since_release), A(nat.weight),
-                             A(nat.locked), A(nat.raw), nat.min_gap, LEG_GUARD_M, LEG_GUARD_MAX_PUSH_M, A(segs))
+                             A(nat.locked), A(nat.raw), nat.min_gap, LEG_GUARD_M, LEG_GUARD_MAX_PUSH_M, A(LEG_SEGMENTS))
     goal = np.zeros((B, 2, 3))
     contacts = np.zeros((B, 2), np.float32)
     moved = 0
