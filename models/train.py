@@ -249,7 +249,7 @@ def validate(model, batches):
 def parse_args(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default="../shared/mocap")
-    ap.add_argument("--sources", nargs="*", default=None, choices=sorted(ds.SOURCE_FOLDERS),
+    ap.add_argument("--sources", nargs="*", default=None, choices=ds.SOURCES,
                     help="train on these sources only (cmu daz = CMU terms only; hdm05 is CC BY-SA, bandai CC BY-NC)")
     ap.add_argument("--minutes", type=float, default=100.0, help="CVAE wall-clock budget")
     ap.add_argument("--steps", type=int, default=0, help="stop after this many CVAE steps instead (0: the budget)")
@@ -484,7 +484,7 @@ class Trainer:
                 "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
                 "data": a.data, "data_sha256": self.data_sha256, "best_iteration": self.best_it,
                 "val_mpjpe_cm_training": self.best, "minutes": a.minutes, "sources": sources,
-                "licences": {s: ds.SOURCE_LICENCES[s] for s in sources},
+                "licences": ds.source_licences(sources),
                 "loss": LOSS, "best_of": a.best_of, "eps": a.eps, "vigorous": a.vigorous, "posterior_encoder": a.posterior,
                 "learned_prior": a.learned_prior, "init": a.init, "batch": a.batch, "window": a.window, "lr": a.lr,
                 "seed": a.seed, "processes": self.world, "device": str(device), "train_clips": len(self.cs_train.names),

@@ -23,12 +23,24 @@ from edge.skeleton import FEET, HEAD, PREDICTED, TOES
 # --sources groups -> folders of ../shared/mocap. CMU terms: cmu, daz; CC BY-NC 4.0: bandai; CC BY-SA 3.0: hdm05.
 SOURCE_FOLDERS = {
     "cmu": ("cmu_amc2bvh", "cmu_cgspeed_mb"),                   # CMU originals (incl. 135 karate) and cgspeed's BVH
-    "daz": ("cmu_daz_ateliercircle", "cmu_daz_papagina"),       # CMU motion on the Daz skeleton
+    "daz": ("cmu_daz_ateliercircle", "cmu_daz_papagina", "cmu_fbx_daz"),    # CMU motion on the Daz skeleton
     "bandai": ("bandai_namco_ccbync",),
     "hdm05": ("hdm05_ccbysa",),
 }
 SOURCE_LICENCES = {"cmu": "CMU terms (free for research and commercial use; no resale)", "daz": "CMU terms + MIT",
                    "bandai": "CC BY-NC 4.0 (non-commercial)", "hdm05": "CC BY-SA 3.0 (share-alike)"}
+# --sources also takes a single folder (e.g. cmu_fbx_daz), under its group's licence
+FOLDER_GROUP = {f: g for g, folders in SOURCE_FOLDERS.items() for f in folders}
+SOURCES = sorted(SOURCE_FOLDERS) + sorted(FOLDER_GROUP)
+
+
+def source_folders(sources):
+    """--sources (groups or folders) -> the mocap folders they name."""
+    return tuple(f for s in sources for f in SOURCE_FOLDERS.get(s, (s,)))
+
+
+def source_licences(sources):
+    return {s: SOURCE_LICENCES[FOLDER_GROUP.get(s, s)] for s in sources}
 FPS = 60.0
 
 
@@ -46,7 +58,7 @@ def clip_paths(root, split=None, sources=None):
     rows = read_manifest(root)
     if rows is None:
         return sorted(root.rglob("*.bvh"))
-    folders = None if not sources else tuple(f for s in sources for f in SOURCE_FOLDERS[s])
+    folders = None if not sources else source_folders(sources)
     return [root / r["file"] for r in rows
             if (split is None or r["split"] == split) and (folders is None or r["file"].startswith(folders))]
 
@@ -187,7 +199,7 @@ def pose_batch(cs: ClipSet, frames):
 def main():
     ap = argparse.ArgumentParser(description="Build the canonical-motion cache from the mocap folder.")
     ap.add_argument("--data", default="../shared/mocap")
-    ap.add_argument("--sources", nargs="*", default=None, choices=sorted(SOURCE_FOLDERS))
+    ap.add_argument("--sources", nargs="*", default=None, choices=SOURCES)
     a = ap.parse_args()
     for split in ("train", "val"):
         cs = build(a.data, split, a.sources)

@@ -5,9 +5,10 @@
 `models.train --data PACK` (and motion.dataset.build) read it instead of the mocap folder. What it holds
 is what training reads, motion.dataset's ClipSet per split, in this form:
 - rotations: each joint's local quaternion in Q13 integers (1/8192; the error is measured at build time
-  as FK joint positions, in mm, and printed and recorded); 30 fps clips keep only their own frames (the
-  60 Hz frames between them are slerps of their neighbours, motion.retarget.resample, and are made
-  again on load); second differences in time per clip, channel by channel, LZMA-compressed.
+  as FK joint positions on every frame, in mm, and printed and recorded); each clip keeps its own
+  frames at its own rate (24, 30 or 60 fps) and is resampled to 60 Hz on load with the same
+  motion.retarget.resample that made the cache; second differences in time per clip, channel by
+  channel, LZMA-compressed.
 - root: positions in 0.1 mm integers, likewise; contacts: one bit per foot and frame (60 Hz).
 - the clip names, the manifest's sha256 and the pack's own sha256 beside it in PACK.json.
 It holds derived training data, not the clips' files; like the clips it is never committed (.cache/).
@@ -26,7 +27,7 @@ from edge.progress import Progress
 ROT_SCALE = 8192.0          # Q13 quaternion components
 ROOT_SCALE = 10000.0        # 0.1 mm
 DEFAULT_PACK = Path(".cache/pack/edgepose-pack.npz")
-FORMAT = "edgepose-pack/1"
+FORMAT = "edgepose-pack/2"      # 2: each clip's own frames at its own rate (24, 30 or 60 fps)
 
 
 class PackError(ValueError):
@@ -65,39 +66,48 @@ def _decompress(blob, dtype, channels, lengths):
     return out
 
 
-def _native_step(relative_names, rows):
-    """2 for clips recorded at 30 fps (their 60 Hz frames alternate recorded / interpolated), else 1."""
-    fps = {r["file"]: float(r["fps"]) for r in rows}
-    return np.array([2 if fps[n] < 45 else 1 for n in relative_names], np.int8)
+def _read_native(path):
+    """A clip on the canonical skeleton at its own frame rate (what motion.retarget.load_motion
+    resamples to 60 Hz): (rotations [F,J,4], root [F,3], fps as its file says)."""
+    from motion import bvh
+    from motion.retarget import retarget
+    m, _ = retarget(bvh.load(path))
+    return m.rotations, m.root, m.fps
 
 
-def _stored_frames(n, step):
-    """Which of a clip's n frames (60 Hz) the pack keeps: all, or (step 2, a 30 fps clip) every other
-    one and the last, so that each frame left out lies between two kept ones."""
-    return np.arange(n) if step == 1 else np.unique(np.append(np.arange(0, n, 2), n - 1))
+def _native_frames(data, cs, names, rows, workers=2):
+    """Every clip's own frames, not the 60 Hz ones: a 60 fps clip is the cache itself; any other (30 fps
+    Bandai, whose files say 0.0333333 s a frame, and the 24 fps CMU library) is read again from its
+    file, since the 60 Hz grid does not hit its frames exactly. -> (rotations, roots, fps) per clip."""
+    from concurrent.futures import ProcessPoolExecutor
+    manifest_fps = {r["file"]: float(r["fps"]) for r in rows}
+    rots, roots, fps = [None] * len(names), [None] * len(names), np.full(len(names), 60.0)
+    reread = [i for i, n in enumerate(names) if abs(manifest_fps[n] - 60) > 1e-3]
+    with ProcessPoolExecutor(workers) as ex, Progress(len(reread), "own frames") as bar:
+        for i, (rot, root, f) in zip(reread, ex.map(_read_native, [Path(data) / names[i] for i in reread],
+                                                     chunksize=8), strict=True):
+            rots[i], roots[i], fps[i] = rot, root, f
+            bar.update()
+    for i, (s, n) in enumerate(zip(cs.starts, cs.lengths(), strict=True)):
+        if rots[i] is None:
+            rots[i], roots[i] = cs.rotations[s:s + n], cs.root[s:s + n]
+        if _frames_60hz(len(roots[i]), fps[i]) != n:
+            raise PackError(f"{names[i]}: {len(roots[i])} frames at {fps[i]:g} fps do not make the {n} cached "
+                            "60 Hz frames (the cache is older than the file? delete .cache/clips-*.npz)")
+    return rots, roots, fps
 
 
-def _expand(q_kept, root_kept, step, n):
-    """A clip's kept frames back to its n frames at 60 Hz: a frame left out is the slerp (lerp for the
-    root) halfway between its neighbours, as motion.retarget.resample made it from the 30 fps file.
-    (The files say 0.0333333 s a frame, so the resampler's halfway is 0.5 +- 1e-4: pack_error_mm
-    measures what that and the rounding cost.)"""
-    if step == 1:
-        return q_kept, root_kept
-    from edge import quat
-    kept = _stored_frames(n, step)
-    rot = np.empty((n,) + q_kept.shape[1:])
-    root = np.empty((n, 3))
-    rot[kept], root[kept] = q_kept, root_kept
-    gap = np.setdiff1d(np.arange(n), kept)
-    rot[gap] = quat.slerp(rot[gap - 1], rot[gap + 1], np.full(rot[gap].shape[:-1], 0.5))
-    root[gap] = 0.5 * (root[gap - 1] + root[gap + 1])
-    return rot, root
+def _frames_60hz(n, fps):
+    """How many 60 Hz frames motion.retarget.resample makes of n frames at fps."""
+    return n if abs(fps - 60) < 1e-3 else len(np.arange(0.0, (n - 1) / fps + 1e-9, 1 / 60))
 
 
-def _split_arrays(cs, steps):
-    spans = [(s + _stored_frames(n, k)) for s, n, k in zip(cs.starts, cs.lengths(), steps, strict=True)]
-    return [cs.rotations[i] for i in spans], [cs.root[i] for i in spans]
+def _expand(q_native, root_native, fps):
+    """A clip's own frames back to 60 Hz, exactly as motion.retarget.resample made the cached clip from
+    its file (slerp for rotations, lerp for the root); pack_error_mm measures what the rounding costs."""
+    from motion.retarget import Motion, resample
+    m = resample(Motion(q_native, root_native, fps), 60.0)
+    return m.rotations, m.root
 
 
 def build_pack(data, out=DEFAULT_PACK, sources=None):
@@ -113,8 +123,7 @@ def build_pack(data, out=DEFAULT_PACK, sources=None):
     for split in ("train", "val"):
         cs = ds.build(data, split, sources)
         names = [os.path.relpath(n, data) for n in cs.names]
-        steps = _native_step(names, rows)
-        rots, roots = _split_arrays(cs, steps)
+        rots, roots, fps = _native_frames(data, cs, names, rows)
         J = cs.rotations.shape[1]
         q_int = [np.round(r.reshape(len(r), -1) * ROT_SCALE) for r in rots]
         p_int = [np.round(r * ROOT_SCALE) for r in roots]
@@ -123,7 +132,7 @@ def build_pack(data, out=DEFAULT_PACK, sources=None):
         arrays[f"{split}_contacts"] = np.packbits(cs.contacts.astype(bool), axis=None)
         arrays[f"{split}_lengths"] = cs.lengths().astype(np.int64)
         arrays[f"{split}_stored"] = np.array([len(r) for r in rots], np.int64)
-        arrays[f"{split}_steps"] = steps
+        arrays[f"{split}_fps"] = fps
         arrays[f"{split}_names"] = np.array(names)
         info["splits"][split] = {"clips": len(cs.names), "frames_60hz": int(len(cs.root)),
                                  "stored_frames": int(sum(len(r) for r in rots)), "joints": int(J),
@@ -150,21 +159,23 @@ def load_pack(path, split, sources=None):
         raise PackError(f"{path}: format {info.get('format')!r}, this code reads {FORMAT}; rebuild: python -m motion.pack")
     if f"{split}_rot" not in z:
         raise PackError(f"{path}: no {split!r} split")
-    names, lengths, stored, steps = (z[f"{split}_{k}"] for k in ("names", "lengths", "stored", "steps"))
+    names, lengths, stored, fps = (z[f"{split}_{k}"] for k in ("names", "lengths", "stored", "fps"))
     J = info["splits"][split]["joints"]
     q_parts = _decompress(z[f"{split}_rot"], np.int16, J * 4, stored)
     p_parts = _decompress(z[f"{split}_root"], np.int32, 3, stored)
     contacts = np.unpackbits(z[f"{split}_contacts"])[:int(lengths.sum()) * 2].reshape(-1, 2).astype(np.float32)
     keep = np.ones(len(names), bool)
     if sources:
-        folders = tuple(f for s in sources for f in ds.SOURCE_FOLDERS[s])
+        folders = ds.source_folders(sources)
         keep = np.array([str(n).startswith(folders) for n in names])
     rots, roots, cons, kept = [], [], [], []
     starts60 = np.concatenate([[0], np.cumsum(lengths)[:-1]])
     for i in np.flatnonzero(keep):
         q = q_parts[i].reshape(-1, J, 4) / ROT_SCALE
         q /= np.linalg.norm(q, axis=-1, keepdims=True)
-        rot, root = _expand(q, p_parts[i] / ROOT_SCALE, int(steps[i]), int(lengths[i]))
+        rot, root = _expand(q, p_parts[i] / ROOT_SCALE, float(fps[i]))
+        if len(root) != lengths[i]:
+            raise PackError(f"{path}: {names[i]} expands to {len(root)} frames, the pack says {lengths[i]}")
         rots.append(rot.astype(np.float32))
         roots.append(root.astype(np.float32))
         cons.append(contacts[starts60[i]:starts60[i] + lengths[i]])
@@ -173,23 +184,26 @@ def load_pack(path, split, sources=None):
     return ds.ClipSet(kept, starts, np.concatenate(rots), np.concatenate(roots), np.concatenate(cons))
 
 
-def pack_error_mm(path, data, sources=None, frames=20000, seed=0):
-    """What the pack's rounding costs: FK joint positions (world, from the root) of the pack's clips
-    against the cache built from the BVH files, on `frames` random frames of each split.
-    -> {split: {"mean": mm, "max": mm}}."""
+def pack_error_mm(path, data, sources=None, chunk=100_000):
+    """What the pack's rounding costs: FK joint positions (world, from the root) of every frame of the
+    pack's clips against the cache built from the BVH files.
+    -> {split: {"mean": mm, "max": mm, "worst_clip": name}} (a frame's error is its worst joint's)."""
     from motion import dataset as ds
     from motion.synth import world_pose
-    rng = np.random.default_rng(seed)
     out = {}
     for split in ("train", "val"):
         ref, got = ds.build(data, split, sources), load_pack(path, split, sources)
         if len(ref.root) != len(got.root) or not np.array_equal(ref.contacts, got.contacts):
             raise PackError(f"{split}: the pack does not hold the same frames as the mocap cache")
-        f = rng.integers(0, len(ref.root), frames)
-        _, a = world_pose(ref.rotations[f].astype(np.float64), ref.root[f].astype(np.float64))
-        _, b = world_pose(got.rotations[f].astype(np.float64), got.root[f].astype(np.float64))
-        err = np.linalg.norm(a - b, axis=-1) * 1000
-        out[split] = {"mean": float(err.mean()), "max": float(err.max())}
+        worst = np.zeros(len(ref.root))
+        for i in range(0, len(ref.root), chunk):
+            f = slice(i, i + chunk)
+            _, a = world_pose(ref.rotations[f].astype(np.float64), ref.root[f].astype(np.float64))
+            _, b = world_pose(got.rotations[f].astype(np.float64), got.root[f].astype(np.float64))
+            worst[f] = np.linalg.norm(a - b, axis=-1).max(-1) * 1000
+        clip = np.searchsorted(ref.starts, int(worst.argmax()), side="right") - 1
+        out[split] = {"mean": float(worst.mean()), "max": float(worst.max()),
+                      "worst_clip": os.path.relpath(ref.names[clip], data)}
     return out
 
 
@@ -198,14 +212,15 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default="../shared/mocap")
     ap.add_argument("--out", default=str(DEFAULT_PACK))
-    ap.add_argument("--sources", nargs="*", default=None, choices=sorted(ds.SOURCE_FOLDERS))
+    ap.add_argument("--sources", nargs="*", default=None, choices=ds.SOURCES)
     a = ap.parse_args(argv)
     with Progress(1, "pack") as bar:
         info = build_pack(a.data, a.out, a.sources)
         bar.update()
     for split, s in info["splits"].items():
         print(f"{split}: {s['clips']} clips, {s['minutes']:.1f} min, {s['stored_frames']:,} frames stored; "
-              f"FK error {info['error_mm'][split]['mean']:.3f} mm mean, {info['error_mm'][split]['max']:.3f} max")
+              f"FK error (worst joint of a frame) {info['error_mm'][split]['mean']:.3f} mm mean, "
+              f"{info['error_mm'][split]['max']:.3f} max ({info['error_mm'][split]['worst_clip']})")
     print(f"wrote {a.out}: {info['bytes'] / 2**20:.1f} MiB, sha256 {info['sha256']}; details in {a.out}.json")
 
 

@@ -1,6 +1,6 @@
 """The training pack and the accelerator run's script, on CPU at a tiny size, so that the one real run
 on a lent machine is not spent on a typo: a pack of a few real clips holds the frames training reads
-(30 fps clips made again from their own frames), and scripts/train-device trains two widths side by
+(30 and 24 fps clips made again from their own frames), and scripts/train-device trains two widths side by
 side from it, writes what comes back from the device tool (a tar per width and one to resume from) and
 continues from those. Needs torch and ../shared/mocap."""
 import csv
@@ -14,9 +14,10 @@ import pytest
 
 from tests.conftest import ROOT
 
-# a 30 fps Bandai clip and a 60 fps CMU one for train, one of each kind for val (all over 4 s: the
-# validation windows are 240 frames)
-CLIPS = {"train": ["bandai_namco_ccbync/dataset-1/dataset-1_bye_feminine_001.bvh", "cmu_amc2bvh/02/02_01.bvh"],
+# a 30 fps Bandai clip, a 60 fps CMU one and a 24 fps one of the CMU library (data v4) for train, one of
+# the first two kinds for val (all over 4 s: the validation windows are 240 frames)
+CLIPS = {"train": ["bandai_namco_ccbync/dataset-1/dataset-1_bye_feminine_001.bvh", "cmu_amc2bvh/02/02_01.bvh",
+                   "cmu_fbx_daz/140/140_04.bvh"],
          "val": ["bandai_namco_ccbync/dataset-2/dataset-2_walk_elderly_004.bvh", "cmu_amc2bvh/09/09_12.bvh"]}
 
 
@@ -49,16 +50,19 @@ def test_the_pack_holds_the_frames_training_reads(tiny_mocap, tiny_pack):
     from motion import dataset as ds
     path, info = tiny_pack
     assert info["splits"]["train"]["stored_frames"] < info["splits"]["train"]["frames_60hz"]   # 30 fps kept as 30
+    # 140_04 is the clip whose 24 fps frames the first v4 pack kept as if they were 30 fps (294 mm off)
     assert info["error_mm"]["train"]["max"] < 1.0 and info["error_mm"]["val"]["max"] < 1.0
     for split in ("train", "val"):
         want, got = ds.build(tiny_mocap, split), ds.build(path, split)
         assert np.array_equal(want.starts, got.starts) and np.array_equal(want.contacts, got.contacts)
-        # every quaternion to Q13 rounding (the interpolated 30 fps frames included), every root to 0.1 mm
+        # every quaternion to Q13 rounding (the interpolated 24 and 30 fps frames included), every root to 0.1 mm
         dots = np.abs(np.sum(want.rotations.astype(np.float64) * got.rotations, axis=-1))
         assert np.degrees(2 * np.arccos(np.clip(dots, -1, 1))).max() < 0.05
         assert np.abs(want.root - got.root).max() < 1e-4
     only_cmu = ds.build(path, "train", ["cmu"])
     assert [n.split("/")[0] for n in only_cmu.names] == ["cmu_amc2bvh"]
+    assert [n.split("/")[0] for n in ds.build(path, "train", ["daz"]).names] == ["cmu_fbx_daz"]
+    assert [n.split("/")[0] for n in ds.build(path, "train", ["cmu_fbx_daz"]).names] == ["cmu_fbx_daz"]
 
 
 def test_train_device_trains_two_widths_and_resumes_from_what_it_brought_back(torch, tiny_pack, tmp_path):
