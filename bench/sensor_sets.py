@@ -1,12 +1,15 @@
 """What each extra IMU set is worth, on the validation split, in one run (the variable-sensor-set issue).
 
     python bench/sensor_sets.py --data ../shared/mocap [--models DIR] [--baseline DIR] [--out out/sensor_sets]
-        [--no-heading | --heading-settings JSON] [--perfect-heading]
+        [--people unseen|seen] [--no-heading | --heading-settings JSON] [--perfect-heading]
 
 Runs edge eval at N=1 (int8 by default) with no extra IMUs, both shins, thighs and shins, and all seven,
-each clean and with DragPoser's faulty-sensor protocol (--faults disconnect), two evals at a time; with
---baseline, also the 4-point case of another model folder (e.g. the previously shipped one). Prints the
-table of the issue's lines and writes every eval's JSON. Takes about a minute on 2 cores. The extra
+each steady and with DragPoser's faulty-sensor protocol (--faults disconnect), two evals at a time; with
+--baseline, also every set of another model folder (e.g. the previously shipped one). Prints one table
+for the people the model never saw (val subjects with no clip in train: what choices are made on) and
+one for the people it saw, each set steady, under the protocol, and the protocol against the set
+steady and against no extra IMUs at all (a flaky tracker must never be worse than none: <= 1.00);
+writes every eval's JSON. Takes a few minutes on 2 cores. The extra
 IMUs' heading observer (edge.heading) runs, as it does by default; --no-heading turns it off;
 --perfect-heading takes the heading offset and drift out of the IMU noise instead (the most an
 observer could give).
@@ -32,7 +35,9 @@ LIMITS = {"shins": 0.85, "thighs+shins": 0.65, "all seven": 0.42}     # mpjpe ag
 def _run(job):
     name, path, kwargs = job
     if Path(path).exists():
-        return name, json.loads(Path(path).read_text())
+        r = json.loads(Path(path).read_text())
+        if "people" in r or kwargs.get("people"):
+            return name, r                     # an eval of an older version has no people split: run it again
     r = evaluate([kwargs.pop("data")], kwargs.pop("options"), split="val", log=lambda *a: None, **kwargs)
     Path(path).write_text(json.dumps(r, indent=2) + "\n")
     return name, r
@@ -54,6 +59,8 @@ def main():
     ap.add_argument("--heading-settings", default=None, help="its settings as JSON (a choosing run), e.g. '{\"measurement_std_deg\": 5}'")
     ap.add_argument("--perfect-heading", action="store_true",
                     help="IMU noise without its heading offset and drift (what a perfect heading observer would leave)")
+    ap.add_argument("--people", choices=("unseen", "seen"), default=None,
+                    help="evaluate only unseen (or seen) people's clips (default: all, reported apart)")
     ap.add_argument("--max-clips", type=int, default=None, help="an even spread of this many val clips (a quick look)")
     ap.add_argument("--no-disconnect", action="store_true", help="skip the faulty-sensor runs")
     ap.add_argument("--leg-guard", type=float, default=None,
@@ -66,40 +73,55 @@ def main():
     options = PipelineOptions(samples=a.samples, precision=a.precision, refine=refine, heading=heading)
     if a.leg_guard is not None:
         options = replace(options, leg_guard=a.leg_guard)
-    common = {"data": a.data, "options": options, "max_clips": a.max_clips}
+    common = {"data": a.data, "options": options, "max_clips": a.max_clips, "people": a.people}
     if a.perfect_heading:
         common["imu_noise"] = ImuNoise(yaw_offset_std_deg=0.0, yaw_drift_deg_s=0.0)
     jobs = []
-    if a.baseline:
-        jobs.append(("baseline none", out / "baseline_none.json", {**common, "models": a.baseline}))
-    for name, spec in SETS.items():
-        slug = name.replace(" ", "_").replace("+", "_")
-        jobs.append((name, out / f"{slug}.json", {**common, "models": a.models, "trackers": parse_set(spec)}))
-        if spec != "none" and not a.no_disconnect:
-            jobs.append((name + " disconnect", out / f"{slug}_disconnect.json",
-                         {**common, "models": a.models, "trackers": parse_set(spec), "faults": "disconnect"}))
+    for tag, models in (("", a.models), ("baseline ", a.baseline)):
+        if tag and not models:
+            continue
+        for name, spec in SETS.items():
+            slug = tag.replace(" ", "_") + name.replace(" ", "_").replace("+", "_")
+            jobs.append((tag + name, out / f"{slug}.json", {**common, "models": models, "trackers": parse_set(spec)}))
+            if spec != "none" and not a.no_disconnect:
+                jobs.append((tag + name + " disconnect", out / f"{slug}_disconnect.json",
+                             {**common, "models": models, "trackers": parse_set(spec), "faults": "disconnect"}))
     with ProcessPoolExecutor(a.jobs) as ex:
         runs = dict(ex.map(_run, jobs))
-    none = runs["none"]
-    print(f"val, N={a.samples}, {a.precision}: {none['clips']} clips, {none['frames']} frames")
-    print(f"{'set':<28} {'mpjpe cm':>9} {'x none':>7} {'limit':>6} {'skate cm/s':>11} {'disc. mpjpe':>12} {'x clean':>8}")
     rows = {}
-    if "baseline none" in runs:
-        b = runs["baseline none"]
-        print(f"{'baseline model, none':<28} {b['mpjpe_cm']:9.3f} {b['mpjpe_cm'] / none['mpjpe_cm']:7.3f} {'':>6} "
-              f"{b['foot_skate_cm_s']:11.2f}")
-        rows["baseline none"] = b["mpjpe_cm"]
-    for name in SETS:
-        r = runs[name]
-        d = runs.get(name + " disconnect")
-        ratio = r["mpjpe_cm"] / none["mpjpe_cm"]
-        print(f"{name:<28} {r['mpjpe_cm']:9.3f} {ratio:7.3f} {LIMITS.get(name, ''):>6} {r['foot_skate_cm_s']:11.2f}"
-              + (f" {d['mpjpe_cm']:12.3f} {d['mpjpe_cm'] / r['mpjpe_cm']:8.3f}" if d else ""))
-        rows[name] = {"mpjpe_cm": r["mpjpe_cm"], "ratio_to_none": ratio, "foot_skate_cm_s": r["foot_skate_cm_s"],
-                      "disconnect_mpjpe_cm": d["mpjpe_cm"] if d else None,
-                      "disconnect_ratio": d["mpjpe_cm"] / r["mpjpe_cm"] if d else None}
+    for who in ("unseen", "seen"):
+        part = {name: r["people"][who] for name, r in runs.items() if who in r.get("people", {})}
+        if "none" not in part:
+            continue
+        print(f"\nval, {who} people, N={a.samples}, {a.precision}: {part['none']['clips']} clips, "
+              f"{part['none']['frames']} frames")
+        rows[who] = table(part, "baseline none" in part)
     (out / "summary.json").write_text(json.dumps(rows, indent=2) + "\n")
     print(f"wrote {out}/")
+
+
+def table(part, with_baseline):
+    """Print one group's table and return its rows: each set steady (mpjpe, knees, ankles, against no
+    extra IMUs, skate), under DragPoser's protocol, that against the set steady and against none."""
+    print(f"{'set':<22} {'mpjpe cm':>9} {'knees':>6} {'ankles':>6} {'x none':>7} {'limit':>6} {'skate':>6} "
+          f"{'flaky cm':>9} {'x steady':>8} {'x none':>7}" + ("  baseline: mpjpe  flaky" if with_baseline else ""))
+    rows, none = {}, part["none"]["mpjpe_cm"]
+    for name in SETS:
+        r, d = part[name], part.get(name + " disconnect")
+        b, bd = part.get("baseline " + name), part.get("baseline " + name + " disconnect")
+        print(f"{name:<22} {r['mpjpe_cm']:9.3f} {r['knees_cm']:6.2f} {r['ankles_cm']:6.2f} {r['mpjpe_cm'] / none:7.3f} "
+              f"{LIMITS.get(name, ''):>6} {r['foot_skate_cm_s']:6.2f}"
+              + (f" {d['mpjpe_cm']:9.3f} {d['mpjpe_cm'] / r['mpjpe_cm']:8.3f} {d['mpjpe_cm'] / none:7.3f}" if d else " " * 27)
+              + (f"  {b['mpjpe_cm']:14.3f}" if b else "") + (f" {bd['mpjpe_cm']:6.3f}" if bd else ""))
+        rows[name] = {"mpjpe_cm": r["mpjpe_cm"], "knees_cm": r["knees_cm"], "ankles_cm": r["ankles_cm"],
+                      "ratio_to_none": r["mpjpe_cm"] / none, "foot_skate_cm_s": r["foot_skate_cm_s"],
+                      "leg_intersect_rate": r["leg_intersect_rate"], "float_rate": r["float_rate"],
+                      "disconnect_mpjpe_cm": d["mpjpe_cm"] if d else None,
+                      "disconnect_ratio": d["mpjpe_cm"] / r["mpjpe_cm"] if d else None,
+                      "disconnect_ratio_to_none": d["mpjpe_cm"] / none if d else None,
+                      "baseline_mpjpe_cm": b["mpjpe_cm"] if b else None,
+                      "baseline_disconnect_mpjpe_cm": bd["mpjpe_cm"] if bd else None}
+    return rows
 
 
 if __name__ == "__main__":

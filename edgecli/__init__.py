@@ -23,6 +23,9 @@ def _add_eval(sub):
     ev = sub.add_parser("eval", help="measure reconstruction quality on BVH clips or sample files")
     ev.add_argument("--data", nargs="+", required=True, help="BVH files, folders of them, or edgepose sample .npz files")
     ev.add_argument("--split", choices=("train", "val"), help="filter a folder by its MANIFEST.tsv")
+    ev.add_argument("--people", choices=("unseen", "seen"), default=None,
+                    help="only the clips of performers with no clip in train (unseen) or with some (seen); "
+                         "by default all, reported in both parts")
     ev.add_argument("--samples", type=int, default=1, help="latent samples N (1 = plain CVAE at the prior mean)")
     ev.add_argument("--no-ssi", action="store_true", help="keep the starting sample for the whole clip")
     ev.add_argument("--precision", choices=("fp32", "int8"), default=DEFAULT_PRECISION)

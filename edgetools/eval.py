@@ -29,7 +29,7 @@ def pipeline_options(args):
 
 def main(args):
     try:
-        result = evaluate(args.data, pipeline_options(args), split=args.split, models=args.models,
+        result = evaluate(args.data, pipeline_options(args), split=args.split, people=args.people, models=args.models,
                           trackers=parse_set(args.trackers), faults=args.faults, max_frames=args.max_frames,
                           dump=args.dump)
     except (FileNotFoundError, ValueError) as e:
@@ -40,5 +40,8 @@ def main(args):
     keys = ("clips", "frames", "mpjpe_cm", "mpjve_cm_s", "mpjae_cm_s2", "jitter_m_s3", "ee_error_cm",
             "foot_skate_cm_s", "implausible_rate", "penetration_rate", "leg_intersect_rate", "float_rate")
     print("  ".join(f"{k}={result[k]:.4g}" if isinstance(result[k], float) else f"{k}={result[k]}" for k in keys))
+    for who, r in result.get("people", {}).items():      # choose on unseen people: they are the users
+        print(f"  {who} people: clips={r['clips']}  frames={r['frames']}  mpjpe_cm={r['mpjpe_cm']:.4g}  "
+              f"knees_cm={r['knees_cm']:.4g}  ankles_cm={r['ankles_cm']:.4g}  foot_skate_cm_s={r['foot_skate_cm_s']:.4g}")
     print(f"wrote {args.json}")
     return 0

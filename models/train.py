@@ -377,15 +377,23 @@ class Trainer:
             import torch.distributed as dist
             dist.barrier()
         # Validation (rank 0): fixed noisy windows of 4 s, latent at the prior mean (what N=1 runs), with
-        # no extra IMUs (the 4-point case) and with random sets of them; selection on their mean.
+        # no extra IMUs (the 4-point case) and with random sets of them, for the people the model never
+        # saw (val subjects with no clip in train) and those it saw; selection on the unseen people's mean.
         self.val_batches = {}
         if self.lead:
-            vrng = np.random.default_rng(1234)
-            vstarts = ds.window_starts(self.cs_val, 240)
-            for kind in ("none", "imus"):
-                self.val_batches[kind] = [
-                    to_t(ds.make_batch(self.cs_val, vrng.choice(vstarts, a.val_windows), 240, vrng, DeviceNoise(),
-                                       ImuNoise(), with_imus=kind == "imus"), self.device) for _ in range(4)]
+            people = self.cs_val.people if self.cs_val.people is not None else np.full(len(self.cs_val.names), "seen")
+            for who in ("unseen", "seen"):
+                if not (people == who).any():
+                    continue
+                part = self.cs_val.subset(people == who)
+                vrng = np.random.default_rng(1234)
+                vstarts = ds.window_starts(part, 240)
+                for kind in ("none", "imus"):
+                    self.val_batches[f"{who} {kind}"] = [
+                        to_t(ds.make_batch(part, vrng.choice(vstarts, a.val_windows), 240, vrng, DeviceNoise(),
+                                           ImuNoise(), with_imus=kind == "imus"), self.device) for _ in range(4)]
+            self.choose_on = [k for k in self.val_batches if k.startswith("unseen")] or list(self.val_batches)
+            self.log(f"validation: {', '.join(self.val_batches)}; chosen on {' + '.join(self.choose_on)}")
 
     def build_model(self):
         """The CVAE (new, from --init or --resume), its normalisers, the recipe step and the optimizer."""
@@ -463,11 +471,11 @@ class Trainer:
     def _validate_and_save(self, t):
         it, ckpt, model = self.it, self.ckpt, self.model
         v = {k: validate(model, vb) for k, vb in self.val_batches.items()}
-        score = float(np.mean(list(v.values())))
+        score = float(np.mean([v[k] for k in self.choose_on]))
         self.log(f"it {it} t {time.time() - self.t1:.0f}s (data wait {self.waited:.0f}s) lr "
                  f"{self.opt.param_groups[0]['lr']:.2e} train mpjpe {t['mpjpe'].item() * 100:.2f} "
                  + " ".join(f"{k} {x.item():.4f}" for k, x in t.items() if k != "mpjpe")
-                 + f" | val mpjpe (head-anchored, no IK) none {v['none']:.2f} imus {v['imus']:.2f} cm")
+                 + " | val mpjpe (head-anchored, no IK) " + " ".join(f"{k} {x:.2f}" for k, x in v.items()) + " cm")
         if score < self.best:
             self.best, self.best_it = score, it
             torch.save(cpu_state(model), ckpt / "cvae.pt")

@@ -73,15 +73,37 @@ def _load(path):
 
 @dataclass
 class ClipSet:
-    """Concatenated clips: rotations [F,J,4], root [F,3], contacts [F,2], and clip start offsets."""
+    """Concatenated clips: rotations [F,J,4], root [F,3], contacts [F,2], and clip start offsets; with
+    each clip's people ("unseen" where its performer has no clip in train, else "seen"; None: unknown)."""
     names: list
     starts: np.ndarray
     rotations: np.ndarray
     root: np.ndarray
     contacts: np.ndarray
+    people: np.ndarray = None
 
     def lengths(self):
         return np.diff(np.append(self.starts, len(self.root)))
+
+    def subset(self, keep):
+        """The clips where keep [clips] is true, as a ClipSet of their own."""
+        idx = np.flatnonzero(keep)
+        frames = np.concatenate([np.arange(s, s + n) for s, n in zip(self.starts[idx], self.lengths()[idx],
+                                                                     strict=True)])
+        lengths = self.lengths()[idx]
+        return ClipSet([self.names[i] for i in idx], np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64),
+                       self.rotations[frames], self.root[frames], self.contacts[frames],
+                       None if self.people is None else self.people[idx])
+
+
+def clip_people(root, names):
+    """Each clip's people (motion.takes.people_of: "unseen" or "seen") from the folder's MANIFEST.tsv."""
+    from motion.takes import people_of
+    rows = read_manifest(root)
+    if rows is None:
+        return None
+    who = people_of(rows)
+    return np.array([who.get(str(Path(n).relative_to(root)), "seen") for n in names])
 
 
 def build(root, split, sources=None, cache_dir=".cache", workers=2):
@@ -95,7 +117,8 @@ def build(root, split, sources=None, cache_dir=".cache", workers=2):
     cache = Path(cache_dir) / f"clips-{split}-{key}.npz"
     if cache.exists():
         d = np.load(cache, allow_pickle=False)
-        return ClipSet(list(d["names"]), d["starts"], d["rotations"], d["root"], d["contacts"])
+        names = list(d["names"])
+        return ClipSet(names, d["starts"], d["rotations"], d["root"], d["contacts"], clip_people(root, names))
     names, rots, roots, cons = [], [], [], []
     with ProcessPoolExecutor(workers) as ex, Progress(len(paths), f"load {split}") as bar:
         for path, rot, root_pos in ex.map(_load, paths, chunksize=8):
@@ -109,7 +132,8 @@ def build(root, split, sources=None, cache_dir=".cache", workers=2):
             roots.append(root_pos)
             cons.append(contact_labels(pos[:, FEET], FPS))
     starts = np.cumsum([0] + [len(r) for r in roots[:-1]])
-    cs = ClipSet(names, starts, np.concatenate(rots), np.concatenate(roots), np.concatenate(cons))
+    cs = ClipSet(names, starts, np.concatenate(rots), np.concatenate(roots), np.concatenate(cons),
+                 clip_people(root, names))
     cache.parent.mkdir(parents=True, exist_ok=True)
     np.savez(cache, names=np.array(names), starts=starts, rotations=cs.rotations, root=cs.root, contacts=cs.contacts)
     return cs
@@ -132,11 +156,14 @@ def vigorous_starts(cs: ClipSet, starts, window, height=0.35, chunk=50_000):
     return starts[highest[starts] >= height]
 
 
-def random_imus(rng, window, batch):
+def random_imus(rng, window, batch, flaky=1 / 3, p_drop=0.01, outage=100):
     """Which extra IMUs each window wears, and when each one is heard (DragPoser's variable sets and
     faulty sensors): a quarter of the windows wear none, a third one of the common sets, the rest a
-    random subset; a worn IMU goes silent once in the window with probability 0.3, for 5-45 frames
-    (past 15 frames the synchroniser calls it lost and fades its flag). -> worn [B,7], alive [W,B,7]."""
+    random subset. In `flaky` of the windows every worn IMU follows DragPoser's protocol (each frame it
+    drops with probability p_drop and returns `outage` frames later: a 60-frame window sees it come,
+    go or stay away), as the window's slice of a longer stream; in the others a worn IMU goes silent
+    once with probability 0.3, for 5-45 frames (past 15 frames the synchroniser calls it lost and
+    fades its flag). -> worn [B,7], alive [W,B,7]."""
     K = imus.NUM_IMUS
     worn = np.zeros((batch, K))
     kind = rng.random(batch)
@@ -148,7 +175,13 @@ def random_imus(rng, window, batch):
     drop = (rng.random((batch, K)) < 0.3) & (worn > 0)
     start, length = rng.integers(0, window, (batch, K)), rng.integers(5, 46, (batch, K))
     t = np.arange(window)[:, None, None]
-    alive = (worn[None] > 0) & ~(drop & (t >= start) & (t < start + length))
+    silent = drop & (t >= start) & (t < start + length)
+    # DragPoser's protocol (sec. 4.4): drops in the `outage` frames before the window count too
+    protocol = (rng.random(batch) < flaky)[None, :, None]
+    drops = rng.random((window + outage, batch, K)) < p_drop
+    since = np.cumsum(drops, axis=0)
+    down = (since[outage:] - since[:window]) > 0            # a drop in the last `outage` frames
+    alive = (worn[None] > 0) & ~np.where(protocol, down, silent)
     return worn, alive
 
 

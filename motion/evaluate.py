@@ -16,7 +16,7 @@ from edge.plausibility import PlausibilityScorer
 from edge.progress import Progress
 from motion.synth import wear
 from edge.skeleton import FEET, JOINT_NAMES, PARENTS
-from motion.takes import find_clips, load_take
+from motion.takes import PEOPLE, find_clips, load_take, people_of_files
 from motion import metrics
 
 WARMUP_S = 1.0
@@ -75,14 +75,17 @@ def take_signals(take, trackers, faults=None, seed=0, index=0, imu_noise=None):
     return wear(take.signals, worn, take.fps, rng, ImuNoise() if imu_noise is None else imu_noise, alive)
 
 
-def evaluate(paths, options=None, *, split=None, models=None, trackers=(), faults=None, imu_noise=None,
+def evaluate(paths, options=None, *, split=None, people=None, models=None, trackers=(), faults=None, imu_noise=None,
              max_frames=None, max_clips=None, dump=None, log=print):
     """Every clip of `paths` (BVH files, folders, sample .npz; a folder filtered by its MANIFEST.tsv's
-    `split`) through a Pipeline(options, models), wearing the extra IMUs `trackers` (with `faults`:
-    DragPoser's disconnect protocol; `imu_noise`: edge.imus.ImuNoise by default), scored after a
-    WARMUP_S warm-up. Returns the JSON `edge eval` writes; `dump` also writes one .npz per clip."""
+    `split`, and with `people` to the performers the model never saw or those it saw) through a
+    Pipeline(options, models), wearing the extra IMUs `trackers` (with `faults`: DragPoser's disconnect
+    protocol; `imu_noise`: edge.imus.ImuNoise by default), scored after a WARMUP_S warm-up. Returns the
+    JSON `edge eval` writes, with the same metrics for unseen and seen people apart under "people";
+    `dump` also writes one .npz per clip."""
     options = PipelineOptions() if options is None else options
-    files = _clips(paths, split, max_clips)
+    files = _clips(paths, split, max_clips, people)
+    who = people_of_files(paths, files)
     if faults not in (None, "disconnect"):
         raise ValueError(f"--faults {faults!r}: edge eval knows 'disconnect' (DragPoser's protocol on the extra trackers)")
     pipe = Pipeline(options, models=models)
@@ -104,24 +107,25 @@ def evaluate(paths, options=None, *, split=None, models=None, trackers=(), fault
                 continue
             run = run_take(pipe, take, max_frames, keep_samples=pipe.samples > 1,
                            signals=take_signals(take, trackers, faults, options.seed, index, imu_noise))
-            tally.add(f, take, run, pipe, dump)
+            tally.add(f, take, run, pipe, dump, who.get(f))
             bar.update(postfix=f"mpjpe {metrics.summarize(tally.parts)['mpjpe_cm']:.2f} cm" if tally.parts else None)
     if not tally.parts:
         raise SystemExit("edge eval: no clip could be evaluated: " + "; ".join(tally.skipped))
-    return {**_run_settings(pipe, options, split, trackers, faults), **tally.summary(),
+    return {**_run_settings(pipe, options, split, people, trackers, faults), **tally.summary(),
             "seconds": round(time.time() - t0, 1), "joint_names": list(JOINT_NAMES)}
 
 
-def _clips(paths, split, max_clips):
-    files = find_clips(paths, split)
+def _clips(paths, split, max_clips, people=None):
+    files = find_clips(paths, split, people)
     if max_clips and len(files) > max_clips:        # an even spread over the list (a quick subset)
         files = [files[i] for i in np.linspace(0, len(files) - 1, max_clips).round().astype(int)]
     if not files:
-        raise SystemExit(f"edge eval: no clips found in {paths}" + (f" for split {split!r}" if split else ""))
+        raise SystemExit(f"edge eval: no clips found in {paths}" + (f" for split {split!r}" if split else "")
+                         + (f" of {people} people" if people else ""))
     return files
 
 
-def _run_settings(pipe, options, split, trackers, faults):
+def _run_settings(pipe, options, split, people, trackers, faults):
     """What ran: the part of the result that says how, before what it measured."""
     return {"samples": options.samples, "ssi": pipe.ssi, "precision": options.precision,
             "precision_in_use": pipe.precision, "precision_note": pipe.precision_note,
@@ -129,24 +133,24 @@ def _run_settings(pipe, options, split, trackers, faults):
             "decoder_features": pipe.n_features, "imu_segments": pipe.segments,
             "heading_observer": pipe.heading is not None,
             "selection": [(c.name, c.weight) for c in pipe.criteria.criteria], "lookahead_frames": pipe.lookahead,
-            "split": split, "warmup_s": WARMUP_S, "plausibility_threshold_m": pipe.threshold}
+            "split": split, "people_filter": people, "warmup_s": WARMUP_S, "plausibility_threshold_m": pipe.threshold}
 
 
 class Tally:
-    """The metrics of the clips evaluated so far: per clip, then summed up by summary()."""
+    """The metrics of the clips evaluated so far: per clip (with whose clip it is: unseen or seen
+    people), then summed up by summary() over all of them and over each group."""
 
     def __init__(self, scorer):
         self.scorer = scorer
-        self.parts, self.phys, self.phys_gt, self.div = [], [], [], []
-        self.per_clip, self.skipped = [], []
-        self.switches = self.switch_frames = 0
-        self.peaks = {"after": [], "quiet": [], "gt_after": [], "gt_quiet": []}
+        self.clips, self.per_clip, self.skipped = [], [], []
 
-    def add(self, f, take, run, pipe, dump):
+    @property
+    def parts(self):
+        return [c["part"] for c in self.clips]
+
+    def add(self, f, take, run, pipe, dump, people=None):
         """One clip's run (a TakeRun of `pipe` on `take`, file `f`), after its warm-up."""
         pred, pelvis = run.pred, run.pelvis
-        self.switches += pipe.switch_count
-        self.switch_frames += int(run.transition.sum())
         T, w = len(pred), int(round(WARMUP_S * take.fps))
         if T - w < 4:
             self.skipped.append(f"{f}: shorter than the {WARMUP_S:.0f} s warm-up")
@@ -155,20 +159,19 @@ class Tally:
         head, wrists = head_joint(sig.head_pos, sig.head_rot), wrist_joints(sig.hand_pos, sig.hand_rot)
         bad = self.scorer.lower_body_error(pred[w:], pelvis[w:]) > self.scorer.threshold
         starts = [s0 - w for _, s0, _, _ in pipe.switches]
+        clip = {"people": people, "switches": pipe.switch_count, "switch_frames": int(run.transition.sum()),
+                "peaks": {}}
         # The jerk around switches, and in the same windows of the ground truth: how much the motion brings.
         for key, pos in (("", pred[w:]), ("gt_", gt[w:])):
-            after, quiet = metrics.transition_peaks(pos, take.fps, starts)
-            self.peaks[key + "after"] += after
-            self.peaks[key + "quiet"] += quiet
-        m = metrics.clip_metrics(pred[w:], gt[w:], take.fps, head[w:], wrists[w:], bad)
-        self.parts.append(m)
-        phys = metrics.physical_metrics(pred[w:], run.contacts[w:])
-        self.phys.append(phys)
-        self.phys_gt.append(metrics.physical_metrics(gt[w:], contact_labels(gt[:, FEET], take.fps)[w:]))
-        if run.samples is not None:
-            self.div.append(metrics.diversity_metrics(run.samples[w:], gt[w:]))
+            clip["peaks"][key + "after"], clip["peaks"][key + "quiet"] = metrics.transition_peaks(pos, take.fps, starts)
+        clip["part"] = m = metrics.clip_metrics(pred[w:], gt[w:], take.fps, head[w:], wrists[w:], bad)
+        clip["phys"] = phys = metrics.physical_metrics(pred[w:], run.contacts[w:])
+        clip["phys_gt"] = metrics.physical_metrics(gt[w:], contact_labels(gt[:, FEET], take.fps)[w:])
+        clip["div"] = metrics.diversity_metrics(run.samples[w:], gt[w:]) if run.samples is not None else None
+        self.clips.append(clip)
         s = metrics.summarize([m])
-        self.per_clip.append({"clip": str(f), "frames": s["frames"], "mpjpe_cm": round(s["mpjpe_cm"], 3),
+        self.per_clip.append({"clip": str(f), "people": people, "frames": s["frames"],
+                              "mpjpe_cm": round(s["mpjpe_cm"], 3),
                               "implausible_rate": round(s["implausible_rate"], 4),
                               "leg_intersect_frames": phys["intersect_n"], "float_frames": phys["float_n"]})
         if dump:
@@ -181,13 +184,27 @@ class Tally:
                                 threshold=pipe.threshold, warmup_frames=w)
 
     def summary(self):
-        return {"clips": len(self.parts), "ssi_switches": self.switches, "transition_frames": self.switch_frames,
-                **metrics.summarize(self.parts), **metrics.summarize_physical(self.phys),
-                "ground_truth": metrics.summarize_physical(self.phys_gt),
-                "diversity": metrics.summarize_diversity(self.div), "transition_jerk": self._jerk(),
-                "skipped": self.skipped, "per_clip": self.per_clip}
+        """Every metric over all clips, the per-clip table, and under "people" the same metrics for the
+        clips of unseen and of seen people (when a manifest says whose clips they are)."""
+        out = {**self._summarize(self.clips), "skipped": self.skipped, "per_clip": self.per_clip}
+        groups = {g: [c for c in self.clips if c["people"] == g] for g in PEOPLE}
+        if any(groups.values()):
+            out["people"] = {g: self._summarize(cs) for g, cs in groups.items() if cs}
+        return out
 
-    def _jerk(self):
+    def _summarize(self, clips):
+        if not clips:
+            return {"clips": 0}
+        return {"clips": len(clips), "ssi_switches": sum(c["switches"] for c in clips),
+                "transition_frames": sum(c["switch_frames"] for c in clips),
+                **metrics.summarize([c["part"] for c in clips]),
+                **metrics.summarize_physical([c["phys"] for c in clips]),
+                "ground_truth": metrics.summarize_physical([c["phys_gt"] for c in clips]),
+                "diversity": metrics.summarize_diversity([c["div"] for c in clips if c["div"] is not None]),
+                "transition_jerk": self._jerk(clips)}
+
+    @staticmethod
+    def _jerk(clips):
         """RPM's transition jerk: the peak after each switch against the median quiet window, for the
         prediction and for the ground truth in the same windows."""
         def ratio(after, quiet):
@@ -199,7 +216,7 @@ class Tally:
         def median(x):
             return float(np.median(x)) if x else None
 
-        k = self.peaks
+        k = {key: [v for c in clips for v in c["peaks"][key]] for key in ("after", "quiet", "gt_after", "gt_quiet")}
         return {"switches_measured": len(k["after"]),
                 "peak_after_switch_mean_m_s3": mean(k["after"]), "peak_quiet_window_median_m_s3": median(k["quiet"]),
                 "ratio": ratio(k["after"], k["quiet"]),

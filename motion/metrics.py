@@ -3,7 +3,9 @@ import numpy as np
 
 from motion.contacts import contact_labels
 from edge.physics import FLOAT_M, INTERSECT_M, PENETRATION_M, foot_height, leg_gap
-from edge.skeleton import ANKLES, FEET, HEAD, LOWER_BODY, WRISTS
+from edge.skeleton import ANKLES, FEET, HEAD, JOINT, LOWER_BODY, WRISTS
+
+KNEES = np.array([JOINT["l_knee"], JOINT["r_knee"]])
 
 def clip_metrics(pred, gt, fps, tracked_head, tracked_wrists, implausible):
     """pred, gt [T,J,3]; tracked_* [T,3] / [T,2,3]; implausible [T] bool. Sums and counts, so clips aggregate by frame."""
@@ -33,6 +35,7 @@ def summarize(parts):
     def tot(k):
         return float(sum(p[k] for p in parts))
     frames = tot("frames")
+    per_joint = 100 * sum(p["per_joint_sum"] for p in parts) / frames
     return {
         "frames": int(frames),
         "mpjpe_cm": 100 * tot("mpjpe_sum") / frames,
@@ -42,7 +45,8 @@ def summarize(parts):
         "ee_error_cm": 100 * tot("ee_sum") / frames,
         "foot_skate_cm_s": 100 * tot("skate_sum") / max(tot("skate_n"), 1),
         "implausible_rate": tot("implausible_sum") / frames,
-        "per_joint_mpjpe_cm": (100 * sum(p["per_joint_sum"] for p in parts) / frames).round(3).tolist(),
+        "knees_cm": float(per_joint[KNEES].mean()), "ankles_cm": float(per_joint[ANKLES].mean()),
+        "per_joint_mpjpe_cm": per_joint.round(3).tolist(),
     }
 
 

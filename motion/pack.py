@@ -134,9 +134,11 @@ def build_pack(data, out=DEFAULT_PACK, sources=None):
         arrays[f"{split}_stored"] = np.array([len(r) for r in rots], np.int64)
         arrays[f"{split}_fps"] = fps
         arrays[f"{split}_names"] = np.array(names)
+        arrays[f"{split}_people"] = cs.people          # unseen / seen (motion.takes.people_of): val is chosen on unseen
         info["splits"][split] = {"clips": len(cs.names), "frames_60hz": int(len(cs.root)),
                                  "stored_frames": int(sum(len(r) for r in rots)), "joints": int(J),
-                                 "minutes": len(cs.root) / 3600}
+                                 "minutes": len(cs.root) / 3600,
+                                 "unseen_people_minutes": float(cs.lengths()[cs.people == "unseen"].sum() / 3600)}
     out.parent.mkdir(parents=True, exist_ok=True)
     arrays["info"] = np.array(json.dumps(info))
     np.savez(out, **arrays)
@@ -168,6 +170,7 @@ def load_pack(path, split, sources=None):
     if sources:
         folders = ds.source_folders(sources)
         keep = np.array([str(n).startswith(folders) for n in names])
+    people = z[f"{split}_people"] if f"{split}_people" in z else None
     rots, roots, cons, kept = [], [], [], []
     starts60 = np.concatenate([[0], np.cumsum(lengths)[:-1]])
     for i in np.flatnonzero(keep):
@@ -181,7 +184,8 @@ def load_pack(path, split, sources=None):
         cons.append(contacts[starts60[i]:starts60[i] + lengths[i]])
         kept.append(str(names[i]))
     starts = np.cumsum([0] + [len(r) for r in roots[:-1]]).astype(np.int64)
-    return ds.ClipSet(kept, starts, np.concatenate(rots), np.concatenate(roots), np.concatenate(cons))
+    return ds.ClipSet(kept, starts, np.concatenate(rots), np.concatenate(roots), np.concatenate(cons),
+                      None if people is None else people[keep])
 
 
 def pack_error_mm(path, data, sources=None, chunk=100_000):

@@ -65,18 +65,39 @@ def from_sample(path):
         raise BvhError(f"{path}: not a readable edgepose sample file ({e})") from None
 
 
-def find_clips(paths, split=None):
-    """Expand files and folders into a list of BVH/sample files; folders with a MANIFEST.tsv filter by split."""
+PEOPLE = ("unseen", "seen")
+
+
+def people_of(rows):
+    """MANIFEST.tsv rows -> {file: "unseen" | "seen"}: a val clip's performer is unseen when their
+    subject has no clip in `train` (CMU subjects and HDM05's mm held out whole); seen otherwise
+    (Bandai's actors fill both splits). Train clips are "seen"."""
+    in_train = {r.get("subject") for r in rows if r.get("split") == "train"}
+    return {r["file"]: "seen" if r.get("subject") in in_train else "unseen" for r in rows}
+
+
+def _manifest_rows(folder):
+    import csv
+    with open(folder / "MANIFEST.tsv", newline="") as f:
+        return list(csv.DictReader(f, delimiter="\t"))
+
+
+def find_clips(paths, split=None, people=None):
+    """Expand files and folders into a list of BVH/sample files; folders with a MANIFEST.tsv filter by
+    split and, with `people` ("unseen" or "seen", see people_of), by whether the model saw the performer."""
+    if people not in (None, *PEOPLE):
+        raise ValueError(f"people {people!r}: choose one of {', '.join(PEOPLE)} (or all)")
     out = []
     for p in map(Path, paths):
         if p.is_dir():
-            manifest = p / "MANIFEST.tsv"
-            if manifest.exists():
-                import csv
-                with open(manifest, newline="") as f:
-                    rows = list(csv.DictReader(f, delimiter="\t"))
-                out += [p / r["file"] for r in rows if split is None or r.get("split") == split]
+            if (p / "MANIFEST.tsv").exists():
+                rows = _manifest_rows(p)
+                seen = people_of(rows)
+                out += [p / r["file"] for r in rows if (split is None or r.get("split") == split)
+                        and (people is None or seen[r["file"]] == people)]
             else:
+                if people:
+                    raise ValueError(f"{p}: no MANIFEST.tsv, so nothing says whose clips are unseen")
                 out += sorted(list(p.rglob("*.bvh")) + list(p.rglob("*.npz")))
         elif p.exists():
             out.append(p)
@@ -86,6 +107,15 @@ def find_clips(paths, split=None):
                     "of them, or edgepose sample .npz files such as samples/cmu_09_12_walk.npz")
             raise FileNotFoundError(f"no such file or folder: {p}{hint}")
     return out
+
+
+def people_of_files(paths, files):
+    """{file: "unseen" | "seen"} for the files that come from a folder of `paths` with a MANIFEST.tsv."""
+    out = {}
+    for p in map(Path, paths):
+        if p.is_dir() and (p / "MANIFEST.tsv").exists():
+            out.update({p / f: who for f, who in people_of(_manifest_rows(p)).items()})
+    return {f: out[Path(f)] for f in files if Path(f) in out}
 
 
 def load_take(path, **kw):

@@ -10,6 +10,7 @@ language when the block's first command starts with a program (edge, python, .ve
 sudo, ...); diagrams, config files and udev rules in plain fences are not commands. `\\` continuations
 are joined and `#` comments dropped. Commands on `../shared/mocap` skip when the data is absent.
 """
+import ast
 import os
 import re
 import shlex
@@ -263,15 +264,53 @@ def test_documented_command_runs_and_writes_what_it_names(command, tmp_path):
 DOTTED = re.compile(r"(?<![\w./-])((?:edge|edgetools|firmware_bridge|models|quantize|viz)(?:\.[A-Za-z_]\w*)+)")
 
 
+def _defined(tree, attrs):
+    """Whether the chain `attrs` is defined in a module's syntax tree (a class, function or assignment
+    at the top, then inside a class body); None where it passes through an imported name."""
+    body = tree.body
+    for i, attr in enumerate(attrs):
+        found = None
+        for node in body:
+            if isinstance(node, (ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef)) and node.name == attr:
+                found = node
+            elif isinstance(node, (ast.Assign, ast.AnnAssign)):
+                targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+                names = {n.id for t in targets for n in ast.walk(t) if isinstance(n, ast.Name)}
+                found = node if attr in names else found
+            elif isinstance(node, (ast.Import, ast.ImportFrom)) and \
+                    attr in {(a.asname or a.name).split(".")[0] for a in node.names}:
+                return None
+        if found is None:
+            return False
+        if i + 1 < len(attrs):
+            if not isinstance(found, ast.ClassDef):
+                return None         # an attribute of a function or a value: ask the imported module
+            body = found.body
+    return True
+
+
 def resolves(name):
-    """Whether `name` is an importable module, or an attribute path under the longest one that is."""
+    """Whether `name` is a module of the project, or a name defined in one, read from the source, so
+    that a module whose optional dependency (torch, matplotlib) is not installed still resolves."""
     import importlib
+    import importlib.util
     parts = name.split(".")
     for k in range(len(parts), 0, -1):
         try:
-            obj = importlib.import_module(".".join(parts[:k]))
-        except ImportError:
+            spec = importlib.util.find_spec(".".join(parts[:k]))
+        except (ImportError, ValueError):
+            spec = None
+        if spec is None or not spec.origin or not spec.origin.endswith(".py"):
             continue
+        if k == len(parts):
+            return True
+        defined = _defined(ast.parse(Path(spec.origin).read_text()), parts[k:])
+        if defined is not None:
+            return defined
+        try:                        # through an imported name: import the module to follow it
+            obj = importlib.import_module(".".join(parts[:k]))
+        except ModuleNotFoundError as e:
+            pytest.skip(f"{name} goes through a name {'.'.join(parts[:k])} imports from {e.name}, not installed")
         for attr in parts[k:]:
             if not hasattr(obj, attr):
                 return False

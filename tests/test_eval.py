@@ -113,3 +113,28 @@ def test_eval_imus_carry_the_noise_they_are_given():
     angle = lambda a, b: np.degrees(2 * np.arccos(np.clip(np.abs((a * b).sum(-1)), 0, 1)))
     assert angle(clean.imu_rot[:, shins], take.signals.imu_rot[:, shins]).max() < 0.1     # float32 rounding
     assert angle(noisy.imu_rot[:, shins], take.signals.imu_rot[:, shins]).mean() > 0.5
+
+
+def test_eval_reports_the_people_the_model_never_saw_apart_from_those_it_saw(tmp_path):
+    """A val clip whose performer has no clip in train is "unseen" (what choices are made on); one whose
+    performer is in train is "seen"; --people keeps one group, and its figures are that group's part of
+    the whole run."""
+    import shutil
+    from motion.evaluate import evaluate
+    (tmp_path / "a").mkdir()
+    shutil.copy(SAMPLE, tmp_path / "a" / "walk_unseen.npz")
+    shutil.copy(SAMPLE, tmp_path / "a" / "walk_seen.npz")
+    rows = [("train/x.bvh", "train", "cmu:01"), ("a/walk_unseen.npz", "val", "cmu:09"), ("a/walk_seen.npz", "val", "cmu:01")]
+    (tmp_path / "MANIFEST.tsv").write_text("file\tsplit\tsubject\n" + "".join("\t".join(r) + "\n" for r in rows))
+    opts = PipelineOptions(samples=1)
+    whole = evaluate([tmp_path], opts, split="val", max_frames=200, log=lambda *a: None)
+    assert whole["clips"] == 2 and set(whole["people"]) == {"unseen", "seen"}
+    assert {c["clip"].split("/")[-1]: c["people"] for c in whole["per_clip"]} == \
+        {"walk_unseen.npz": "unseen", "walk_seen.npz": "seen"}
+    assert whole["people"]["unseen"]["frames"] + whole["people"]["seen"]["frames"] == whole["frames"]
+    only = evaluate([tmp_path], opts, split="val", people="unseen", max_frames=200, log=lambda *a: None)
+    assert only["clips"] == 1 and list(only["people"]) == ["unseen"]
+    assert only["mpjpe_cm"] == pytest.approx(whole["people"]["unseen"]["mpjpe_cm"])
+    assert only["knees_cm"] > 0 and only["ankles_cm"] > 0
+    with pytest.raises(ValueError, match="no MANIFEST.tsv"):
+        evaluate([tmp_path / "a"], opts, people="unseen", log=lambda *a: None)

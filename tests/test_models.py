@@ -155,3 +155,21 @@ def test_vigorous_windows_are_those_that_lift_a_toe():
     cs = ds.ClipSet(["standing"], np.array([0]), rot, root, np.zeros((F, 2), np.float32))
     starts = ds.window_starts(cs, 60)
     assert list(ds.vigorous_starts(cs, starts, 60)) == list(range(41, 130))
+
+
+def test_training_windows_lose_trackers_as_often_and_as_long_as_dragposers_protocol():
+    """In the protocol's windows every worn IMU drops with 1 % a frame and stays away 100 frames: about
+    0.99^100 = 37 % of it is heard, and a tracker that drops inside a 60-frame window does not come
+    back in it; the other windows keep one short silence (5-45 frames) at most."""
+    from motion.dataset import random_imus
+    rng = np.random.default_rng(0)
+    worn, alive = random_imus(rng, 60, 4000, flaky=1.0)
+    heard = alive[:, worn > 0]                                       # [W, worn trackers]
+    assert heard.mean() == pytest.approx(0.99 ** 100, abs=0.03)
+    returns = (~heard[:-1] & heard[1:])                              # silent, then heard
+    drops = (heard[:-1] & ~heard[1:])
+    first_drop = np.where(drops.any(0), drops.argmax(0), 60)
+    assert not (returns & (np.arange(59)[:, None] > first_drop[None])).any()
+    worn, alive = random_imus(rng, 60, 4000, flaky=0.0)
+    silent = (~alive[:, worn > 0]).sum(0)
+    assert silent.max() <= 45 and 0.05 < (silent > 0).mean() < 0.35

@@ -362,15 +362,17 @@ def contention_timeline(frame_ms, samples_timeline, period_ms, hog, path, title=
 # Training
 
 
-def read_train_log(path):
+def read_train_log(path, people="unseen"):
     """models.train's log -> (steps, val none cm, val imus cm) arrays, steps counted from the first run
-    when a log holds a resumed run ('resumed from ... after K steps' shifts what follows by K)."""
+    when a log holds a resumed run ('resumed from ... after K steps' shifts what follows by K). Logs
+    that validate on unseen and seen people apart give `people`'s; older logs their one val."""
     import re
     steps, none, imus, base = [], [], [], 0
     for line in open(path):
         if m := re.search(r"resumed from .* after (\d+) steps", line):
             base = int(m.group(1))
-        elif m := re.match(r"it (\d+) .*val mpjpe .* none ([\d.]+) imus ([\d.]+)", line):
+        elif m := re.match(r"it (\d+) .*val mpjpe [^|]*?(?:" + people + r" )?none ([\d.]+) (?:" + people
+                           + r" )?imus ([\d.]+)", line):
             steps.append(base + int(m.group(1)))
             none.append(float(m.group(2)))
             imus.append(float(m.group(3)))
