@@ -94,10 +94,9 @@ def dragposer_drops(rng, T, worn, fps=60.0, p=0.01, frames=100):
     return alive
 
 
-def _random_rotations(rng, shape, max_deg):
-    axis = rng.standard_normal(shape + (3,))
-    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
-    return quat.from_axis_angle(axis, np.radians(rng.uniform(0, max_deg, shape)))
+def _axis_angle(axis, deg):
+    """Axes [...,3] (any length) and angles in degrees [...] -> quaternions [...,4]."""
+    return quat.from_axis_angle(axis / np.linalg.norm(axis, axis=-1, keepdims=True), np.radians(deg))
 
 
 @dataclass
@@ -110,11 +109,23 @@ class ImuNoise:
     yaw_drift_deg_s: float = 0.5
     jitter_max_deg: float = 1.0
 
+    def draw(self, rng, shape):
+        """The random numbers of one application to orientations of `shape` ([T,...,K]), as a dict
+        (models.batches draws the same on a device)."""
+        rest = shape[1:]
+        return {"mount_axis": rng.standard_normal(rest + (3,)), "mount_deg": rng.uniform(0, self.mount_max_deg, rest),
+                "yaw_offset_deg": rng.normal(0, self.yaw_offset_std_deg, rest),
+                "yaw_drift_deg_s": rng.normal(0, self.yaw_drift_deg_s, rest),
+                "jitter_axis": rng.standard_normal(shape + (3,)), "jitter_deg": rng.uniform(0, self.jitter_max_deg, shape)}
+
     def apply(self, rot, fps, rng):
         """rot [T,...,K,4] world orientations -> the same, as the IMUs report them."""
+        return self.apply_drawn(rot, fps, self.draw(rng, rot.shape[:-1]))
+
+    def apply_drawn(self, rot, fps, d):
         T, rest = rot.shape[0], rot.shape[1:-1]
-        mount = _random_rotations(rng, rest, self.mount_max_deg)
+        mount = _axis_angle(d["mount_axis"], d["mount_deg"])
         t = (np.arange(T) / fps).reshape((T,) + (1,) * len(rest))
-        yaw = np.radians(rng.normal(0, self.yaw_offset_std_deg, rest) + rng.normal(0, self.yaw_drift_deg_s, rest) * t)
-        jitter = _random_rotations(rng, rot.shape[:-1], self.jitter_max_deg)
+        yaw = np.radians(d["yaw_offset_deg"] + d["yaw_drift_deg_s"] * t)
+        jitter = _axis_angle(d["jitter_axis"], d["jitter_deg"])
         return quat.normalize(quat.mul(quat.from_yaw(yaw), quat.mul(jitter, quat.mul(rot, mount[None]))))

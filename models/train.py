@@ -277,11 +277,16 @@ def parse_args(argv=None):
     ap.add_argument("--ae-from", help="take the autoencoder and its threshold from this checkpoint folder "
                                       "(e.g. models/checkpoints) instead of training one")
     ap.add_argument("--hidden", type=int, default=HIDDEN, help="GRU width of the CVAE (v0.3: 128)")
+    ap.add_argument("--batches", choices=("auto", "workers", "device"), default="auto",
+                    help="where training windows are made: numpy processes (workers, the reference) or on the "
+                         "training device itself (models.batches); auto: device on an accelerator")
     ap.add_argument("--workers", type=int, default=1, help="batch-making processes (numpy, one core each)")
     ap.add_argument("--reuse", type=int, default=1,
                     help="a batch may serve up to this many steps (each with fresh latents) when the next is not "
                          "ready yet: an accelerator need not wait for the CPUs")
     ap.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
+    ap.add_argument("--threads", type=int, default=0,
+                    help="torch threads of the main process (0: 2 on an accelerator, else the cores per process)")
     ap.add_argument("--val-every", type=int, default=400)
     ap.add_argument("--val-windows", type=int, default=128, help="windows in each of the 4 validation batches of a kind")
     ap.add_argument("--out", default="models")
@@ -318,7 +323,7 @@ class Trainer:
         self.logf = open(self.out / "train_log.txt", "w") if self.lead else None
         torch.manual_seed(a.seed)
         # on an accelerator the main process only feeds it: leave the cores to the batch makers
-        torch.set_num_threads(2 if device.type == "cuda" else max(1, (os.cpu_count() or 2) // self.world))
+        torch.set_num_threads(a.threads or (2 if device.type == "cuda" else max(1, (os.cpu_count() or 2) // self.world)))
         if device.type == "cuda":
             torch.backends.cuda.matmul.allow_tf32 = True
             torch.backends.cudnn.allow_tf32 = True
@@ -342,20 +347,35 @@ class Trainer:
                  f"{len(self.cs_val.names)} clips, {len(self.cs_val.root) / 3600:.1f} min (60 Hz)")
 
     def start_batch_makers(self):
-        """Forked numpy processes filling a queue with training batches; then the process group."""
+        """The training windows' makers: the split on the device (models.batches), or forked numpy
+        processes filling a queue; then the process group."""
         global _TRAIN
         a, rank = self.a, self.rank
-        _TRAIN = self.cs_train
-        ctx = mp.get_context("fork")
-        self.q = ctx.Queue(maxsize=max(8, 2 * a.workers))
-        self.procs = [ctx.Process(target=_producer, args=(self.q, a.window, a.batch,
-                                                          a.seed + 1 + 1000 * rank + 100_000 * w, a.vigorous), daemon=True)
-                      for w in range(a.workers)]
-        for p in self.procs:
-            p.start()
+        self.on_device = a.batches == "device" or (a.batches == "auto" and self.device.type == "cuda")
+        self.q, self.procs = None, []
+        seed = a.seed + 1 + 1000 * rank
+        if self.on_device:
+            from models.batches import DeviceBatches
+            self.batches = DeviceBatches(self.cs_train, a.window, self.device, seed=seed, vigorous=a.vigorous)
+            self.log(f"batches: made on {self.device} (models.batches), {len(self.batches.starts):,} window starts")
+        else:
+            _TRAIN = self.cs_train
+            ctx = mp.get_context("fork")
+            self.q = ctx.Queue(maxsize=max(8, 2 * a.workers))
+            self.procs = [ctx.Process(target=_producer, args=(self.q, a.window, a.batch, seed + 100_000 * w,
+                                                              a.vigorous), daemon=True) for w in range(a.workers)]
+            for p in self.procs:
+                p.start()
+            self.log(f"batches: made by {a.workers} numpy process(es)")
         if self.world > 1:       # after the fork: the batch producer must not inherit the process group's threads
             import torch.distributed as dist
             dist.init_process_group("nccl" if self.device.type == "cuda" else "gloo")
+
+    def next_batch(self):
+        """The next training batch, as tensors on the device."""
+        if self.on_device:
+            return self.batches.next(self.a.batch)
+        return to_t(self.q.get(), self.device)
 
     def autoencoder(self):
         """The plausibility autoencoder and its threshold: trained here, or taken from a checkpoint folder;
@@ -406,7 +426,7 @@ class Trainer:
             if width != a.hidden:
                 raise SystemExit(f"{start_from} is a --hidden {width} model; pass --hidden {width}")
             model.load_state_dict(state)
-        fit = [to_t(self.q.get()) for _ in range(8)]
+        fit = [{k: v.cpu() for k, v in self.next_batch().items()} for _ in range(8)]
         if not start_from:
             model.norm.fit(torch.cat([b["features"] for b in fit]))
         if a.posterior:
@@ -441,13 +461,15 @@ class Trainer:
         self.t1 = time.time()
         bar = Progress(a.steps or int(budget), "cvae (steps)" if a.steps else "cvae (s)") if self.lead else None
         b, uses, self.waited = None, a.reuse, 0.0
+        if self.lead and (a.init or a.resume):      # where the learning curve starts: the weights as loaded
+            self._validate_and_save({})
         while not self._done():
             frac = self.it / a.steps if a.steps else (time.time() - self.t1) / budget
             for g in opt.param_groups:
                 g["lr"] = float(1e-5 + 0.5 * (a.lr - 1e-5) * (1 + np.cos(np.pi * min(frac, 1.0))))  # a float: weights_only loads
             t_wait = time.time()
-            if uses >= a.reuse or not self.q.empty():
-                b, uses = to_t(self.q.get(), self.device), 0
+            if uses >= a.reuse or self.on_device or not self.q.empty():
+                b, uses = self.next_batch(), 0
             uses += 1
             self.waited += time.time() - t_wait
             model.train()
@@ -473,7 +495,7 @@ class Trainer:
         v = {k: validate(model, vb) for k, vb in self.val_batches.items()}
         score = float(np.mean([v[k] for k in self.choose_on]))
         self.log(f"it {it} t {time.time() - self.t1:.0f}s (data wait {self.waited:.0f}s) lr "
-                 f"{self.opt.param_groups[0]['lr']:.2e} train mpjpe {t['mpjpe'].item() * 100:.2f} "
+                 f"{self.opt.param_groups[0]['lr']:.2e} train mpjpe {t['mpjpe'].item() * 100 if t else float('nan'):.2f} "
                  + " ".join(f"{k} {x.item():.4f}" for k, x in t.items() if k != "mpjpe")
                  + " | val mpjpe (head-anchored, no IK) " + " ".join(f"{k} {x:.2f}" for k, x in v.items()) + " cm")
         if score < self.best:
@@ -489,6 +511,8 @@ class Trainer:
         meta = {"plausibility_threshold_m": self.threshold, "iterations": self.done_before + self.it,
                 "run_iterations": self.it, "hidden": a.hidden, "resumed_from": a.resume,
                 "wall_clock_s": time.time() - self.t1,
+                "windows_per_minute": self.it * a.batch / max(time.time() - self.t1, 1e-9) * 60,
+                "batches_on": "device" if getattr(self, "on_device", False) else "workers",
                 "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor(),
                 "data": a.data, "data_sha256": self.data_sha256, "best_iteration": self.best_it,
                 "val_mpjpe_cm_training": self.best, "minutes": a.minutes, "sources": sources,
@@ -509,7 +533,10 @@ class Trainer:
             dist.destroy_process_group()
         if not self.lead:
             return
-        self.log(f"cvae: {self.it} iterations in {time.time() - self.t1:.0f} s; best val {self.best:.2f} cm at it {self.best_it}")
+        took = time.time() - self.t1
+        self.log(f"cvae: {self.it} iterations in {took:.0f} s ({self.it * self.a.batch / max(took, 1e-9) * 60:,.0f} "
+                 f"windows a minute, {self.waited / max(took, 1e-9):.0%} of the time making or waiting for batches); "
+                 f"best val {self.best:.2f} cm at it {self.best_it}")
         self.write_meta()
         if self.a.no_export:
             return

@@ -185,25 +185,39 @@ def random_imus(rng, window, batch, flaky=1 / 3, p_drop=0.01, outage=100):
     return worn, alive
 
 
-def make_batch(cs: ClipSet, starts, window, rng, noise: DeviceNoise = None, imu_noise: imus.ImuNoise = None,
-               with_imus=True):
-    """Time-major batch [W,B,...] of model inputs and targets, with device noise synthesised per window
-    and a random set of extra IMUs (random_imus) unless with_imus is False (the 4-point case)."""
-    idx = starts[None, :] + np.arange(window)[:, None]          # [W,B]
+def draw_batch(rng, starts, window, noise: DeviceNoise = None, imu_noise: imus.ImuNoise = None, with_imus=True):
+    """Every random number of a batch of windows starting at `starts` [B], in the order make_batch has
+    always drawn them: the heading and floor shift, the device noise, which IMUs are worn and heard,
+    and their noise. render_batch makes the batch from them; models.batches draws the same on a device."""
+    B = len(starts)
+    d = {"starts": np.asarray(starts), "yaw": rng.uniform(-np.pi, np.pi, B),
+         "shift": np.concatenate([rng.uniform(-2, 2, (B, 1)), np.zeros((B, 1)), rng.uniform(-2, 2, (B, 1))], axis=1)}
+    if noise is not None:
+        d["device"] = noise.draw(rng, window, (B,))
+    if with_imus:
+        d["worn"], d["alive"] = random_imus(rng, window, B)
+        if imu_noise is not None:
+            d["imu"] = imu_noise.draw(rng, (window, B, imus.NUM_IMUS))
+    return d
+
+
+def render_batch(cs: ClipSet, d, window, noise: DeviceNoise = None, imu_noise: imus.ImuNoise = None):
+    """The batch that draw_batch's numbers `d` make of the clips (deterministic): time-major [W,B,...]
+    model inputs and targets."""
+    idx = d["starts"][None, :] + np.arange(window)[:, None]          # [W,B]
     rot = cs.rotations[idx].astype(np.float64)                  # [W,B,J,4]
     root = cs.root[idx].astype(np.float64)
     # Random heading and floor position: the data should not teach the model where the room is.
-    yaw = quat.from_yaw(rng.uniform(-np.pi, np.pi, len(starts)))
-    shift = np.concatenate([rng.uniform(-2, 2, (len(starts), 1)), np.zeros((len(starts), 1)),
-                            rng.uniform(-2, 2, (len(starts), 1))], axis=1)
+    yaw = quat.from_yaw(d["yaw"])
     rot = rot.copy()
     rot[:, :, 0] = quat.mul(yaw[None], rot[:, :, 0])
-    root = quat.rotate(yaw[None], root) + shift[None]
+    root = quat.rotate(yaw[None], root) + d["shift"][None]
     world_rot, gt_pos = world_pose(rot, root)
-    sig = synthesize_from_pose(world_rot, gt_pos, FPS, rng, noise)
-    if with_imus:
-        worn, alive = random_imus(rng, window, len(starts))
-        sig = wear(sig, worn[None], FPS, rng, imu_noise, alive)
+    sig = synthesize_from_pose(world_rot, gt_pos, FPS)
+    if "device" in d:
+        sig = noise.apply_drawn(sig, FPS, d["device"])
+    if "worn" in d:
+        sig = wear(sig, d["worn"][None], FPS, alive=d["alive"], noise=imu_noise, drawn=d.get("imu"))
     feats, points, yaw_q = sequence_features(sig, FPS)
     inv_yaw = quat.inv(yaw_q)[..., None, :]
     gt_rel = quat.rotate(inv_yaw, gt_pos - gt_pos[..., HEAD:HEAD + 1, :])   # head-anchored, character frame
@@ -217,6 +231,14 @@ def make_batch(cs: ClipSet, starts, window, rng, noise: DeviceNoise = None, imu_
         "contacts": cs.contacts[idx],
         "anchor_y": points[..., 0, 1].astype(np.float32),        # the tracked head joint's height (floor terms)
     }
+
+
+def make_batch(cs: ClipSet, starts, window, rng, noise: DeviceNoise = None, imu_noise: imus.ImuNoise = None,
+               with_imus=True):
+    """Time-major batch [W,B,...] of model inputs and targets, with device noise synthesised per window
+    and a random set of extra IMUs (random_imus) unless with_imus is False (the 4-point case). The
+    reference for models.batches, which makes the same on an accelerator."""
+    return render_batch(cs, draw_batch(rng, starts, window, noise, imu_noise, with_imus), window, noise, imu_noise)
 
 
 def pose_batch(cs: ClipSet, frames):

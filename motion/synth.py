@@ -42,22 +42,20 @@ def synthesize_from_pose(world_rot_m, pos, fps, rng=None, noise=None):
     return sig
 
 
-def _smooth_noise(rng, shape, fps, std, corr_s):
-    """AR(1) noise with stationary std `std` and correlation time `corr_s` along axis 0."""
-    a = np.exp(-1.0 / (fps * corr_s))
-    w = rng.standard_normal(shape) * std * np.sqrt(1 - a * a)
-    out = np.empty(shape)
-    out[0] = rng.standard_normal(shape[1:]) * std
-    for t in range(1, shape[0]):
+def smooth_noise(first, steps, a):
+    """AR(1) noise along axis 0 from standard normals: out[0] = first, out[t] = a out[t-1] + sqrt(1-a^2)
+    steps[t] (stationary std 1; scale it)."""
+    out = np.empty(steps.shape)
+    out[0] = first
+    w = steps * np.sqrt(1 - a * a)
+    for t in range(1, len(steps)):
         out[t] = a * out[t - 1] + w[t]
     return out
 
 
-def _random_small_rotations(rng, shape, max_deg):
-    axis = rng.standard_normal(shape + (3,))
-    axis /= np.linalg.norm(axis, axis=-1, keepdims=True)
-    ang = np.radians(rng.uniform(0, max_deg, shape))
-    return quat.from_axis_angle(axis, ang)
+def _random_small_rotations(axis, deg):
+    """Unit axes [...,3] and angles in degrees [...] -> quaternions [...,4]."""
+    return quat.from_axis_angle(axis / np.linalg.norm(axis, axis=-1, keepdims=True), np.radians(deg))
 
 
 @dataclass
@@ -70,29 +68,45 @@ class DeviceNoise:
     yaw_offset_std_deg: float = 3.0  # residual heading error of the puck after calibration
     yaw_drift_deg_s: float = 0.5     # gyro-integration drift rate (std)
 
+    def draw(self, rng, T, batch):
+        """The random numbers of one application to T frames of `batch` sequences (a tuple of leading
+        axes), as a dict: apply_drawn turns them into noise; models.batches draws the same on a device."""
+        return {"wander": rng.standard_normal((T, *batch, 3, 3)), "wander0": rng.standard_normal((*batch, 3, 3)),
+                "jitter": rng.standard_normal((T, *batch, 3, 3)),
+                "rot_axis": rng.standard_normal((T, *batch, 4, 3)), "rot_deg": rng.uniform(0, self.rot_max_deg, (T, *batch, 4)),
+                "yaw_offset_deg": rng.normal(0, self.yaw_offset_std_deg, batch),
+                "yaw_drift_deg_s": rng.normal(0, self.yaw_drift_deg_s, batch),
+                "acc": rng.standard_normal((T, *batch, 3))}
+
     def apply(self, s: Signals, fps, rng):
         # Axis 0 is time; any further leading axes are independent sequences (a training batch).
+        return self.apply_drawn(s, fps, self.draw(rng, s.frames, s.waist_rot.shape[1:-1]))
+
+    def apply_drawn(self, s: Signals, fps, d):
         T, batch = s.frames, s.waist_rot.shape[1:-1]
-        off = _smooth_noise(rng, (T, *batch, 3, 3), fps, self.pos_std_m, self.pos_corr_s)
-        off += rng.standard_normal((T, *batch, 3, 3)) * self.jitter_std_m
+        off = smooth_noise(d["wander0"], d["wander"], np.exp(-1.0 / (fps * self.pos_corr_s))) * self.pos_std_m
+        off += d["jitter"] * self.jitter_std_m
         head_pos = s.head_pos + off[..., 0, :]
         hand_pos = s.hand_pos + off[..., 1:, :]
-        rot_noise = _random_small_rotations(rng, (T, *batch, 4), self.rot_max_deg)
+        rot_noise = _random_small_rotations(d["rot_axis"], d["rot_deg"])
         head_rot = quat.mul(rot_noise[..., 0, :], s.head_rot)
         hand_rot = quat.mul(rot_noise[..., 1:3, :], s.hand_rot)
         t = (np.arange(T) / fps).reshape((T,) + (1,) * len(batch))
-        yaw = np.radians(rng.normal(0, self.yaw_offset_std_deg, batch) + rng.normal(0, self.yaw_drift_deg_s, batch) * t)
+        yaw = np.radians(d["yaw_offset_deg"] + d["yaw_drift_deg_s"] * t)
         waist_rot = quat.mul(quat.from_yaw(yaw), quat.mul(rot_noise[..., 3, :], s.waist_rot))
-        acc = s.waist_acc + rng.standard_normal(s.waist_acc.shape) * 0.1
+        acc = s.waist_acc + d["acc"] * 0.1
         return Signals(head_pos, quat.normalize(head_rot), hand_pos, quat.normalize(hand_rot),
                        quat.normalize(waist_rot), acc, s.imu_rot, s.imu_flag)
 
 
-def wear(sig: Signals, worn, fps, rng=None, noise: ImuNoise = None, alive=None):
+def wear(sig: Signals, worn, fps, rng=None, noise: ImuNoise = None, alive=None, drawn=None):
     """The extra IMUs `worn` ([7] mask, or [T,7] when the set changes) as the board sees them: with
-    IMU noise (needs rng), and, when `alive` [T,7] says when each one is heard, held through silences
-    and fading out and back in as the synchroniser does (edge.imus.fade)."""
-    rot = sig.imu_rot if noise is None else noise.apply(sig.imu_rot, fps, rng)
+    IMU noise (needs rng, or the numbers `drawn` by noise.draw), and, when `alive` [T,7] says when each
+    one is heard, held through silences and fading out and back in as the synchroniser does (edge.imus.fade)."""
+    if noise is None:
+        rot = sig.imu_rot
+    else:
+        rot = noise.apply_drawn(sig.imu_rot, fps, noise.draw(rng, sig.imu_rot.shape[:-1]) if drawn is None else drawn)
     worn = np.broadcast_to(np.asarray(worn, float), sig.imu_flag.shape)
     flag = worn.copy()
     if alive is not None:

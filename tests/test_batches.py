@@ -1,0 +1,47 @@
+"""Training windows made on the accelerator (models.batches) are the numpy reference's
+(motion.dataset.make_batch): one draw of random numbers rendered both ways gives the same inputs and
+targets, and torch's draws have the reference's distributions. Needs torch and ../shared/mocap."""
+import numpy as np
+import pytest
+
+from motion import dataset as ds
+from motion.synth import DeviceNoise
+from edge.imus import ImuNoise
+
+
+@pytest.fixture(scope="module")
+def val(mocap):
+    return ds.build(mocap, "val")
+
+
+@pytest.mark.parametrize("with_imus", [True, False])
+def test_the_device_renders_the_windows_numpy_renders_from_the_same_numbers(torch, val, with_imus):
+    from models.batches import DeviceBatches
+    rng = np.random.default_rng(3)
+    d = ds.draw_batch(rng, rng.choice(ds.window_starts(val, 60), 48), 60, DeviceNoise(), ImuNoise(), with_imus)
+    want = ds.render_batch(val, d, 60, DeviceNoise(), ImuNoise())
+    got = DeviceBatches(val, 60, "cpu", dtype=torch.float64).render(d)
+    assert set(got) == set(want)
+    for k in want:
+        assert tuple(got[k].shape) == want[k].shape, k
+        # float32 outputs: velocities (x 60 Hz) to 1e-4, positions and rotations to 1e-6
+        np.testing.assert_allclose(got[k].numpy(), want[k], atol=1e-4 if k == "features" else 1e-6, err_msg=k)
+
+
+def test_the_devices_random_numbers_have_the_references_distributions(torch, val):
+    from models.batches import DeviceBatches
+    B = 4096
+    dev = DeviceBatches(val, 60, "cpu", seed=1).draw(B)
+    ref = ds.draw_batch(np.random.default_rng(1), np.zeros(B, int), 60, DeviceNoise(), ImuNoise())
+    for group in ("device", "imu"):
+        for k, want in ref[group].items():
+            got = dev[group][k].numpy()
+            assert got.shape == want.shape, (group, k)
+            assert got.mean() == pytest.approx(want.mean(), abs=0.05 * want.std() + 0.02), (group, k)
+            assert got.std() == pytest.approx(want.std(), rel=0.05), (group, k)
+    assert dev["yaw"].std().item() == pytest.approx(ref["yaw"].std(), rel=0.05)
+    worn, alive = dev["worn"].numpy() > 0, dev["alive"].numpy()
+    assert (~worn.any(1)).mean() == pytest.approx((~ref["worn"].astype(bool).any(1)).mean(), abs=0.03)
+    assert worn.mean() == pytest.approx(ref["worn"].mean(), abs=0.03)
+    assert alive[:, worn].mean() == pytest.approx(ref["alive"][:, ref["worn"] > 0].mean(), abs=0.03)
+    assert dev["starts"].min() >= 0 and dev["starts"].max() <= ds.window_starts(val, 60).max()
