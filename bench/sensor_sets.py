@@ -3,7 +3,7 @@
     python bench/sensor_sets.py --data ../shared/mocap [--models DIR] [--baseline DIR] [--out out/sensor_sets]
         [--people unseen|seen] [--no-heading | --heading-settings JSON] [--perfect-heading]
 
-Runs edge eval at N=1 (int8 by default) with no extra IMUs, both shins, thighs and shins, and all seven,
+Runs edge eval at N=1 (int8 by default) with no extra IMUs, both feet, both shins, thighs and shins, and all seven,
 each steady and with DragPoser's faulty-sensor protocol (--faults disconnect), two evals at a time; with
 --baseline, also every set of another model folder (e.g. the previously shipped one). Prints one table
 for the people the model never saw (val subjects with no clip in train: what choices are made on) and
@@ -28,7 +28,8 @@ from motion.evaluate import evaluate
 from edge.imus import ImuNoise, parse_set
 from edge.inference import DEFAULT_PRECISION
 
-SETS = {"none": "none", "shins": "l_shin,r_shin", "thighs+shins": "l_thigh,r_thigh,l_shin,r_shin", "all seven": "all"}
+SETS = {"none": "none", "feet": "l_foot,r_foot", "shins": "l_shin,r_shin", "thighs+shins": "l_thigh,r_thigh,l_shin,r_shin",
+        "all seven": "all"}
 LIMITS = {"shins": 0.85, "thighs+shins": 0.65, "all seven": 0.42}     # mpjpe against the `none` figure
 
 

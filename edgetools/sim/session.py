@@ -175,7 +175,10 @@ FAULTS = {
     "noise": {"noise": True},
     "loss": {"loss": 0.02},
     "corrupt": {"ber": 1e-4},
-    "disconnect": {"disconnect": 0.01, "disconnect_frames": 100},   # DragPoser: 1% per frame, back after 100
+    # DragPoser: each frame one worn extra IMU drops w.p. 1 %, back after 100 frames (as edge eval --faults)
+    "disconnect": {"disconnect": 0.01, "disconnect_frames": 100},
+    # the same with the waist puck among the trackers that drop (the 4-point input itself goes)
+    "disconnect-waist": {"disconnect": 0.01, "disconnect_frames": 100, "disconnect_waist": True},
     "hand-loss": {"hand_loss": 0.025, "hand_gap_s": [0.5, 2.0]},    # RPM: 2.5% per frame per hand, 0.5-2 s
     "unplug": {"unplug_at": 2.0, "unplug_s": 0.5},
     "i2c-errors": {"i2c_error_rate": 0.05},
@@ -297,10 +300,12 @@ class _Traffic:
         faults, rng, n60, fps = self.faults, self.rng, self.frames60, self.fps
         self.dropped = {tracker: np.zeros(n60, bool) for tracker in ("waist",) + IMU_LOCATIONS}
         if "disconnect" in faults:      # DragPoser's protocol: each frame one worn IMU drops w.p. p, back after n frames
-            worn = ["waist", *trackers]
+            worn = ["waist", *trackers] if faults.get("disconnect_waist") else list(trackers)
             n = int(faults.get("disconnect_frames", 100))
             for f in np.flatnonzero(rng.random(n60) < faults["disconnect"]):
-                self.dropped[worn[rng.integers(len(worn))]][f:f + n] = True
+                pick = rng.integers(max(len(worn), 1))     # drawn even with none worn: the same take's stream
+                if worn:
+                    self.dropped[worn[pick]][f:f + n] = True
         if faults.get("tracker_unplug") in self.dropped:
             self.dropped[faults["tracker_unplug"]][int(faults["tracker_unplug_at"] * fps):] = True
         self.hands_gone = [gaps(rng, n60, faults["hand_loss"], lambda r: r.uniform(*faults.get("hand_gap_s", [0.5, 2.0])) * fps)
