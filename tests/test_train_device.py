@@ -68,10 +68,16 @@ def test_the_pack_holds_the_frames_training_reads(tiny_mocap, tiny_pack):
 def test_train_device_trains_two_widths_and_resumes_from_what_it_brought_back(torch, tiny_pack, tmp_path):
     pack, _ = tiny_pack
     env = dict(os.environ, PYTHON=sys.executable, OUT=str(tmp_path / "run1"))
-    tiny = ["--", "--batch", "4", "--steps", "3", "--val-every", "2", "--val-windows", "2"]
+    tiny = ["--", "--batch", "4", "--steps", "3", "--val-every", "2", "--val-windows", "2", "--ae-steps", "2"]
     cmd = [str(ROOT / "scripts" / "train-device"), "--device", "cpu", "--sizes", "16,24", "--pack", str(pack)]
-    r = subprocess.run(cmd + tiny, env=env, capture_output=True, text=True, timeout=240)
+    # the first run also trains a model on the sources without a non-commercial term, beside them
+    r = subprocess.run(cmd + ["--cmu-width", "16"] + tiny, env=env, capture_output=True, text=True, timeout=240)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    with tarfile.open(tmp_path / "run1" / "h16-cmu.tar") as tar:
+        import json
+        meta = json.load(tar.extractfile("meta.json"))
+        assert meta["sources"] == ["cmu", "daz", "hdm05"] and "bandai" not in meta["licences"]
+        assert "ae.pt" in tar.getnames()
     resume = tmp_path / "resume"
     for h in (16, 24):
         for name, members in ((f"h{h}.tar", {"cvae.pt", "ae.pt", "meta.json", "train_log.txt"}),
@@ -88,6 +94,5 @@ def test_train_device_trains_two_widths_and_resumes_from_what_it_brought_back(to
     assert "resumed from" in r.stdout and "after 3 steps" in r.stdout
     assert "made on cpu (models.batches)" in r.stdout and "windows a minute" in r.stdout
     with tarfile.open(tmp_path / "run2" / "h24.tar") as tar:
-        import json
         meta = json.load(tar.extractfile("meta.json"))
     assert meta["iterations"] == 6 and meta["hidden"] == 24 and meta["data_sha256"]
