@@ -43,6 +43,15 @@ misses and N before, during and after the hog, every change of N and each frame'
 A frame whose deadline passed before it could start is skipped and counted as a miss, as `edge run`
 does (it resynchronises instead of bursting).
 
+The host's stalls apart from the frame's cost. Every measured frame records its own CPU time (the
+thread's), how long it waited to run (the thread's run_delay in /proc/self/task/TID/schedstat) and the
+VM's steal time (/proc/stat) over the run. A late frame whose own CPU time would have made the deadline
+at the quota (CPU / Q plus one throttled CFS period, (1 - Q) x period, where the quota is enforced; its
+CPU time alone where it is not) was late because the host did not run it: it is counted as a host stall
+(`host` in the JSON), beside the frame's own misses, and neither a probe nor a measured run is judged on
+it. Skipped frames take the cause of the frame that made them late. N is chosen on the frames' own
+cost: the p99 of the frames that were not stalled, and their own misses.
+
 Stage timings, every measured frame, from the live code itself: `sync`, `pipeline_step` and
 `output_encoding` are the board service's own tick (Service.tick_marks, wall time), fed through
 sim:// sources by its own links; the stages inside Pipeline.step (features, decoder, poses,
@@ -149,6 +158,64 @@ def _pct(a):
             "max": round(float(a.max()), 4)}
 
 
+def host_stalls(resp, cpu, period, quota=1.0, enforced=False, cfs_period=0.01):
+    """Which late frames (resp > period, seconds) the host made late: their own CPU time `cpu` would
+    have been done in time at the quota (cpu / quota plus one throttled CFS period where the quota is
+    enforced; cpu alone where it is not). Skipped frames (cpu NaN) take the cause of the last frame
+    measured before them. -> (stall [F] bool, own [F] bool): the late frames split by cause."""
+    import numpy as np
+    resp, cpu = np.asarray(resp, float), np.asarray(cpu, float)
+    late = resp > period
+    need = cpu / quota + (1.0 - quota) * cfs_period if enforced else cpu
+    stall = late & (need <= period)
+    skipped = ~np.isfinite(cpu)
+    if skipped.any():
+        measured = np.where(~skipped, np.arange(len(cpu)), -1)
+        last = np.maximum.accumulate(measured)              # the last measured frame at or before each one
+        cause = np.where(last >= 0, stall[np.maximum(last, 0)], True)
+        stall = np.where(skipped, late & cause, stall)
+    return stall, late & ~stall
+
+
+class RunDelay:
+    """The calling thread's time spent runnable but waiting for a CPU, in seconds
+    (/proc/self/task/TID/schedstat's second field), read with one pread; 0 where the kernel has none."""
+
+    def __init__(self):
+        try:
+            self.fd = os.open(f"/proc/self/task/{threading_native_id()}/schedstat", os.O_RDONLY)
+        except OSError:
+            self.fd = None
+
+    def __call__(self):
+        if self.fd is None:
+            return 0.0
+        try:
+            return int(os.pread(self.fd, 128, 0).split()[1]) / 1e9
+        except (OSError, IndexError, ValueError):
+            return 0.0
+
+    def close(self):
+        if self.fd is not None:
+            os.close(self.fd)
+            self.fd = None
+
+
+def threading_native_id():
+    import threading
+    return threading.get_native_id()
+
+
+def steal_seconds():
+    """The machine's stolen time so far (/proc/stat's steal column, all CPUs), in seconds; 0 where absent."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK") if len(fields) > 8 else 0.0
+    except (OSError, ValueError):
+        return 0.0
+
+
 def board_service(cfg, samples, feeder, steps):
     """The board's Service on the feeder's sim:// sources, as `edge run` builds it (no adaptive N:
     the profiler steers N itself from the release-to-done times), refining `steps` a frame (of at
@@ -205,7 +272,8 @@ class PacedRun:
         self.hog_proc = Hog(hog[2], cfg.get("cgroup_root")) if hog else None
         self.clock, self.cpu_clock = time.perf_counter, time.thread_time
         self.pacer = Pacer(cfg["hz"], self.clock)
-        self.resp, self.comp, self.cpu = (np.full(frames, np.nan) for _ in range(3))
+        self.resp, self.comp, self.cpu, self.wait = (np.full(frames, np.nan) for _ in range(4))
+        self.run_delay, self.steal = RunDelay(), 0.0
         self.in_loop = {k: np.full(frames, np.nan) for k in ("sync", "pipeline_step", "output_encoding")}
         self.stage_cpu = np.full((frames, len(STAGES)), np.nan)
         self.live_n, self.live_k = np.empty(frames, np.int32), np.empty(frames, np.int32)
@@ -236,6 +304,7 @@ class PacedRun:
         from edge.progress import Progress
         pipe, hog, frames = self.pipe, self.hog, self.frames
         pipe.timing = True
+        self.steal = -steal_seconds()
         with Progress(frames, bar_desc) as bar:
             i = 0
             while i < frames:
@@ -254,6 +323,7 @@ class PacedRun:
                     bar.update(30 if i % 30 == 29 else (i % 30) + 1, postfix=f"N={pipe.samples} K={self.live_k[i]} "
                                f"last {self.resp[i] * 1e3:.2f} ms misses {self.misses}")
                 i += 1
+        self.steal += steal_seconds()
         pipe.timing = False
 
     def _live(self, j):
@@ -275,9 +345,9 @@ class PacedRun:
         now = clock()
         self.late_starts += 1 if now > release + 0.001 else 0
         self._live(i)
-        ca = cpu_clock()
+        ca, wa = cpu_clock(), self.run_delay()
         self.tick(self.WARM + i)
-        d, cd = clock(), cpu_clock()
+        d, cd, self.wait[i] = clock(), cpu_clock(), self.run_delay() - wa
         st = self.in_loop
         st["sync"][i], st["pipeline_step"][i], st["output_encoding"][i] = np.diff(self.service.tick_marks)
         self.stage_cpu[i] = np.diff(self.pipe.stage_ns) / 1e6
@@ -287,18 +357,30 @@ class PacedRun:
             self.governor.steer(self.pipe, self.resp[i] * 1e3)
 
     def close(self):
+        self.run_delay.close()
         if self.hog_proc:
             self.hog_proc.reap()
         self.service.close()
         self.feeder.close()
 
     def stats(self):
+        import numpy as np
         from edge.pipeline import STAGES
         pipe = self.pipe
         ms = lambda x: x * 1e3  # noqa: E731
+        cfg = self.cfg
+        stall, own = host_stalls(self.resp, self.cpu, self.period, cfg.get("quota", 1.0), cfg.get("enforced", False),
+                                 cfg.get("period_ms", 10.0) / 1e3)
         stats = {"samples": self.samples, "refine_steps": self.steps, "frames": self.frames,
-                 "deadline_misses": self.misses, "late_starts": self.late_starts, "skipped_frames": self.skipped,
-                 "frame_ms": _pct(ms(self.resp)), "compute_ms": _pct(ms(self.comp)), "cpu_ms": _pct(ms(self.cpu)),
+                 "deadline_misses": self.misses, "own_misses": int(own.sum()), "host_stalls": int(stall.sum()),
+                 "late_starts": self.late_starts, "skipped_frames": self.skipped,
+                 "frame_ms": _pct(ms(self.resp)), "frame_ms_own": _pct(ms(self.resp[~stall])),
+                 "compute_ms": _pct(ms(self.comp)), "cpu_ms": _pct(ms(self.cpu)),
+                 "host": {"stall_frames": int(stall.sum()), "stalled_frame_ms": _pct(ms(self.resp[stall])),
+                          "stalled_frames_cpu_ms": _pct(ms(self.cpu[stall])),
+                          "wait_to_run_ms": _pct(ms(self.wait)), "stalled_frames_wait_to_run_ms": _pct(ms(self.wait[stall])),
+                          "steal_s": round(self.steal, 3),
+                          "stalls_at": [int(j) for j in np.flatnonzero(stall)[:50]]},
                  "stages_in_loop_ms": {k: _pct(ms(v)) for k, v in self.in_loop.items()},
                  "stages_cpu_ms": {name: _pct(self.stage_cpu[:, k]) for k, name in enumerate(STAGES)},
                  "ssi_switches": pipe.switch_count,
@@ -348,11 +430,12 @@ PROBE_STALLS = 1    # the same for a probe (a fifth of a measured run's frames)
 
 
 def probe_fits(st, budget):
-    """Whether a probe's rung fits: its p99 (frame time, or CPU time where the quota is modelled) within
-    the budget, and at most PROBE_STALLS late frames (one stall of the machine is not a verdict: the
-    measured run that follows is, and steps down if it misses)."""
-    v = st["frame_ms"]["p99"] if budget["metric"].startswith("frame") else st["cpu_ms"]["p99"]
-    return v <= budget["ms"] and st["deadline_misses"] <= PROBE_STALLS
+    """Whether a probe's rung fits, on the frames' own cost: the p99 of the frames the host did not stall
+    (frame time, or CPU time where the quota is modelled) within the budget, and at most PROBE_STALLS
+    frames late of their own (a borderline frame is not a verdict: the measured run that follows is,
+    and steps down if it misses). The host's stalls (host_stalls) are reported, never counted."""
+    v = st.get("frame_ms_own", st["frame_ms"])["p99"] if budget["metric"].startswith("frame") else st["cpu_ms"]["p99"]
+    return v is not None and v <= budget["ms"] and st.get("own_misses", st["deadline_misses"]) <= PROBE_STALLS
 
 
 def next_run(ladder, runs, most=6):
@@ -363,10 +446,11 @@ def next_run(ladder, runs, most=6):
     or a second miss at the rung, step down one rung."""
     last = runs[-1]
     rung = (last["samples"], last["refine_steps"])
-    if last["deadline_misses"] == 0 or rung == ladder[0] or len(runs) >= most:
+    misses = last.get("own_misses", last["deadline_misses"])       # the host's stalls are not N's
+    if misses == 0 or rung == ladder[0] or len(runs) >= most:
         return None
     again = len(runs) >= 2 and (runs[-2]["samples"], runs[-2]["refine_steps"]) == rung
-    if last["deadline_misses"] <= STALLS and not again:
+    if misses <= STALLS and not again:
         return rung
     return ladder[ladder.index(rung) - 1]
 
@@ -379,7 +463,8 @@ def worker(cfg):
     enforced = cfg["enforced"]
     head = 1.0 - cfg["headroom"]
     if enforced or q >= 1.0:
-        budget = {"metric": "frame_ms.p99 (release to done, quota in effect)", "ms": head * frame_budget_ms}
+        budget = {"metric": "frame_ms_own.p99 (release to done, quota in effect, host stalls apart)",
+                  "ms": head * frame_budget_ms}
     else:
         budget = {"metric": "cpu_ms.p99 against the quota share (modelled, quota not enforced)",
                   "ms": head * q * frame_budget_ms}
@@ -394,7 +479,8 @@ def worker(cfg):
                 st, _ = paced_run(cfg, n, cfg["probe_frames"], f"probe N={n:<3d} K={k}", steps=k)
                 st["fits"] = probe_fits(st, budget)
                 probes.append({key: st[key] for key in ("samples", "refine_steps", "frames", "deadline_misses",
-                                                        "frame_ms", "cpu_ms", "fits")})
+                                                        "own_misses", "host_stalls", "frame_ms", "frame_ms_own",
+                                                        "cpu_ms", "fits")})
                 if st["fits"]:
                     break
             if not st["fits"]:
@@ -411,8 +497,8 @@ def worker(cfg):
     while True:
         n, k = chosen
         st, pipe = paced_run(cfg, n, cfg["frames"], f"run N={n:<3d} K={k}", adaptive, hog, steps=k)
-        attempts.append({key: st[key] for key in ("samples", "refine_steps", "frames", "deadline_misses", "frame_ms",
-                                                  "cpu_ms")})
+        attempts.append({key: st[key] for key in ("samples", "refine_steps", "frames", "deadline_misses", "own_misses",
+                                                  "host_stalls", "frame_ms", "frame_ms_own", "cpu_ms")})
         # Adaptive or contended runs are reported as they went: stepping down would hide the verdict.
         if cfg["samples"] != "auto" or adaptive or hog:
             break
@@ -427,7 +513,9 @@ def worker(cfg):
     with open("/proc/self/statm") as f:
         rss_now = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
     return {"chosen_samples": chosen[0], "chosen_refine_steps": chosen[1], "frames": st["frames"], "frame_ms": st["frame_ms"], "compute_ms": st["compute_ms"],
-            "cpu_ms": st["cpu_ms"], "deadline_misses": st["deadline_misses"], "late_starts": st["late_starts"],
+            "cpu_ms": st["cpu_ms"], "deadline_misses": st["deadline_misses"], "own_misses": st["own_misses"],
+            "host_stalls": st["host_stalls"], "host": st["host"], "frame_ms_own": st["frame_ms_own"],
+            "late_starts": st["late_starts"],
             "skipped_frames": st["skipped_frames"],
             "ssi_switches": st["ssi_switches"], "refined_frames": st["refined_frames"], "stages": stages,
             "rss_mb": round(rss_now, 1),
@@ -522,7 +610,7 @@ def _profile(args, quota):
            "probe_frames": args.probe_frames, "max_samples": args.max_samples, "headroom": args.headroom, "precision": args.precision,
            "models": args.models, "adaptive": args.adaptive, "hog_at": args.hog_at, "hog_seconds": args.hog_seconds,
            "hog_procs": args.hog_procs, "cgroup_root": str(limit.path.parent) if limit.enforced else None,
-           "refine_steps": args.refine_steps}
+           "refine_steps": args.refine_steps, "period_ms": args.period_ms}
     print(f"edge profile: {args.hz:g} Hz, CPU {quota:g} of one core "
           f"({'cgroup quota ' + str(limit.quota_us) + ' us per ' + str(limit.period_us) + ' us' if limit.enforced else 'quota NOT enforced: ' + limit.why}), "
           f"samples {args.samples}, {args.frames} frames"
@@ -552,7 +640,9 @@ def _profile(args, quota):
               "cpu_quota": {**limit.describe(), "throttling": throttled}, "quota_enforced": limit.enforced,
               "chosen_samples": res["chosen_samples"], "chosen_refine_steps": res["chosen_refine_steps"],
               "frames": res["frames"],
-              "deadline_misses": res["deadline_misses"], "frame_ms": res["frame_ms"],
+              "deadline_misses": res["deadline_misses"], "own_misses": res["own_misses"],
+              "host_stalls": res["host_stalls"], "host": res["host"], "frame_ms": res["frame_ms"],
+              "frame_ms_own": res["frame_ms_own"],
               "compute_ms": res["compute_ms"], "cpu_ms": res["cpu_ms"], "late_starts": res["late_starts"],
               "skipped_frames": res["skipped_frames"],
               "rss_mb": res["rss_mb"], "rss_peak_mb": res["rss_peak_mb"], "stages": res["stages"],
@@ -574,6 +664,7 @@ def _profile(args, quota):
     fm = result["frame_ms"]
     print(f"chosen_samples={result['chosen_samples']} chosen_refine_steps={result['chosen_refine_steps']} "
           f"frames={result['frames']} deadline_misses={result['deadline_misses']} "
+          f"(own {result['own_misses']}, host stalls {result['host_stalls']}, steal {result['host']['steal_s']:g} s) "
           f"frame_ms p50={fm['p50']:.2f} p99={fm['p99']:.2f} cpu_ms p99={result['cpu_ms']['p99']:.2f} "
           f"rss_mb={result['rss_mb']} quota_enforced={str(limit.enforced).lower()} "
           f"precision={result['precision_in_use']}" + (f" ({result['precision_note']})" if result["precision_note"] else ""))
