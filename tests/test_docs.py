@@ -89,14 +89,15 @@ NOT_RUNNABLE = {
         f"{BOARD}, and runs until Ctrl-C; tests/test_cli.py runs edge run on a pty headset",
     "edge listen /dev/ttyUSB0": "a USB serial adapter on the pose stream; tests/test_cli.py runs edge listen on a pty",
     ".venv/bin/pip install -e .[train]": "installs PyTorch; CI does it (EDGEPOSE_EXTRAS=train ./scripts/test)",
-    ".venv/bin/python -m motion.pack": "reads all of ../shared/mocap (80 s) and writes the 27 MiB pack; "
-                                       "tests/test_train_device.py builds and checks a pack of four clips",
-    "scripts/train-device --minutes 7 --sizes 192,256": "needs an accelerator (the device tool) and the "
-                                                       "pack; tests/test_train_device.py runs it on CPU at a tiny size",
+    ".venv/bin/python -m motion.pack": "reads all of ../shared/mocap (3 min) and writes the 51 MiB pack; "
+                                       "tests/test_train_device.py builds and checks a pack of five clips",
+    "scripts/train-device --minutes 9 --sizes 256 --cmu-width 256 -- --batch 1024":
+        "needs an accelerator (the device tool) and the pack; tests/test_train_device.py runs it on CPU at a "
+        "tiny size, the CMU-only run beside it included",
     "scripts/train-device --minutes 4 --sizes 256 --resume DIR -- --lr 3e-4":
         "needs an accelerator and an earlier run; tests/test_train_device.py resumes a tiny CPU run",
     ".venv/bin/python -m models.train --data .cache/pack/edgepose-pack.npz --hidden 256 --minutes 95": TRAIN,
-    ".venv/bin/python -m models.train --data ../shared/mocap --sources cmu daz": TRAIN,
+    ".venv/bin/python -m models.train --data ../shared/mocap --sources cmu daz hdm05": TRAIN,
     ".venv/bin/python -m models.train --data ../shared/mocap --device cuda": "needs a CUDA GPU; " + TRAIN,
     ".venv/bin/torchrun --nproc_per_node=4 -m models.train --data DATA": "needs 4 GPUs; " + TRAIN,
     ".venv/bin/python -m quantize": "rebuilds the shipped models/*.int8.onnx in place (minutes); "
@@ -326,3 +327,20 @@ def test_every_dotted_name_the_docs_cite_exists():
     assert len(cited) > 25
     missing = sorted(f"{doc}: {name}" for doc, name in cited if not resolves(name))
     assert not missing, "the docs cite names that do not exist:\n" + "\n".join(missing)
+
+
+def test_the_readmes_layout_names_every_top_level_package_and_folder_and_no_other():
+    """README.md's Layout lists each top-level folder of the repository (`name/`), the Python packages
+    in their import-linter layer order (pyproject.toml), and nothing that is not there."""
+    import tomllib
+    text = (ROOT / "README.md").read_text()
+    layout = text[text.index("## Layout"):].split("\n## ", 1)[0]
+    listed = re.findall(r"`([a-z_]+)/`", layout)
+    tracked = subprocess.run(["git", "ls-files"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()
+    folders = {f.split("/")[0] for f in tracked if "/" in f and not f.startswith(".")}
+    assert set(listed) == folders, f"listed but absent: {set(listed) - folders}; absent from Layout: {folders - set(listed)}"
+    layers = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"][0]["layers"]
+    order = [name.strip() for layer in layers for name in layer.split("|")]
+    packages = [name for name in listed if (ROOT / name / "__init__.py").exists()]
+    assert sorted(packages) == sorted(order)
+    assert [p for p in listed if p in order] == order, "the Layout lists the packages out of their layer order"

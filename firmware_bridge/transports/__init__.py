@@ -5,6 +5,7 @@ BusABC are the models).
     source = open_source("i2c://1/0x28")                        # a BNO055 on I2C bus 1 (bno055.py drives it)
     source = open_source("can://virtual/bus0")                  # CAN tracker nodes (python-can)
     source = open_source("slimevr://0.0.0.0:6969?trackers=...") # SlimeVR trackers over UDP
+    source = open_source("webxr://0.0.0.0:8443")                # the headset's browser (HTTPS + WebSocket)
     sample = source.recv(timeout=0.01)                          # TrackerSample / HeadsetSample / None
     source.close()
 """
