@@ -103,7 +103,7 @@ def _add_replay(sub):
                                    "either way; with --report and no --json it goes to REPORT/replay.json)")
     rp.add_argument("--transport", default="serial,i2c,can", help="which transports carry the IMUs")
     rp.add_argument("--faults", default="clean", help="a profile (" + ", ".join(
-        ["noise", "loss", "corrupt", "disconnect", "hand-loss", "unplug", "i2c-errors", "slow-i2c", "can-busoff", "clock-jump", "unplug-foot",
+        ["noise", "loss", "corrupt", "disconnect", "disconnect-waist", "hand-loss", "unplug", "i2c-errors", "slow-i2c", "can-busoff", "clock-jump", "unplug-foot",
          "slimevr-restart", "slimevr-flood"])
         + "), several joined by '+', or a JSON object")
     rp.add_argument("--speed", choices=("realtime", "max"), default="realtime")
