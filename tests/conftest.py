@@ -1,5 +1,6 @@
 """Shared fixtures: the repository paths, the mocap folder (../shared/mocap or $EDGEPOSE_MOCAP; tests that need it skip without it) and sample takes."""
 import os
+import sys
 from pathlib import Path
 
 import pytest
@@ -14,6 +15,22 @@ SKELETON_CLIPS = {
     "daz": "cmu_daz_ateliercircle/05/05_01.bvh",
     "bandai": "bandai_namco_ccbync/dataset-1/dataset-1_walk_normal_001.bvh",
 }
+
+
+# The optional extras' packages ([train], [quantize], [viz]): --without-extras runs the suite as on a
+# machine that installed none of them (./scripts/test without EDGEPOSE_EXTRAS), whatever this one has.
+EXTRAS = ("torch", "onnx", "matplotlib", "PIL")
+
+
+def pytest_addoption(parser):
+    parser.addoption("--without-extras", action="store_true",
+                     help="make the optional extras unimportable (" + ", ".join(EXTRAS) + "), as on a bare install")
+
+
+def pytest_configure(config):
+    if config.getoption("--without-extras"):
+        for name in EXTRAS:
+            sys.modules[name] = None          # `import torch` now raises ImportError, as where it is absent
 
 
 @pytest.fixture(scope="session")
