@@ -539,7 +539,13 @@ def test_fuzz_flipped_bits_on_the_wire_never_yield_a_frame_whose_crc_fails(wire,
     reader = FrameReader()
     feed_and_check(reader, bytes(encoded) + b"\x00")
     [got] = reader.feed(EXAMPLES["HEADSET_POSE"]())
-    assert_same_message(got, example_headset_pose())
+    # The reader is in step again. Its time is the message's own unless a corrupted piece passed the
+    # CRC-16 (about 2^-16 of them: random_wire_frame(0) with bits 77, 81, 320, 323, 473 and 583 flipped
+    # does, 2165.8 s), whose timestamp the unwrapper then took for the device's clock.
+    want = example_headset_pose()
+    if any(crc_checks(piece) for piece in bytes(encoded).split(b"\x00")):
+        want.t = got.t
+    assert_same_message(got, want)
 
 
 PAYLOAD_SIZES = {TRACKER_SAMPLES: st.integers(0, 600), HEADSET_POSE: st.sampled_from([0, 61, 62, 63]),
