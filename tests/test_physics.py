@@ -167,6 +167,6 @@ def test_the_foot_ik_swings_a_free_leg_around_the_other_on_both_paths():
                 unguarded = pos
         upper = [JOINT[j] for j in ("pelvis", "spine", "chest", "neck", "head", "l_wrist", "r_wrist")]
         assert np.abs(guarded[native][:, upper] - unguarded[:, upper]).max() < 1e-9
-    assert crossing[True, 0.0] >= 15, crossing
+    assert crossing[True, 0.0] >= 10, crossing          # v0.4: 35 frames; v0.4.1 keeps the legs wider: 13
     assert crossing[True, None] <= crossing[True, 0.0] / 4, crossing
     np.testing.assert_allclose(guarded[True], guarded[False], rtol=0, atol=1e-9)
