@@ -94,8 +94,9 @@ def dragposer_drops(rng, T, worn, fps=60.0, p=0.01, frames=100):
     return alive
 
 
-def _axis_angle(axis, deg):
-    """Axes [...,3] (any length) and angles in degrees [...] -> quaternions [...,4]."""
+def axis_angle_deg(axis, deg):
+    """Axes [...,3] (any length) and angles in degrees [...] -> quaternions [...,4] (the noise models'
+    random rotations, from their drawn axes and angles)."""
     return quat.from_axis_angle(axis / np.linalg.norm(axis, axis=-1, keepdims=True), np.radians(deg))
 
 
@@ -124,8 +125,8 @@ class ImuNoise:
 
     def apply_drawn(self, rot, fps, d):
         T, rest = rot.shape[0], rot.shape[1:-1]
-        mount = _axis_angle(d["mount_axis"], d["mount_deg"])
+        mount = axis_angle_deg(d["mount_axis"], d["mount_deg"])
         t = (np.arange(T) / fps).reshape((T,) + (1,) * len(rest))
         yaw = np.radians(d["yaw_offset_deg"] + d["yaw_drift_deg_s"] * t)
-        jitter = _axis_angle(d["jitter_axis"], d["jitter_deg"])
+        jitter = axis_angle_deg(d["jitter_axis"], d["jitter_deg"])
         return quat.normalize(quat.mul(quat.from_yaw(yaw), quat.mul(jitter, quat.mul(rot, mount[None]))))

@@ -65,6 +65,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -183,7 +184,7 @@ class RunDelay:
 
     def __init__(self):
         try:
-            self.fd = os.open(f"/proc/self/task/{threading_native_id()}/schedstat", os.O_RDONLY)
+            self.fd = os.open(f"/proc/self/task/{threading.get_native_id()}/schedstat", os.O_RDONLY)
         except OSError:
             self.fd = None
 
@@ -199,11 +200,6 @@ class RunDelay:
         if self.fd is not None:
             os.close(self.fd)
             self.fd = None
-
-
-def threading_native_id():
-    import threading
-    return threading.get_native_id()
 
 
 def steal_seconds():
@@ -596,7 +592,6 @@ def main(args):
 
 
 def _main_thread():
-    import threading
     return threading.current_thread() is threading.main_thread()
 
 

@@ -41,6 +41,8 @@ def source_folders(sources):
 
 def source_licences(sources):
     return {s: SOURCE_LICENCES[FOLDER_GROUP.get(s, s)] for s in sources}
+
+
 FPS = 60.0
 
 

@@ -8,7 +8,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from edge import quat
-from edge.imus import IMU_JOINTS, ImuNoise, fade
+from edge.imus import IMU_JOINTS, ImuNoise, axis_angle_deg, fade
 from edge.signals import EYE_OFFSET, GRIP_OFFSET, Signals
 from edge.skeleton import HEAD, JOINT, fk
 
@@ -53,11 +53,6 @@ def smooth_noise(first, steps, a):
     return out
 
 
-def _random_small_rotations(axis, deg):
-    """Unit axes [...,3] and angles in degrees [...] -> quaternions [...,4]."""
-    return quat.from_axis_angle(axis / np.linalg.norm(axis, axis=-1, keepdims=True), np.radians(deg))
-
-
 @dataclass
 class DeviceNoise:
     """Device noise for training (LoBSTR appendix: ~1 cm position, rotations up to 1.5 deg) plus IMU yaw drift."""
@@ -88,7 +83,7 @@ class DeviceNoise:
         off += d["jitter"] * self.jitter_std_m
         head_pos = s.head_pos + off[..., 0, :]
         hand_pos = s.hand_pos + off[..., 1:, :]
-        rot_noise = _random_small_rotations(d["rot_axis"], d["rot_deg"])
+        rot_noise = axis_angle_deg(d["rot_axis"], d["rot_deg"])
         head_rot = quat.mul(rot_noise[..., 0, :], s.head_rot)
         hand_rot = quat.mul(rot_noise[..., 1:3, :], s.hand_rot)
         t = (np.arange(T) / fps).reshape((T,) + (1,) * len(batch))
