@@ -3,8 +3,9 @@
 Each canonical bone takes the world direction of the matching source bone; bone lengths stay
 canonical. Joints with one child get the shortest-arc swing from their parent's frame (no twist);
 the pelvis and chest, which fan out to several children, get a two-axis frame (hip/shoulder line and
-spine). Leaves (head, wrists, toes) keep their parent's orientation. The root translation is scaled
-by the leg-length ratio and the clip is put on the floor.
+spine). The wrists take the source hand's own orientation against its measured neutral (motion.hands),
+so synthesised controllers roll and bend like hands; the other leaves (head, toes) keep their
+parent's orientation. The root translation is scaled by the leg-length ratio and the clip is put on the floor.
 """
 from dataclasses import dataclass
 
@@ -75,9 +76,12 @@ _FAN_FRAMES = {
 }
 
 
-def retarget(clip: BvhClip, source=None, unit=0.01):
-    """Source clip -> canonical Motion, plus the source joint world positions [T,J,3] (metres) it followed."""
+def retarget(clip: BvhClip, source=None, unit=0.01, hands=True):
+    """Source clip -> canonical Motion, plus the source joint world positions [T,J,3] (metres) it followed.
+    hands=False gives the wrists their forearm's orientation (what motion.hands measures against)."""
+    from motion.hands import hand_world, neutral_of
     source = source or detect_source(clip)
+    neutral = neutral_of(clip.path, source) if hands else None
     mapping = SOURCE_MAPS[source]
     _, src_world = clip.world()
     src = np.stack([src_world[:, clip.index(mapping[n])] for n in JOINT_NAMES], axis=1) * unit
@@ -102,6 +106,8 @@ def retarget(clip: BvhClip, source=None, unit=0.01):
             d = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-9)
             u = quat.rotate(parent_world, np.broadcast_to(OFFSETS[c] / np.linalg.norm(OFFSETS[c]), (T, 3)))
             world[:, j] = quat.normalize(quat.mul(quat.between(u, d), parent_world))
+        elif neutral is not None and name in ("l_wrist", "r_wrist"):
+            world[:, j] = quat.normalize(quat.mul(hand_world(clip, source, name[0]), np.asarray(neutral[name[0]])))
         else:  # leaf: keep the parent's orientation
             world[:, j] = parent_world
         local[:, j] = quat.mul(quat.inv(parent_world), world[:, j]) if j > 0 else world[:, j]

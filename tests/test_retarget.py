@@ -54,3 +54,17 @@ def test_resample_30_to_60_keeps_duration_and_interpolates():
     assert np.allclose(out.root[1, 0], 1 / 60)
     mid = quat.angle(out.rotations[1, JOINT["l_knee"]])
     assert np.isclose(mid, np.pi / 2 / 60)
+
+
+@pytest.mark.parametrize("source", sorted(SKELETON_CLIPS))
+def test_retargeted_wrists_take_the_source_hands_own_turn_near_their_neutral(mocap, source):
+    """The wrists follow the source hands (motion.hands): near identity on average (the measured
+    neutral), and moving through the clip, where a leaf copying its forearm would never turn."""
+    clip = bvh.load(mocap / SKELETON_CLIPS[source])
+    wrists = [JOINT["l_wrist"], JOINT["r_wrist"]]
+    motion, _ = retarget(clip)
+    turn = np.degrees(quat.angle(motion.rotations[:, wrists]))
+    assert np.median(turn) < 30.0
+    assert (np.percentile(turn, 95, axis=0) - np.percentile(turn, 5, axis=0)).min() > 8.0
+    forearm, _ = retarget(clip, hands=False)
+    assert np.allclose(quat.angle(forearm.rotations[:, wrists]), 0.0, atol=1e-6)

@@ -1,0 +1,145 @@
+"""The hands' own orientation in retargeting: each source's neutral hand, measured once, and the
+spread of the hands' roll and bend against the forearm.
+
+The sources' hand frames follow their own conventions (Bandai's zero pose is not a T-pose; Daz's
+hand axes lean off the forearm), so no bind pose says where a neutral hand is. The neutral is
+measured instead: over a source folder's train clips, the mean rotation between the source's hand and
+the canonical forearm. Retargeting sets the canonical wrist to the source hand's world rotation
+times that neutral, so a hand held in line with its forearm, at the folder's average roll, has the
+identity local rotation, as in the canonical T-pose.
+
+    python -m motion.hands [--data ../shared/mocap] [--clips 80]
+
+prints, per folder and side, the measured neutral (the HAND_NEUTRAL table below) and the spread of
+roll (about the forearm) and bend (the hand's long axis off the forearm's) beside human ranges.
+"""
+import argparse
+import collections
+from pathlib import Path
+
+import numpy as np
+
+from edge import quat
+
+# Folder -> side -> the neutral (w, x, y, z): canonical wrist world = source hand world * neutral.
+# Measured by `python -m motion.hands` on data v4 (80 train clips a folder, every 4th frame).
+HAND_NEUTRAL = {
+    "bandai_namco_ccbync": {"l": (0.9753, -0.1701, -0.0064, -0.1409), "r": (0.1056, 0.9826, -0.1519, -0.0186)},
+    "cmu_amc2bvh": {"l": (0.9746, -0.2238, -0.0000, 0.0000), "r": (0.9455, -0.3255, 0.0000, -0.0000)},
+    "cmu_cgspeed_mb": {"l": (0.9943, -0.1067, -0.0000, -0.0000), "r": (0.9708, -0.2398, 0.0000, -0.0000)},
+    "cmu_daz_ateliercircle": {"l": (0.9829, -0.0991, -0.1554, -0.0038), "r": (0.9770, -0.1583, 0.1412, -0.0210)},
+    "cmu_daz_papagina": {"l": (0.9802, -0.1103, -0.1601, -0.0371), "r": (0.9782, -0.1320, 0.1591, 0.0208)},
+    "cmu_fbx_daz": {"l": (0.9811, -0.1195, -0.1518, -0.0122), "r": (0.9838, -0.0945, 0.1520, 0.0036)},
+    "hdm05_ccbysa": {"l": (0.9825, -0.1862, 0.0002, 0.0012), "r": (0.9843, -0.1768, -0.0002, -0.0003)},
+}
+FOLDER_SKELETON = {"bandai_namco_ccbync": "bandai", "cmu_amc2bvh": "cmu", "cmu_cgspeed_mb": "cmu", "hdm05_ccbysa": "cmu",
+                   "cmu_daz_ateliercircle": "daz", "cmu_daz_papagina": "daz", "cmu_fbx_daz": "daz"}
+
+
+def _skeleton_means():
+    """A clip from a folder not in the table takes its skeleton's neutral: the mean of that skeleton's folders."""
+    out = {}
+    for skeleton in set(FOLDER_SKELETON.values()):
+        folders = [f for f, s in FOLDER_SKELETON.items() if s == skeleton]
+        out[skeleton] = {side: tuple(quat.normalize(np.sum([HAND_NEUTRAL[f][side] for f in folders], axis=0)))
+                         for side in "lr"}
+    return out
+
+
+HAND_SKELETON = _skeleton_means()
+
+# Human ranges against the forearm (degrees): pronation/supination about it, and the wrist's bend
+# (flexion 0-80, extension 0-70, radial 20, ulnar 30; e.g. the AAOS normal ranges).
+HUMAN_ROLL_DEG = 90.0
+HUMAN_BEND_DEG = 80.0
+
+
+def neutral_of(path, source):
+    """The measured neutral of the clip at `path` (from its folder, else its skeleton): {"l": q, "r": q}."""
+    for part in Path(str(path)).parts[::-1]:
+        if part in HAND_NEUTRAL:
+            return HAND_NEUTRAL[part]
+    return HAND_SKELETON.get(source)
+
+
+def hand_world(clip, source, side):
+    """The source hand's world rotation [T,4] of one side ("l" or "r")."""
+    from motion.retarget import SOURCE_MAPS
+    world_rot, _ = clip.world()
+    return world_rot[:, clip.index(SOURCE_MAPS[source][f"{side}_wrist"])]
+
+
+def mean_rotation(m):
+    """Chordal L2 mean of rotation matrices [n,3,3]: the nearest rotation to their average."""
+    u, _, vt = np.linalg.svd(m.mean(0))
+    if np.linalg.det(u @ vt) < 0:
+        u[:, -1] *= -1
+    return u @ vt
+
+
+def roll_and_bend(local):
+    """A hand's local rotation against its forearm [...,4] -> (roll about the forearm, bend of the hand's
+    axis off the forearm's), degrees. The canonical forearm runs along x (+x left, -x right)."""
+    x = quat.rotate(local, np.broadcast_to([1.0, 0.0, 0.0], local.shape[:-1] + (3,)))
+    bend = np.degrees(np.arccos(np.clip(x[..., 0], -1.0, 1.0)))
+    roll = np.degrees(2 * np.arctan2(local[..., 1], local[..., 0]))     # swing-twist: the twist about x
+    return (roll + 180.0) % 360.0 - 180.0, bend
+
+
+def measure(root, clips=80, seed=0, step=4):
+    """{folder: {side: (neutral quat, [n] roll deg, [n] bend deg)}} over up to `clips` train clips a folder."""
+    from motion import bvh
+    from motion.dataset import read_manifest
+    from motion.retarget import detect_source, retarget
+    from edge.skeleton import JOINT, fk
+    by_folder = collections.defaultdict(list)
+    for r in read_manifest(root):
+        if r["split"] == "train":
+            by_folder[r["file"].split("/")[0]].append(r["file"])
+    rng = np.random.default_rng(seed)
+    out = {}
+    for folder, files in sorted(by_folder.items()):
+        pairs = {"l": [], "r": []}
+        skeleton = None
+        for f in rng.choice(files, min(clips, len(files)), replace=False):
+            clip = bvh.load(Path(root) / f)
+            skeleton = detect_source(clip)
+            motion, _ = retarget(clip, skeleton, hands=False)
+            world, _ = fk(quat.to_matrix(motion.rotations[::step]), motion.root[::step])
+            for side in "lr":
+                hand = quat.to_matrix(hand_world(clip, skeleton, side)[::step])
+                pairs[side].append((hand, world[:, JOINT[f"{side}_elbow"]]))
+        out[folder] = {"skeleton": skeleton}
+        for side in "lr":
+            hand = np.concatenate([h for h, _ in pairs[side]])
+            forearm = np.concatenate([f for _, f in pairs[side]])
+            neutral = mean_rotation(np.swapaxes(hand, -1, -2) @ forearm)
+            local = quat.from_matrix(np.swapaxes(forearm, -1, -2) @ hand @ neutral)
+            out[folder][side] = (quat.from_matrix(neutral),) + roll_and_bend(local)
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default="../shared/mocap")
+    ap.add_argument("--clips", type=int, default=80)
+    a = ap.parse_args()
+    m = measure(a.data, a.clips)
+    print(f"hands against the forearm, per folder (p5 / p50 / p95 of |roll| and bend, degrees; human: roll up to "
+          f"{HUMAN_ROLL_DEG:.0f}, bend up to {HUMAN_BEND_DEG:.0f})")
+    for folder, d in m.items():
+        for side in "lr":
+            _, roll, bend = d[side]
+            r, b = np.percentile(np.abs(roll), [5, 50, 95]), np.percentile(bend, [5, 50, 95])
+            real = "roll and bend" if b[2] > 10 else "roll only (the hand stays in line with the forearm)"
+            print(f"  {folder:24s} {side}  roll {r[0]:5.1f} {r[1]:5.1f} {r[2]:5.1f}   bend {b[0]:5.1f} {b[1]:5.1f} "
+                  f"{b[2]:5.1f}   {real}")
+    print("\nHAND_NEUTRAL = {")
+    for folder, d in m.items():
+        q = {s: ", ".join(f"{v:.4f}" for v in d[s][0]) for s in "lr"}
+        print(f'    "{folder}": {{"l": ({q["l"]}), "r": ({q["r"]})}},  # {d["skeleton"]}')
+    print("}")
+
+
+if __name__ == "__main__":
+    main()
