@@ -89,6 +89,7 @@ class CompiledFrame(FramePath):
             position_limit=POSITION_LIMIT_M, latents=chk(p.latents, np.float32, (N, None), "latents"),
             latent_dim=p.latents.shape[1], target_row=-1, target_joint=native.addr(self.bufs.target_joint),
             target_goal=native.addr(self.bufs.target_goal), target_weight=native.addr(self.bufs.target_weight),
+            swivel=p.elbow_from_hand if p.arm_ik else 0.0,
             **(dict(zip(("ae_in", "ae_local", "ae_root_local"), ae, strict=True)) if ae else {}))
         self.core = ctypes.pointer(ctx)
         self.bind_decoder(p.decoder)

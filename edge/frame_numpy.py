@@ -7,7 +7,7 @@ from edge import quat
 from edge.features import body_points, features, heading, imu_features
 from edge.frame import (LIMB_CHAINS, LIMB_POLES, NECK, POSITION_LIMIT_M, FramePath, fk_with_segments,
                         supported_contacts, torso_segments)
-from edge.ik import apply_limb_ik, guard_legs
+from edge.ik import apply_limb_ik, guard_legs, swivel_to_hands
 from edge.imus import IMU_JOINTS
 from edge.physics import floor_lift
 from edge.skeleton import ANKLES, HEAD, NUM_PREDICTED, OFFSETS, PARENTS, TOES, fk
@@ -180,6 +180,8 @@ class NumpyFrame(FramePath):
         ends[:, 2:] = hand_m if p.arm_ik else W[:, LIMB_CHAINS[2:, 2]]
         apply_limb_ik(loc, W, P, PARENTS, LIMB_CHAINS, tgt, wts, LIMB_POLES, ends, OFFSETS)
         P[:, TOES] = P[:, ANKLES] + (W[:, ANKLES] @ self.bufs.toe_offsets)[..., 0]
+        if p.arm_ik and p.elbow_from_hand > 0:
+            swivel_to_hands(loc, W, P, PARENTS, LIMB_CHAINS[2:], OFFSETS, p.elbow_from_hand)
         if p.arm_ik:
             W[:, HEAD] = head_m
             loc[:, HEAD] = np.swapaxes(W[:, NECK], -1, -2) @ head_m

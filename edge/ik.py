@@ -96,6 +96,72 @@ def apply_limb_ik(local_rot, world_rot, world_pos, parents, chains, targets, wei
         world_pos[:, ic] = knee + (b_new @ offsets[ic][..., None])[..., 0]
 
 
+# How strongly a controller's hand axis turns the elbow about the shoulder-wrist line, against the
+# decoder's own elbow (edge.ik.swivel_to_hands). Chosen on val's unseen people with their real hand
+# orientations and with a wrist bend added (bench/upper_body.py --bend): 2 is best at a human p50 bend
+# of 18 deg; it helps less the more the wrists bend, and gain 1 is never worse than none.
+ELBOW_FROM_HAND = 2.0
+# The torso as a line through pelvis, spine, chest and neck; an elbow nearer to it than
+# ELBOW_CLEARANCE_M is inside a slim torso (bench/upper_body.py counts those at 0.10 m), and the swivel
+# turns it out, GUARD_GAIN times the shortfall's share of the clearance.
+TORSO_LINE = np.array([0, 1, 2, 3])
+ELBOW_CLEARANCE_M = 0.13
+GUARD_GAIN = 3.0
+
+
+def closest_on_polyline(p, line):
+    """The closest points on polylines line [B,L,3] to points p [B,K,3] -> [B,K,3]."""
+    a, d = line[:, None, :-1], (line[:, 1:] - line[:, :-1])[:, None]            # [B,1,L-1,3]
+    t = np.clip(_dot(p[:, :, None] - a, d) / np.maximum(_dot(d, d), 1e-12), 0.0, 1.0)
+    q = a + t[..., None] * d                                                      # [B,K,L-1,3]
+    nearest = _dot(p[:, :, None] - q, p[:, :, None] - q).argmin(-1)
+    return np.take_along_axis(q, nearest[..., None, None], axis=2)[:, :, 0]
+
+
+def swivel_to_hands(local, world, pos, parents, arms, offsets, gain=ELBOW_FROM_HAND, torso=TORSO_LINE,
+                    clearance=ELBOW_CLEARANCE_M):
+    """Turn each arm about its shoulder-wrist line so the forearm runs nearer the hand's long axis, and
+    the elbow stays out of the torso.
+
+    With the wrist straight the forearm runs along the hand; a wrist bends only so far (flexion and
+    deviation), so where the controller points says on which side of the shoulder-wrist line the
+    elbow is. The elbow's direction off that line becomes the decoder's own minus `gain` times the
+    hand axis's part across the line (the far side from where the hand points), renormalised. Where
+    that puts the elbow closer than `clearance` to the torso's line (the joints `torso`), the direction
+    is pushed away from it in proportion. The wrist stays where it is and keeps the hand's rotation.
+    arms [K,3] (shoulder, elbow, wrist) chains already solved onto the controllers (world[:, wrist] is
+    the hand's rotation); local, world [B,J,3,3] and pos [B,J,3] are updated in place."""
+    ia, ib, ic = arms[:, 0], arms[:, 1], arms[:, 2]
+    sh, el, wr = pos[:, ia], pos[:, ib], pos[:, ic]
+    n = _normalize(wr - sh)
+    e = el - sh
+    along = _dot(e, n)
+    u = e - along[..., None] * n
+    axis = offsets[ic] / np.linalg.norm(offsets[ic], axis=-1, keepdims=True)
+    h = (world[:, ic] @ axis[..., None])[..., 0]
+    u_len = np.sqrt(_dot(u, u))
+    u = u / np.maximum(u_len, 1e-9)[..., None]
+    t = _normalize(u - gain * (h - _dot(h, n)[..., None] * n))
+    elbow = sh + along[..., None] * n + u_len[..., None] * t                     # where t puts the elbow
+    away = elbow - closest_on_polyline(elbow, pos[:, torso])
+    dist = np.sqrt(_dot(away, away))
+    away -= _dot(away, n)[..., None] * n
+    push = GUARD_GAIN * np.maximum(clearance - dist, 0.0) / max(clearance, 1e-9)   # clearance 0: no guard
+    t = t + push[..., None] * _normalize(away)
+    t_len = np.sqrt(_dot(t, t))
+    t = t / np.maximum(t_len, 1e-9)[..., None]
+    keep = (u_len < 1e-6) | (t_len < 1e-6)          # a straight arm, or no side to prefer
+    c = np.where(keep, 1.0, np.clip(_dot(u, t), -1.0, 1.0))
+    s = np.where(keep, 0.0, _dot(cross(u, t), n))
+    turn = _axis_angle_matrix(n, np.arctan2(s, c))
+    a_new, b_new = turn @ world[:, ia], turn @ world[:, ib]
+    pos[:, ib] = sh + (turn @ e[..., None])[..., 0]
+    local[:, ia] = np.swapaxes(world[:, parents[ia]], -1, -2) @ a_new
+    local[:, ib] = np.swapaxes(a_new, -1, -2) @ b_new
+    local[:, ic] = np.swapaxes(b_new, -1, -2) @ world[:, ic]
+    world[:, ia], world[:, ib] = a_new, b_new
+
+
 def smoothstep(x):
     x = np.clip(x, 0.0, 1.0)
     return x * x * (3 - 2 * x)

@@ -9,6 +9,7 @@ from dataclasses import dataclass
 
 from edge.heading import HeadingSettings
 from edge.inference import DEFAULT_PRECISION
+from edge.ik import ELBOW_FROM_HAND
 from edge.physics import LEG_GUARD_M
 from edge.refine import RefineSettings
 
@@ -29,6 +30,7 @@ class PipelineOptions:
     foot_ik: bool = True                # foot-contact locks and leg IK
     leg_guard: float = LEG_GUARD_M      # the foot IK keeps a free leg this far from the other (m; 0: off)
     arm_ik: bool = True                 # arm IK to the controllers
+    elbow_from_hand: float = ELBOW_FROM_HAND    # how far the controller's hand axis turns the elbow (0: off)
     use_native: bool = True             # the compiled core when a C compiler is there
     segments: bool = True               # a worn IMU sets its segment's world rotation
     selection: dict = None              # SSI's selection settings; None: the model manifest's

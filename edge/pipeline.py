@@ -71,7 +71,7 @@ class Pipeline:
         self.samples, self.fps, self.body_scale = o.samples, o.fps, o.body_scale
         self.lookahead, self.transition = o.lookahead, o.transition
         self.ssi = o.ssi and o.samples > 1
-        self.foot_ik, self.arm_ik = o.foot_ik, o.arm_ik
+        self.foot_ik, self.arm_ik, self.elbow_from_hand = o.foot_ik, o.arm_ik, float(o.elbow_from_hand)
         self.manifest, dec_session, ae_session = open_models(models, o.threads, o.precision)
         self._open(dec_session, ae_session, o.use_native)
         self._choose(o.selection or self.manifest.get("selection", {}), criteria, o.use_native, o.seed)

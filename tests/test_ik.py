@@ -98,3 +98,62 @@ def test_two_planted_feet_are_locked_at_least_the_lock_gap_apart():
     far = np.array([[[0.10, 0.09, 0.0], [-0.10, 0.09, 0.0]]])
     lock, _ = h.update(np.array([[1.0, 1.0]]), far)
     np.testing.assert_allclose(lock, far)
+
+
+ARMS = np.array([[JOINT[f"{s}_shoulder"], JOINT[f"{s}_elbow"], JOINT[f"{s}_wrist"]] for s in "lr"])
+
+
+def _elbow_side(P):
+    """The elbow's unit direction off the shoulder-wrist line [B,2,3], and that line's direction."""
+    sh, el, wr = P[:, ARMS[:, 0]], P[:, ARMS[:, 1]], P[:, ARMS[:, 2]]
+    n = (wr - sh) / np.linalg.norm(wr - sh, axis=-1, keepdims=True)
+    u = (el - sh) - np.sum((el - sh) * n, -1, keepdims=True) * n
+    return u / np.linalg.norm(u, axis=-1, keepdims=True), n
+
+
+def test_swivel_puts_the_elbow_opposite_where_the_hand_points_and_keeps_wrist_and_hand():
+    from edge.ik import swivel_to_hands
+    B = 200
+    L = random_poses(B, 3)
+    W, P = fk(L, np.zeros((B, 3)))
+    _, n = _elbow_side(P)
+    h = np.random.default_rng(4).standard_normal((B, 2, 3))
+    h_across = h - np.sum(h * n, -1, keepdims=True) * n
+    h_across /= np.linalg.norm(h_across, axis=-1, keepdims=True)
+    # Hands whose long axis (the forearm's rest direction, OFFSETS[wrist]) points along h_across.
+    axis = OFFSETS[ARMS[:, 2]] / np.linalg.norm(OFFSETS[ARMS[:, 2]], axis=-1, keepdims=True)
+    W[:, ARMS[:, 2]] = quat.to_matrix(quat.between(np.broadcast_to(axis, (B, 2, 3)), h_across))
+    L[:, ARMS[:, 2]] = np.swapaxes(W[:, ARMS[:, 1]], -1, -2) @ W[:, ARMS[:, 2]]
+    hands, wrists = W[:, ARMS[:, 2]].copy(), P[:, ARMS[:, 2]].copy()
+    swivel_to_hands(L, W, P, PARENTS, ARMS, OFFSETS, gain=50.0, clearance=0.0)
+    side, _ = _elbow_side(P)
+    assert np.sum(side * h_across, -1).max() < -0.99        # the far side from the hand
+    assert np.allclose(P[:, ARMS[:, 2]], wrists, atol=1e-9) and np.allclose(W[:, ARMS[:, 2]], hands, atol=1e-9)
+    W2, P2 = fk(L, np.zeros((B, 3)))                        # local, world and positions still agree
+    assert np.allclose(P2, P, atol=1e-9) and np.allclose(W2, W, atol=1e-9)
+
+
+def test_swivel_turns_an_elbow_out_of_the_torso_and_leaves_clear_ones_alone():
+    from edge.ik import ELBOW_CLEARANCE_M, TORSO_LINE, closest_on_polyline, swivel_to_hands
+    B = 400
+    L = random_poses(B, 5)
+    shoulders = quat.normalize(np.random.default_rng(6).standard_normal((B, 2, 4)))
+    L[:, ARMS[:, 0]] = quat.to_matrix(shoulders)              # arms anywhere, many elbows in the chest
+    W, P = fk(L, np.zeros((B, 3)))
+
+    def torso_distance(P):
+        el = P[:, ARMS[:, 1]]
+        return np.linalg.norm(el - closest_on_polyline(el, P[:, TORSO_LINE]), axis=-1)
+
+    before = torso_distance(P)
+    swivel_to_hands(L, W, P, PARENTS, ARMS, OFFSETS, gain=0.0)
+    after = torso_distance(P)
+    inside = before < 0.10
+    assert inside.sum() > 20
+    # A single proportional push, not a search: never deeper, mostly well out (where the swivel circle
+    # allows: a wrist near the chest keeps its elbow near too).
+    assert (after[inside] >= before[inside] - 1e-9).all()
+    assert np.median(after[inside] - before[inside]) > 0.02
+    assert (after[inside] >= 0.10).mean() > 0.4
+    clear = before > ELBOW_CLEARANCE_M + 0.01
+    assert np.allclose(after[clear], before[clear], atol=1e-9)

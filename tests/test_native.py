@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from edge import native, quat
+from edge.ik import ELBOW_FROM_HAND
 from edge.inference import Autoencoder, open_models
 from edge.options import PipelineOptions
 from edge.frame import LIMB_CHAINS, LIMB_POLES
@@ -70,7 +71,9 @@ def test_forward_matches_numpy_6d_fk_and_head_anchor(shared):
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-12)
 
 
-def test_limb_ik_matches_numpy_on_reachable_unreachable_and_straight_chains():
+@pytest.mark.parametrize("swivel", [0.0, ELBOW_FROM_HAND])
+def test_limb_ik_matches_numpy_on_reachable_unreachable_and_straight_chains(swivel):
+    """ep_post against NumpyFrame.post, with the elbows turned to the hands (edge.ik.swivel_to_hands) and without."""
     R = 64
     rng = np.random.default_rng(3)
     loc, W, P = numpy_forward(random_6d(R, 4), random_rotations((R,), 5), rng.normal(0, 1, (R, 3)))
@@ -84,7 +87,7 @@ def test_limb_ik_matches_numpy_on_reachable_unreachable_and_straight_chains():
     hand_m, head_m = random_rotations((R, 2), 6), random_rotations((R,), 7)
     results = []
     # NumpyFrame.post: legs to foot goals, arms onto controllers, head; and ep_post, its C form.
-    pipe = Pipeline(PipelineOptions(samples=R, use_native=False))
+    pipe = Pipeline(PipelineOptions(samples=R, use_native=False, elbow_from_hand=swivel))
     pipe.bufs.local[:R], pipe.bufs.world[:R], pipe.bufs.pos[:R] = loc, W, P
     pipe.bufs.targets[:R], pipe.bufs.weights[:R] = targets[:, :2], weights
     pipe.reference.post(R, targets[:, 2:].copy(), hand_m, head_m)
@@ -96,7 +99,7 @@ def test_limb_ik_matches_numpy_on_reachable_unreachable_and_straight_chains():
     hm, hm_s = native.rows(hand_m, 3)
     hd, hd_s = native.rows(head_m, 2)
     lift = np.zeros((R, 2))
-    lib.ep_post(SKELETON, R, native.LimbGoals(A(goals), A(goal_w), 1, 1, wr, wr_s, hm, hm_s, hd, hd_s, A(lift)),
+    lib.ep_post(SKELETON, R, native.LimbGoals(A(goals), A(goal_w), 1, 1, wr, wr_s, hm, hm_s, hd, hd_s, A(lift), swivel),
                 native.PoseRows(A(cl), A(cw), A(cp)))
     results.append([cl, cw, cp])
     # A straight chain puts acos at +-1, where 1e-16 differences in its argument become 1e-8 in angle.

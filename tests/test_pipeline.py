@@ -369,3 +369,19 @@ def test_a_blown_up_gru_state_is_reset_and_the_pose_recovers(take, native):
     assert hurt.state_resets == 1 and clean.state_resets == 0
     assert max(err[f] for f in range(141, 200)) < 0.02
     assert _run_pair(take, native, blow_up, frames=160, samples=8)[1].state_resets >= 8   # every sample's row
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_the_hand_axis_turns_only_the_arms_and_keeps_the_wrists_on_the_controllers(take, native):
+    """The elbow swivel (edge.ik.swivel_to_hands) runs after the IK: legs, torso, head and wrists are
+    the same with it off, the elbows move."""
+    from edge.skeleton import JOINT
+    elbows = [JOINT["l_elbow"], JOINT["r_elbow"]]
+    same = [j for j in range(len(JOINT)) if j not in elbows]
+    on, off = (Pipeline(PipelineOptions(samples=1, use_native=native, elbow_from_hand=g)) for g in (2.0, 0.0))
+    moved = []
+    for t in range(120):
+        a, b = on.step(take.signals.slice(t, t + 1)), off.step(take.signals.slice(t, t + 1))
+        assert np.allclose(a.positions[same], b.positions[same], atol=1e-5)
+        moved.append(np.linalg.norm(a.positions[elbows] - b.positions[elbows], axis=-1).max())
+    assert max(moved) > 0.005

@@ -56,9 +56,11 @@ def shared_constants():
     """The facts postproc.c shares with the Python side, by their names in C: defined once, in edge.physics
     and edge.skeleton, and compiled in as -D flags (exact: repr of a float reads back as the same double)."""
     from edge.physics import ANKLE_HEIGHT, FLOOR_ANKLE, FLOOR_TOE, LOCK_SNAP_M, SUPPORT_FULL_M, SUPPORT_NONE_M
+    from edge.ik import ELBOW_CLEARANCE_M, GUARD_GAIN
     from edge.skeleton import TOE_HEIGHT
     return {"FLOOR_ANKLE": FLOOR_ANKLE, "FLOOR_TOE": FLOOR_TOE, "TOE_HEIGHT": TOE_HEIGHT, "ANKLE_HEIGHT": ANKLE_HEIGHT,
-            "LOCK_SNAP": LOCK_SNAP_M, "SUPPORT_FULL": SUPPORT_FULL_M, "SUPPORT_NONE": SUPPORT_NONE_M}
+            "LOCK_SNAP": LOCK_SNAP_M, "SUPPORT_FULL": SUPPORT_FULL_M, "SUPPORT_NONE": SUPPORT_NONE_M,
+            "ELBOW_CLEARANCE_M": ELBOW_CLEARANCE_M, "GUARD_GAIN": GUARD_GAIN}
 
 
 def build(force=False):
@@ -115,7 +117,7 @@ ForwardInputs = _struct("ForwardInputs", "postproc.c's forward_inputs (NumpyFram
 LimbGoals = _struct("LimbGoals", "postproc.c's limb_goals (NumpyFrame.post's arguments).",
                     [("foot_goals", _P), ("foot_weights", _P), ("foot_ik", _I), ("arm_ik", _I), ("wrists", _P),
                      ("wrists_stride", _I), ("hand_m", _P), ("hand_stride", _I), ("head_m", _P), ("head_stride", _I),
-                     ("lift", _P)])
+                     ("lift", _P), ("swivel", _D)])
 FootLocks = _struct("FootLocks", "postproc.c's foot_locks: edge.ik.FootLock's settings and arrays.",
                     [("release_frames", _D), ("max_slip", _D)] + [(k, _P) for k in ("lock_pos", "since", "weight",
                                                                                        "locked", "raw")]
@@ -151,7 +153,7 @@ class CoreContext(ctypes.Structure):
                    ("ring_seg_m", _P), ("ring_seg_flag", _P), ("imu_joints", _P), ("segments", _I),
                    ("good_in", _P), ("frame_len", _I), ("position_limit", _D), ("dec_latent", _P), ("latents", _P),
                    ("latent_dim", _I), ("target_row", _I), ("target_joint", _P), ("target_goal", _P),
-                   ("target_weight", _P)])
+                   ("target_weight", _P), ("swivel", _D)])
 
 
 _SIGNATURES = {

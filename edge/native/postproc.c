@@ -219,6 +219,7 @@ typedef struct {
     const double *head_m;
     int head_stride;
     double *lift;
+    double swivel;          /* edge.ik.swivel_to_hands' gain (0: off) */
 } limb_goals;
 
 /* edge.ik.FootLock's state and settings (its arrays, one entry per foot of every sample). */
@@ -486,6 +487,101 @@ static void block_chain(block *k, int r0, int nl, int J, const int64_t *parents,
     }
 }
 
+static const int64_t TORSO[4] = {0, 1, 2, 3};   /* edge.ik.TORSO_LINE: pelvis, spine, chest, neck */
+
+/* edge.ik.closest_on_polyline for one point per lane: the closest point q on the polyline through the
+ * joints line[0..nline) of the block. */
+static void lane_closest_on_polyline(block *k, const int64_t *line, int nline, lane *p, lane *q) {
+    lane best;
+    EACH best[l] = 1e300;
+    for (int g = 0; g + 1 < nline; g++) {
+        lane *a = k->P[line[g]], *b = k->P[line[g + 1]];
+        EACH {
+            double d[3], w[3], dd = 0, wd = 0;
+            for (int i = 0; i < 3; i++) {
+                d[i] = b[i][l] - a[i][l];
+                w[i] = p[i][l] - a[i][l];
+                dd += d[i] * d[i];
+                wd += w[i] * d[i];
+            }
+            double t = clamp(wd / (dd > 1e-12 ? dd : 1e-12), 0.0, 1.0), x[3], r = 0;
+            for (int i = 0; i < 3; i++) {
+                x[i] = a[i][l] + t * d[i];
+                r += (p[i][l] - x[i]) * (p[i][l] - x[i]);
+            }
+            if (r < best[l]) {
+                best[l] = r;
+                for (int i = 0; i < 3; i++) q[i][l] = x[i];
+            }
+        }
+    }
+}
+
+/* edge.ik.swivel_to_hands for one arm chain (shoulder, elbow, wrist) on a block: the arm turned about
+ * its shoulder-wrist line so the elbow sits on the far side from where the hand (the wrist's world
+ * rotation, already the controller's) points, `gain` against the elbow's own side, and pushed out of
+ * the torso (the polyline through torso[0..ntorso)) where it would come nearer than `clearance`. */
+static void block_swivel(block *k, const int64_t *parents, const double *offsets, const int64_t *chain,
+                         double gain, const int64_t *torso, int ntorso, double clearance, double guard_gain) {
+    int ia = (int)chain[0], ib = (int)chain[1], ic = (int)chain[2], ip = (int)parents[ia];
+    const double *o = offsets + ic * 3;
+    double on = sqrt(o[0] * o[0] + o[1] * o[1] + o[2] * o[2]);
+    double axis[3] = {o[0] / on, o[1] / on, o[2] / on};
+    lane n[3], e[3], u[3], h[3], t[3], x[3], elbow[3], q[3], away[3];
+    lane along, hn, ul, tl, c, s, dist, an, turn[9], a_new[9], b_new[9], v[3];
+    lane_sub3(k->P[ic], k->P[ia], n);
+    lane_normalize3(n);
+    lane_sub3(k->P[ib], k->P[ia], e);
+    lane_dot3(e, n, along);
+    for (int i = 0; i < 3; i++) EACH u[i][l] = e[i][l] - along[l] * n[i][l];
+    lane_matvec3_shared_v(k->W[ic], axis, h);
+    lane_dot3(h, n, hn);
+    lane_dot3(u, u, ul);
+    EACH ul[l] = sqrt(ul[l]);
+    for (int i = 0; i < 3; i++) EACH {
+        u[i][l] /= ul[l] > 1e-9 ? ul[l] : 1e-9;
+        t[i][l] = u[i][l] - gain * (h[i][l] - hn[l] * n[i][l]);
+    }
+    lane_normalize3(t);
+    for (int i = 0; i < 3; i++) EACH elbow[i][l] = k->P[ia][i][l] + along[l] * n[i][l] + ul[l] * t[i][l];
+    lane_closest_on_polyline(k, torso, ntorso, elbow, q);
+    lane_sub3(elbow, q, away);
+    lane_dot3(away, away, dist);
+    lane_dot3(away, n, an);
+    for (int i = 0; i < 3; i++) EACH away[i][l] -= an[l] * n[i][l];
+    lane_normalize3(away);
+    EACH {
+        double push = clearance - sqrt(dist[l]);
+        push = guard_gain * (push > 0.0 ? push : 0.0) / clearance;
+        for (int i = 0; i < 3; i++) t[i][l] += push * away[i][l];
+    }
+    lane_dot3(t, t, tl);
+    EACH tl[l] = sqrt(tl[l]);
+    for (int i = 0; i < 3; i++) EACH t[i][l] /= tl[l] > 1e-9 ? tl[l] : 1e-9;
+    lane_dot3(u, t, c);
+    lane_cross3(u, t, x);
+    lane_dot3(x, n, s);
+    EACH {                  /* a straight arm, or no side to prefer: keep the elbow */
+        int keep = ul[l] < 1e-6 || tl[l] < 1e-6;
+        c[l] = keep ? 1.0 : clamp(c[l], -1.0, 1.0);
+        s[l] = keep ? 0.0 : s[l];
+        double r = sqrt(c[l] * c[l] + s[l] * s[l]);    /* atan2's angle: (c, s) on the unit circle */
+        c[l] /= r;
+        s[l] /= r;
+    }
+    lane_axis_angle_matrix_cs(n, c, s, turn);
+    lane_matmul3(turn, k->W[ia], a_new);
+    lane_matmul3(turn, k->W[ib], b_new);
+    for (int i = 0; i < 3; i++)
+        EACH v[i][l] = turn[i * 3][l] * e[0][l] + turn[i * 3 + 1][l] * e[1][l] + turn[i * 3 + 2][l] * e[2][l];
+    for (int i = 0; i < 3; i++) EACH k->P[ib][i][l] = k->P[ia][i][l] + v[i][l];
+    lane_matmul3_tn(k->W[ip], a_new, k->L[ia]);
+    lane_matmul3_tn(a_new, b_new, k->L[ib]);
+    lane_matmul3_tn(b_new, k->W[ic], k->L[ic]);
+    lane_copy(k->W[ia], a_new, 9);
+    lane_copy(k->W[ib], b_new, 9);
+}
+
 /* NumpyFrame.post on one block (see ep_post): every array is the whole batch's, read at the block's rows. */
 static void block_post(block *k, int r0, int nl, const skeleton *sk, const limb_goals *g) {
     const int J = sk->J;
@@ -497,6 +593,10 @@ static void block_post(block *k, int r0, int nl, const skeleton *sk, const limb_
         block_chain(k, r0, nl, J, sk->parents, sk->offsets, sk->chains + c * 3, g->wrists + (c - 2) * 3,
                     g->wrists_stride, 0, 0, g->arm_ik ? 1.0 : 0.0, sk->poles + c * 3,
                     g->arm_ik ? g->hand_m + (c - 2) * 9 : 0, g->hand_stride, 0, 0, 0);
+    if (g->arm_ik && g->swivel > 0)
+        for (int c = 2; c < 4; c++)
+            block_swivel(k, sk->parents, sk->offsets, sk->chains + c * 3, g->swivel, TORSO, 4, ELBOW_CLEARANCE_M,
+                         GUARD_GAIN);
     if (g->arm_ik) {
         gather(k->W[sk->head], 9, g->head_m, g->head_stride, r0, nl);
         lane_matmul3_tn(k->W[sk->neck], k->W[sk->head], k->L[sk->head]);
@@ -785,6 +885,7 @@ typedef struct {
     int target_row;
     const int64_t *target_joint;
     const double *target_goal, *target_weight;
+    double swivel;                            /* edge.ik.swivel_to_hands' gain (0: off) */
 } core_context;
 
 /* The layout of the structs above, for the loader to hold the ctypes mirrors against (edge.native.load):
@@ -797,7 +898,7 @@ typedef struct {
     X(ae_root_local) X(frame_in) X(frame_offsets) X(prev) X(fps) X(ring_features) X(dec_features) X(dec_rows) \
     X(ring_hidden) X(hidden) X(out_contacts) X(n_features) X(imus) X(floor_lift) X(ring_seg_m) X(ring_seg_flag) \
     X(imu_joints) X(segments) X(good_in) X(frame_len) X(position_limit) X(dec_latent) X(latents) X(latent_dim) \
-    X(target_row) X(target_joint) X(target_goal) X(target_weight)
+    X(target_row) X(target_joint) X(target_goal) X(target_weight) X(swivel)
 int ep_layout(int64_t *out, int n) {
     int64_t v[128];
     int k = 0;
@@ -860,7 +961,8 @@ int ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n, 
     mat3_mul(yt, root_m, root_local);
     const forward_inputs fin = {x->rot6d, x->rot6d_stride, root_m, 0, anchor, 0, x->ring_seg_m + (int64_t)slot * J * 9,
                                 x->ring_seg_flag + (int64_t)slot * J};
-    const limb_goals goals = {x->goals, x->weights, x->foot_ik, x->arm_ik, wrists, 0, hand_m, 0, head_m, 0, x->floor_lift};
+    const limb_goals goals = {x->goals, x->weights, x->foot_ik, x->arm_ik, wrists, 0, hand_m, 0, head_m, 0, x->floor_lift,
+                              x->swivel};
     for (int r0 = 0; r0 < R; r0 += LANES) {
         int nl = R - r0 < LANES ? R - r0 : LANES;
         block_forward(&k, r0, nl, sk, &fin);
@@ -967,7 +1069,8 @@ static void row_pose(const core_context *x, int slot, int row, const pose_rows *
                                 x->ring_anchor + slot * 3, 0, x->ring_seg_m + (int64_t)slot * sk->J * 9,
                                 x->ring_seg_flag + (int64_t)slot * sk->J};
     const limb_goals goals = {x->ring_goal + r * 6, x->ring_weight + r * 2, x->foot_ik, x->arm_ik,
-                              x->ring_wrists + slot * 6, 0, x->ring_hand + slot * 18, 0, x->ring_head + slot * 9, 0, 0};
+                              x->ring_wrists + slot * 6, 0, x->ring_hand + slot * 18, 0, x->ring_head + slot * 9, 0, 0,
+                              x->swivel};
     block k;
     block_forward(&k, 0, 1, sk, &fin);
     block_post(&k, 0, 1, sk, &goals);
