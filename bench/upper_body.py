@@ -1,18 +1,25 @@
 """The arms a user sees, on val: upper-body errors and the elbows' smoothness, for a model folder.
 
     python bench/upper_body.py [--data ../shared/mocap] [--models DIR] [--people unseen|seen|all]
-        [--precision int8|fp32] [--samples 1] [--max-clips K] [--out out/upper_body]
+        [--precision int8|fp32] [--samples 1] [--elbow-from-hand G] [--bend FLEX,DEV] [--max-clips K]
+        [--out out/upper_body]
 
 Runs edge eval (N=1 by default, the 4-point case) with a dump of every clip, then prints, per joint
 (collars, shoulders, elbows, wrists), the mean position error; the elbows' jerk (mean magnitude of the
 third difference, m/s^3) against the truth's on the same frames; and how many frames put an elbow
 inside the torso (closer than TORSO_RADIUS_M to the pelvis-spine-chest-neck line, between pelvis and
 neck height), in the prediction and in the truth. Writes summary.json beside the eval's JSON.
+
+--elbow-from-hand sets edge.ik.swivel_to_hands' gain (0: the decoder's own elbow side). --bend bends
+the controllers' hands at the wrist (motion.synth.bend_hands: flexion and deviation std, degrees):
+val's hands are CMU's and Daz's, which hardly bend against the forearm (python -m motion.hands), and a
+person's do.
 """
 import argparse
 import json
 import sys
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -60,15 +67,20 @@ def main():
     ap.add_argument("--people", choices=("unseen", "seen", "all"), default="unseen")
     ap.add_argument("--precision", choices=("fp32", "int8"), default=DEFAULT_PRECISION)
     ap.add_argument("--samples", type=int, default=1)
+    ap.add_argument("--elbow-from-hand", type=float, default=None)
+    ap.add_argument("--bend", default=None, help="FLEX,DEV: the hands' bend std in degrees")
     ap.add_argument("--max-clips", type=int, default=None)
     ap.add_argument("--out", default="out/upper_body")
     a = ap.parse_args()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="upper-body-") as dump:
-        r = evaluate([a.data], PipelineOptions(samples=a.samples, precision=a.precision), split="val",
-                     people=None if a.people == "all" else a.people, models=a.models, max_clips=a.max_clips,
-                     dump=dump, log=lambda *x: None)
+        opts = PipelineOptions(samples=a.samples, precision=a.precision)
+        if a.elbow_from_hand is not None:
+            opts = replace(opts, elbow_from_hand=a.elbow_from_hand)
+        bend = tuple(float(x) for x in a.bend.split(",")) if a.bend else None
+        r = evaluate([a.data], opts, split="val", people=None if a.people == "all" else a.people, models=a.models,
+                     max_clips=a.max_clips, hand_bend=bend, dump=dump, log=lambda *x: None)
         jp, jg, inside_p, inside_g, frames = [], [], 0, 0, 0
         for f in sorted(Path(dump).glob("*.npz")):
             d = np.load(f)
@@ -88,10 +100,11 @@ def main():
                "elbow_jerk_m_s3": float(jp.mean()), "truth_elbow_jerk_m_s3": float(jg.mean()),
                "elbow_jerk_ratio": float(jp.mean() / jg.mean()),
                "elbow_inside_torso_frames": inside_p, "truth_elbow_inside_torso_frames": inside_g,
-               "models": a.models or "models/", "precision": r["precision_in_use"], "samples": a.samples}
+               "models": a.models or "models/", "precision": r["precision_in_use"], "samples": a.samples,
+               "elbow_from_hand": opts.elbow_from_hand, "hand_bend_std_deg": bend}
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
-    print(f"val, {a.people} people, N={a.samples}, {r['precision_in_use']}: {r['clips']} clips, {frames} frames, "
-          f"mpjpe {r['mpjpe_cm']:.3f} cm")
+    print(f"val, {a.people} people, N={a.samples}, {r['precision_in_use']}, elbow from hand {opts.elbow_from_hand:g}, "
+          f"hand bend {bend or 'none'}: {r['clips']} clips, {frames} frames, mpjpe {r['mpjpe_cm']:.3f} cm")
     for side in ("l", "r"):
         print("  " + "  ".join(f"{n}: {per_joint[n]:.2f} cm" for n in ARM_JOINTS if n.startswith(side)))
     print(f"  elbow jerk {jp.mean():.0f} m/s^3 against the truth's {jg.mean():.0f} ({jp.mean() / jg.mean():.2f}x); "

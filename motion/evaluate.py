@@ -14,7 +14,7 @@ from edge.options import PipelineOptions
 from edge.pipeline import Pipeline
 from edge.plausibility import PlausibilityScorer
 from edge.progress import Progress
-from motion.synth import wear
+from motion.synth import bend_hands, wear
 from edge.skeleton import FEET, JOINT_NAMES, PARENTS
 from motion.takes import PEOPLE, find_clips, load_take, people_of_files
 from motion import metrics
@@ -62,21 +62,25 @@ def run_take(pipe, take, max_frames=None, keep_samples=False, signals=None):
     return run
 
 
-def take_signals(take, trackers, faults=None, seed=0, index=0, imu_noise=None):
+def take_signals(take, trackers, faults=None, seed=0, index=0, imu_noise=None, hand_bend=None):
     """The take's signals as the board would see them with the extra IMUs `trackers` worn: IMU noise
     (`imu_noise`, by default edge.imus.ImuNoise as training synthesises it) and, with faults='disconnect', DragPoser's
     faulty-sensor protocol on them (each frame one tracker drops with probability 1 % for 100 frames),
-    through the synchroniser's hold and fade. Seeded per take."""
+    through the synchroniser's hold and fade; with hand_bend (flexion, deviation std in degrees) the
+    hands bent at the wrist (motion.synth.bend_hands). Seeded per take."""
+    sig = take.signals
+    if hand_bend:
+        sig = bend_hands(sig, take.fps, np.random.default_rng([seed, index, 17]), *hand_bend)
     if not trackers:
-        return take.signals
+        return sig
     rng = np.random.default_rng([seed, index, 13])
     worn = mask(trackers)
     alive = dragposer_drops(rng, take.frames, worn, take.fps) if faults == "disconnect" else None
-    return wear(take.signals, worn, take.fps, rng, ImuNoise() if imu_noise is None else imu_noise, alive)
+    return wear(sig, worn, take.fps, rng, ImuNoise() if imu_noise is None else imu_noise, alive)
 
 
 def evaluate(paths, options=None, *, split=None, people=None, models=None, trackers=(), faults=None, imu_noise=None,
-             max_frames=None, max_clips=None, dump=None, log=print):
+             hand_bend=None, max_frames=None, max_clips=None, dump=None, log=print):
     """Every clip of `paths` (BVH files, folders, sample .npz; a folder filtered by its MANIFEST.tsv's
     `split`, and with `people` to the performers the model never saw or those it saw) through a
     Pipeline(options, models), wearing the extra IMUs `trackers` (with `faults`: DragPoser's disconnect
@@ -105,9 +109,9 @@ def evaluate(paths, options=None, *, split=None, people=None, models=None, track
                 log(f"skipped: {e}")
                 bar.update()
                 continue
-            run = run_take(pipe, take, max_frames, keep_samples=pipe.samples > 1,
-                           signals=take_signals(take, trackers, faults, options.seed, index, imu_noise))
-            tally.add(f, take, run, pipe, dump, who.get(f))
+            fed = take_signals(take, trackers, faults, options.seed, index, imu_noise, hand_bend)
+            run = run_take(pipe, take, max_frames, keep_samples=pipe.samples > 1, signals=fed)
+            tally.add(f, take, run, pipe, dump, who.get(f), fed.hand_rot)
             bar.update(postfix=f"mpjpe {metrics.summarize(tally.parts)['mpjpe_cm']:.2f} cm" if tally.parts else None)
     if not tally.parts:
         raise SystemExit("edge eval: no clip could be evaluated: " + "; ".join(tally.skipped))
@@ -148,8 +152,8 @@ class Tally:
     def parts(self):
         return [c["part"] for c in self.clips]
 
-    def add(self, f, take, run, pipe, dump, people=None):
-        """One clip's run (a TakeRun of `pipe` on `take`, file `f`), after its warm-up."""
+    def add(self, f, take, run, pipe, dump, people=None, hand_rot=None):
+        """One clip's run (a TakeRun of `pipe` on `take`, file `f`, fed the controllers' hand_rot), after its warm-up."""
         pred, pelvis = run.pred, run.pelvis
         T, w = len(pred), int(round(WARMUP_S * take.fps))
         if T - w < 4:
@@ -178,6 +182,7 @@ class Tally:
             np.savez_compressed(Path(dump) / (Path(f).stem + ".npz"), joint_names=np.array(JOINT_NAMES),
                                 parents=PARENTS, fps=take.fps, gt_pos=gt.astype(np.float32),
                                 pred_pos=pred.astype(np.float32), contacts=run.contacts.astype(np.float32),
+                                hand_rot=(sig.hand_rot if hand_rot is None else hand_rot[:T]).astype(np.float32),
                                 sample=run.sample, transition=run.transition, cost=run.cost,
                                 implausible=np.concatenate([np.zeros(w, bool), bad]),
                                 switches=np.array([s[:2] for s in pipe.switches], np.int64).reshape(-1, 2),

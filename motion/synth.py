@@ -42,6 +42,32 @@ def synthesize_from_pose(world_rot_m, pos, fps, rng=None, noise=None):
     return sig
 
 
+def bend_hands(sig: Signals, fps, rng, flex_std_deg=20.0, dev_std_deg=10.0, waves=4, max_hz=1.0):
+    """The controllers of `sig` with the hands bent at the wrist: a smoothly wandering flexion (about the
+    hand's z, the palm's side axis) and deviation (about its y), each a sum of `waves` sines of random
+    phase and frequency up to `max_hz` with the given std (smooth, as a hand moves: white noise here
+    would be jerk no hand makes). The wrists stay where they are (the grips move with the hands), so
+    the truth of the arms is the same: what a source whose hands stay in line with the forearm lacks
+    (motion.hands)."""
+    T, batch = sig.frames, sig.hand_rot.shape[1:-1]
+    t = (np.arange(T) / fps).reshape((T,) + (1,) * (len(batch) + 1))
+
+    def wander(std_deg):
+        hz = rng.uniform(0.05, max_hz, (*batch, waves))
+        phase = rng.uniform(0, 2 * np.pi, (*batch, waves))
+        return np.radians(std_deg) * np.sqrt(2.0 / waves) * np.sin(2 * np.pi * hz * t + phase).sum(-1)
+
+    flex, dev = wander(flex_std_deg), wander(dev_std_deg)
+    zero = np.zeros_like(flex)
+    bend = quat.mul(np.stack([np.cos(flex / 2), zero, zero, np.sin(flex / 2)], -1),
+                    np.stack([np.cos(dev / 2), zero, np.sin(dev / 2), zero], -1))
+    hand_rot = quat.normalize(quat.mul(sig.hand_rot, bend))
+    hand_pos = sig.hand_pos + quat.rotate(hand_rot, GRIP_OFFSET) - quat.rotate(sig.hand_rot, GRIP_OFFSET)
+    out = Signals(**{f.name: getattr(sig, f.name) for f in fields(sig)})
+    out.hand_rot, out.hand_pos = hand_rot, hand_pos
+    return out
+
+
 def smooth_noise(first, steps, a):
     """AR(1) noise along axis 0 from standard normals: out[0] = first, out[t] = a out[t-1] + sqrt(1-a^2)
     steps[t] (stationary std 1; scale it)."""

@@ -72,3 +72,19 @@ def test_derived_waist_follows_the_puck_tilt():
     tilt = quat.from_axis_angle(np.array([1.0, 0, 0]), np.radians(30))
     w = derive_waist_position(head, tilt)
     assert w[2] < -0.1  # pelvis pushed back when the trunk leans forward
+
+
+def test_bent_hands_keep_the_wrists_and_bend_smoothly_by_about_the_asked_angle():
+    """motion.synth.bend_hands (the bench's wrist bend): the grips move with the hands, so the wrist
+    joints the features see stay put; the bend wanders slowly, with about the std asked for."""
+    from edge.features import wrist_joints
+    from motion.synth import bend_hands
+    rot, root = walking_motion(T=3600)
+    sig = synthesize(rot, root, 60.0)
+    bent = bend_hands(sig, 60.0, np.random.default_rng(0), flex_std_deg=20.0, dev_std_deg=10.0)
+    assert np.allclose(wrist_joints(bent.hand_pos, bent.hand_rot), wrist_joints(sig.hand_pos, sig.hand_rot), atol=1e-9)
+    angle = np.degrees(quat.angle(quat.mul(quat.inv(sig.hand_rot), bent.hand_rot)))
+    assert 12.0 < np.sqrt(np.mean(angle ** 2)) < 35.0          # ~sqrt(20^2 + 10^2) = 22 deg
+    bend = quat.mul(quat.inv(sig.hand_rot), bent.hand_rot)
+    step = np.degrees(quat.angle(quat.mul(quat.inv(bend[1:]), bend[:-1])))
+    assert step.max() < 6.0            # sines up to 1 Hz: < 360 deg/s; white noise of that std: ~30 deg a frame
