@@ -1,8 +1,8 @@
 """The arms a user sees, on val: upper-body errors and the elbows' smoothness, for a model folder.
 
     python bench/upper_body.py [--data ../shared/mocap] [--models DIR] [--people unseen|seen|all]
-        [--precision int8|fp32] [--samples 1] [--elbow-from-hand G] [--bend FLEX,DEV] [--max-clips K]
-        [--out out/upper_body]
+        [--precision int8|fp32] [--samples 1] [--elbow-from-hand G] [--bend FLEX,DEV] [--smooth HZ,BETA]
+        [--max-clips K] [--out out/upper_body]
 
 Runs edge eval (N=1 by default, the 4-point case) with a dump of every clip, then prints, per joint
 (collars, shoulders, elbows, wrists), the mean position error; the elbows' jerk (mean magnitude of the
@@ -13,7 +13,8 @@ neck height), in the prediction and in the truth. Writes summary.json beside the
 --elbow-from-hand sets edge.ik.swivel_to_hands' gain (0: the decoder's own elbow side). --bend bends
 the controllers' hands at the wrist (motion.synth.bend_hands: flexion and deviation std, degrees):
 val's hands are CMU's and Daz's, which hardly bend against the forearm (python -m motion.hands), and a
-person's do.
+person's do. --smooth sets the upper body's one-euro filter (edge.smooth: its cut-off floor in Hz and
+its rise with speed; 0,0: off).
 """
 import argparse
 import json
@@ -69,6 +70,8 @@ def main():
     ap.add_argument("--samples", type=int, default=1)
     ap.add_argument("--elbow-from-hand", type=float, default=None)
     ap.add_argument("--bend", default=None, help="FLEX,DEV: the hands' bend std in degrees")
+    ap.add_argument("--smooth", default=None, help="MIN_CUTOFF_HZ,BETA: the upper body's one-euro filter "
+                                                   "(edge.smooth; 0,0: off)")
     ap.add_argument("--max-clips", type=int, default=None)
     ap.add_argument("--out", default="out/upper_body")
     a = ap.parse_args()
@@ -78,6 +81,9 @@ def main():
         opts = PipelineOptions(samples=a.samples, precision=a.precision)
         if a.elbow_from_hand is not None:
             opts = replace(opts, elbow_from_hand=a.elbow_from_hand)
+        if a.smooth:
+            cut, beta = (float(x) for x in a.smooth.split(","))
+            opts = replace(opts, smooth_min_cutoff=cut, smooth_beta=beta)
         bend = tuple(float(x) for x in a.bend.split(",")) if a.bend else None
         r = evaluate([a.data], opts, split="val", people=None if a.people == "all" else a.people, models=a.models,
                      max_clips=a.max_clips, hand_bend=bend, dump=dump, log=lambda *x: None)
@@ -101,10 +107,11 @@ def main():
                "elbow_jerk_ratio": float(jp.mean() / jg.mean()),
                "elbow_inside_torso_frames": inside_p, "truth_elbow_inside_torso_frames": inside_g,
                "models": a.models or "models/", "precision": r["precision_in_use"], "samples": a.samples,
-               "elbow_from_hand": opts.elbow_from_hand, "hand_bend_std_deg": bend}
+               "elbow_from_hand": opts.elbow_from_hand, "hand_bend_std_deg": bend,
+               "smooth": [opts.smooth_min_cutoff, opts.smooth_beta]}
     (out / "summary.json").write_text(json.dumps(summary, indent=2) + "\n")
     print(f"val, {a.people} people, N={a.samples}, {r['precision_in_use']}, elbow from hand {opts.elbow_from_hand:g}, "
-          f"hand bend {bend or 'none'}: {r['clips']} clips, {frames} frames, mpjpe {r['mpjpe_cm']:.3f} cm")
+          f"smoothing {opts.smooth_min_cutoff:g} Hz + {opts.smooth_beta:g}/speed, hand bend {bend or 'none'}: {r['clips']} clips, {frames} frames, mpjpe {r['mpjpe_cm']:.3f} cm")
     for side in ("l", "r"):
         print("  " + "  ".join(f"{n}: {per_joint[n]:.2f} cm" for n in ARM_JOINTS if n.startswith(side)))
     print(f"  elbow jerk {jp.mean():.0f} m/s^3 against the truth's {jg.mean():.0f} ({jp.mean() / jg.mean():.2f}x); "

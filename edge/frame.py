@@ -179,6 +179,10 @@ class FramePath:
     def judge(self, s, N, c):
         raise NotImplementedError(f"{type(self).__name__} judges no criteria in one call (fused_criteria is None)")
 
+    def smooth_recomputed(self, k, first):
+        """The upper body's filter (edge.smooth) on row k of a move's recompute, with the state of row `first`."""
+        raise NotImplementedError
+
     def switch_to(self, s, c, margin):
         raise NotImplementedError
 

@@ -90,16 +90,37 @@ class CompiledFrame(FramePath):
             latent_dim=p.latents.shape[1], target_row=-1, target_joint=native.addr(self.bufs.target_joint),
             target_goal=native.addr(self.bufs.target_goal), target_weight=native.addr(self.bufs.target_weight),
             swivel=p.elbow_from_hand if p.arm_ik else 0.0,
+            **self._smoother_fields(p.smoother),
             **(dict(zip(("ae_in", "ae_local", "ae_root_local"), ae, strict=True)) if ae else {}))
         self.core = ctypes.pointer(ctx)
+        rc = p.recompute.rot6d
+        self._recompute_rot6d = (native.checked_addr(rc, np.float32, (None, None), "recompute rot6d"), rc.shape[1])
         self.bind_decoder(p.decoder)
         # forward_rows' arguments (the refiner's FK), filled per call.
         self._fin, self._rows_out = native.ForwardInputs(), native.PoseRows()
         self._ring_addr = {k: (native.addr(getattr(b, v)), getattr(b, v).strides[0]) for k, v in (   # (address, bytes a slot)
             ("waist", "waist_m"), ("anchor", "anchor"), ("seg_m", "seg_m"), ("seg_flag", "seg_flag"))}
 
+    def _smoother_fields(self, sm):
+        """The core_context fields of edge.smooth.UpperBodySmoother (none when it is off)."""
+        if not sm.enabled:
+            return {}
+        chk = native.checked_addr
+        return dict(smooth_prev=chk(sm.prev, np.float64, (None, 11, 6), "smoother state"),
+                    smooth_speed=chk(sm.speed, np.float64, (self.p.max_samples + 1, 11), "smoother speed"),
+                    smooth_before=chk(sm.before, np.float64, (len(self.p.buffer.frame), self.p.max_samples + 1, 11, 6),
+                                      "smoother slots"),
+                    smooth_before_speed=chk(sm.before_speed, np.float64, None, "smoother slots' speed"),
+                    smooth_keep=chk(sm.keep, np.float64, None, "smoother pass-through"),
+                    smooth_min_cut=sm.min_cutoff, smooth_beta=sm.beta, smooth_speed_weight=sm.speed_weight)
+
     def reset(self):
         self.first = True           # the first frame's velocity is zero: prev = points
+
+    def smooth_recomputed(self, k, first):
+        """ep_smooth_rows: NumpyFrame.smooth_recomputed on row k of the recompute's 6D output."""
+        rot, stride = self._recompute_rot6d
+        self.lib.ep_smooth_rows(self.core, rot + k * stride * 4, stride, 1, first)
 
     def bind_decoder(self, dec):
         ctx, chk = self.core.contents, native.checked_addr

@@ -78,6 +78,8 @@ class NumpyFrame(FramePath):
         p, b, dec = self.p, self.p.buffer, self.p.decoder
         if not self.finite(dec):
             return False
+        p.smoother.remember(s, N)              # the upper body's one-euro filter (edge.smooth), in place
+        p.smoother.apply(dec.rot6d, rows)
         self.forward(dec.rot6d[:rows], b.waist_m[s], b.anchor[s], b.seg_m[s], b.seg_flag[s])
         if p.foot_ik:
             goal, w = self.foot_goals(N)
@@ -92,6 +94,11 @@ class NumpyFrame(FramePath):
         b.leg_weight[s, :rows] = self.bufs.weights[:rows]
         b.lock_weight[s, :N] = p.feet.weight[:N]
         return True
+
+    def smooth_recomputed(self, k, first):
+        """The upper body's filter (edge.smooth) on row k of a move's recompute, with state row `first`."""
+        p = self.p
+        p.smoother.apply_to(p._recompute_rows[k], 1, first)
 
     def switch_to(self, s, c, margin):
         return switch_to(self.p.buffer.cost[s, :self.p.samples], c, margin)

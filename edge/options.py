@@ -12,6 +12,7 @@ from edge.inference import DEFAULT_PRECISION
 from edge.ik import ELBOW_FROM_HAND
 from edge.physics import LEG_GUARD_M
 from edge.refine import RefineSettings
+from edge.smooth import BETA, MIN_CUTOFF_HZ
 
 MAX_SAMPLES = 128
 
@@ -31,6 +32,8 @@ class PipelineOptions:
     leg_guard: float = LEG_GUARD_M      # the foot IK keeps a free leg this far from the other (m; 0: off)
     arm_ik: bool = True                 # arm IK to the controllers
     elbow_from_hand: float = ELBOW_FROM_HAND    # how far the controller's hand axis turns the elbow (0: off)
+    smooth_min_cutoff: float = MIN_CUTOFF_HZ    # the upper body's one-euro filter (edge.smooth; Hz, 0: off)
+    smooth_beta: float = BETA                   # its cut-off's rise with speed
     use_native: bool = True             # the compiled core when a C compiler is there
     segments: bool = True               # a worn IMU sets its segment's world rotation
     selection: dict = None              # SSI's selection settings; None: the model manifest's

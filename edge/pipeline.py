@@ -42,6 +42,7 @@ from edge.physics import INTERSECT_M
 from edge.plausibility import PlausibilityScorer
 from edge.refine import Refiner
 from edge.signals import Signals
+from edge.smooth import UpperBodySmoother
 from edge.ssi import LookaheadBuffer, Switcher, transition_weight
 from edge.skeleton import NUM_JOINTS
 
@@ -76,6 +77,11 @@ class Pipeline:
         self._open(dec_session, ae_session, o.use_native)
         self._choose(o.selection or self.manifest.get("selection", {}), criteria, o.use_native, o.seed)
         self._allocate_ssi()
+        # One state row per sample and the transition's, as the ring's rows (ring_rows in the C core).
+        self.smoother = UpperBodySmoother(self.max_samples + 1, self.buffer.slots, o.fps, o.smooth_min_cutoff,
+                                          o.smooth_beta)
+        self._recompute_rows = self.smoother.recompute_views(self.recompute.rot6d)
+        self._move_weights = [float(a) for a in transition_weight(np.arange(self.lookahead + 1), self.transition)]
         self.bufs = FrameBuffers(self.rows, self.lookahead, self.samples, self.imus, o.arm_ik, self.buffer)
         self.out = Pose()
         self._choose_paths(dec_session, models, o.use_native, o.threads)
@@ -199,6 +205,7 @@ class Pipeline:
         if self.refiner is not None:
             self.refiner.reset()
         self.feet.reset()
+        self.smoother.reset()
         self.path.reset()
         self._pending = None        # a change of N waiting for a transition to be sent
         self.buffer.frame[:] = -1
@@ -250,6 +257,12 @@ class Pipeline:
         fused = self.criteria.criteria == self.path.fused_criteria     # the default criteria: judged in one C call
         keep_world = not fused and self.criteria.needs_world_rot  # every joint's world rotation, only if a criterion asks
         rows = N + 1 if live else N
+        sm = self.smoother
+        if sm.enabled:                  # the upper body's filter (edge.smooth), run inside path.poses
+            if sm.fresh and np.isfinite(dec.rot6d[:dec.rows]).all():     # a clip's first frame
+                sm.prime(dec.rot6d, dec.rows)
+            if live:
+                sm.blend_into(blend[0], blend[1], blend[2], N)
         if not self.path.poses(s, rows, N, blend, keep_world):   # a decoder row went non-finite: nothing was done
             self._heal(dec, s)
             self.path.poses(s, rows, N, blend, keep_world)
@@ -366,6 +379,9 @@ class Pipeline:
             dec.state[r] = 0.0
             dec.rot6d[r] = self.buffer.rot6d[prev, r] if held else self.bufs.rest6d
             dec.contacts[r] = 0.0
+            self.smoother.set_row(r, dec.rot6d[r])
+        if self.smoother.fresh and self.smoother.enabled:
+            self.smoother.prime(dec.rot6d, R)
         if not np.isfinite(dec.features).all():     # the ring must not keep what a recompute would re-run
             self.buffer.features[s] = self.buffer.features[prev] if held else 0.0
         self.state_resets += int(bad.sum())
@@ -444,6 +460,7 @@ class Pipeline:
         dec.latent[lo:hi] = self.latents[lo:hi]
         dec.state[lo:hi] = dec.state[c]
         self.feet.copy_rows(c, slice(lo, hi))
+        self.smoother.copy_rows(c, slice(lo, hi))
         for a in (b.hidden_in, b.rot6d, b.contacts, b.leg_goal, b.leg_weight, b.lock_weight):
             a[:, lo:hi] = a[:, c:c + 1]
 
@@ -476,6 +493,11 @@ class Pipeline:
         goal = sc["goal"][:, :K]
         ease(sc["w_goal"][:, :K], g[0, :K], g[1, :K], goal, goal[0])
         rc.step()
+        sm = self.smoother
+        if sm.enabled:                  # each frame's smoothing from its blend of c's and n's states then
+            for k in range(K):
+                sm.blend_into(c, n, self._move_weights[k], N, slot=(s0 + k) % b.slots)
+                self.path.smooth_recomputed(k, N)
         for ring, rows in runs:                              # and the spare row N of each frame
             b.override[ring] = True
             b.trans_row[ring] = N

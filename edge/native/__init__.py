@@ -153,7 +153,9 @@ class CoreContext(ctypes.Structure):
                    ("ring_seg_m", _P), ("ring_seg_flag", _P), ("imu_joints", _P), ("segments", _I),
                    ("good_in", _P), ("frame_len", _I), ("position_limit", _D), ("dec_latent", _P), ("latents", _P),
                    ("latent_dim", _I), ("target_row", _I), ("target_joint", _P), ("target_goal", _P),
-                   ("target_weight", _P), ("swivel", _D)])
+                   ("target_weight", _P), ("swivel", _D), ("smooth_prev", _P), ("smooth_speed", _P), ("smooth_before", _P),
+                   ("smooth_before_speed", _P),
+                   ("smooth_keep", _P), ("smooth_min_cut", _D), ("smooth_beta", _D), ("smooth_speed_weight", _D)])
 
 
 _SIGNATURES = {
@@ -172,6 +174,7 @@ _SIGNATURES = {
     "ep_refine_fill": [_I, _P, _P, _P],
     "ep_from_matrix": [_I, _P, _P],
     "ep_emit": [ctypes.POINTER(CoreContext), _I, _I],
+    "ep_smooth_rows": [ctypes.POINTER(CoreContext), _P, _I, _I, _I],
     "ep_frame_inputs": [ctypes.POINTER(CoreContext), _I, _I, _I, _I, _I, _D, _P],
     "ep_encode_pose": [_I, _I, _I, ctypes.c_uint, _P, _P, _I, _P, _I, _I, _I, _P, _I],
     "ep_max_joints": [],

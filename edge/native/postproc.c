@@ -886,6 +886,13 @@ typedef struct {
     const int64_t *target_joint;
     const double *target_goal, *target_weight;
     double swivel;                            /* edge.ik.swivel_to_hands' gain (0: off) */
+    /* edge.smooth.UpperBodySmoother's state, per decoder row: the last filtered value [rows, 11, 6] and
+     * the filtered speed [rows, 11] (smooth_prev NULL: off); smooth_keep [11] 1 for a joint that passes
+     * through; the cut-off's floor (Hz), its rise per unit/s of speed, and the speed's own weight */
+    double *smooth_prev, *smooth_speed;
+    double *smooth_before, *smooth_before_speed;  /* the samples' state before each slot's frame [slots, ring_rows, ...] */
+    const double *smooth_keep;
+    double smooth_min_cut, smooth_beta, smooth_speed_weight;
 } core_context;
 
 /* The layout of the structs above, for the loader to hold the ctypes mirrors against (edge.native.load):
@@ -898,7 +905,8 @@ typedef struct {
     X(ae_root_local) X(frame_in) X(frame_offsets) X(prev) X(fps) X(ring_features) X(dec_features) X(dec_rows) \
     X(ring_hidden) X(hidden) X(out_contacts) X(n_features) X(imus) X(floor_lift) X(ring_seg_m) X(ring_seg_flag) \
     X(imu_joints) X(segments) X(good_in) X(frame_len) X(position_limit) X(dec_latent) X(latents) X(latent_dim) \
-    X(target_row) X(target_joint) X(target_goal) X(target_weight) X(swivel)
+    X(target_row) X(target_joint) X(target_goal) X(target_weight) X(swivel) X(smooth_prev) X(smooth_speed) \
+    X(smooth_before) X(smooth_before_speed) X(smooth_keep) X(smooth_min_cut) X(smooth_beta) X(smooth_speed_weight)
 int ep_layout(int64_t *out, int n) {
     int64_t v[128];
     int k = 0;
@@ -935,6 +943,44 @@ static int all_finite_f32(const float *x, int64_t n) {
     return all == 0.0f;
 }
 
+/* edge.smooth.UpperBodySmoother.apply: the one-euro filter (Casiez et al. 2012) on the first 11 joints'
+ * 6D values of rows 0..R-1 of rot [R, stride], in place, with the state of rows first..first+R-1, in
+ * the numpy reference's order of operations. */
+#define SMOOTH_JOINTS 11
+static void smooth_rows(const core_context *x, float *rot, int stride, int R, int first) {
+    double k = x->fps / (2.0 * M_PI);
+    for (int r = 0; r < R; r++)
+        for (int j = 0; j < SMOOTH_JOINTS; j++) {
+            double *prev = x->smooth_prev + ((int64_t)(first + r) * SMOOTH_JOINTS + j) * 6;
+            double *speed = x->smooth_speed + (int64_t)(first + r) * SMOOTH_JOINTS + j;
+            float *v = rot + (int64_t)r * stride + j * 6;
+            double d[6], sq = 0.0;
+            for (int i = 0; i < 6; i++) {
+                d[i] = (double)v[i] - prev[i];
+                sq += d[i] * d[i];
+            }
+            double now = sqrt(sq) * x->fps;
+            now -= *speed;
+            now *= x->smooth_speed_weight;
+            *speed += now;
+            double cut = *speed * x->smooth_beta;
+            cut += x->smooth_min_cut;
+            double alpha = cut / (cut + k);
+            if (x->smooth_keep[j] > alpha) alpha = x->smooth_keep[j];
+            for (int i = 0; i < 6; i++) {
+                prev[i] += d[i] * alpha;
+                v[i] = (float)prev[i];
+            }
+        }
+}
+
+/* smooth_rows on R rows of another buffer (a move's recompute: rot [R, stride]) with the state of rows
+ * first..first+R-1 (UpperBodySmoother.apply_to). */
+void ep_smooth_rows(const core_context *x, float *rot, int stride, int R, int first) {
+    if (x->smooth_prev)
+        smooth_rows(x, rot, stride, R, first);
+}
+
 /* edge.pipeline.NumpyFrame.poses (Pipeline.step between the decoder and the criteria), for R rows: N samples and, when R = N + 1,
  * the transition row from sample c to sample n at blend weight a. Per block of LANES rows, kept on
  * the stack throughout: _forward; the samples' foot locks (_foot_goals: goals drawn by the locks, IK
@@ -951,6 +997,12 @@ int ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n, 
     if (!all_finite_f32(hidden_written, (int64_t)dec_rows * x->hidden)
             || !all_finite_f32(x->rot6d, (int64_t)dec_rows * x->rot6d_stride))
         return 0;                       /* NumpyFrame.finite: Pipeline._heal first, then call again */
+    if (x->smooth_prev) {               /* UpperBodySmoother.remember, then apply: on the decoder's own output */
+        int64_t n6 = (int64_t)SMOOTH_JOINTS * 6, at = (int64_t)slot * x->ring_rows;
+        copy_f64(x->smooth_before + at * n6, x->smooth_prev, N * n6);
+        copy_f64(x->smooth_before_speed + at * SMOOTH_JOINTS, x->smooth_speed, (int64_t)N * SMOOTH_JOINTS);
+        smooth_rows(x, (float *)x->rot6d, x->rot6d_stride, R, 0);
+    }
     block k;
     const skeleton *sk = &x->sk;
     int J = sk->J, S = x->ring_rows;
