@@ -117,7 +117,7 @@ NOT_RUNNABLE = {
     "--out /var/lib/edgepose/calibration.json": f"the board's install, {BOARD}",
     "sudo systemctl enable --now edgepose": "starts the board's service under systemd (root)",
     "journalctl -u edgepose -f": "follows the board's systemd journal until Ctrl-C",
-    "sudo scripts/arm64-check": "root: builds an arm64 Debian and runs it under QEMU (10 minutes, then 5 a CPU); "
+    "sudo scripts/arm64-check": "root: builds an arm64 Debian and runs it under QEMU (10 minutes, then 5-9 a CPU); "
                                 "not in CI",
     "sudo scripts/arm64-insns": "root, QEMU and the rootfs scripts/arm64-check builds; not in CI",
     ".venv/bin/python bench/arm64/frame_insns.py --report out/arm64-insns":
