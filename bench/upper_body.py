@@ -27,6 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 import numpy as np
 
+from edge.ik import closest_on_polyline
 from edge.inference import DEFAULT_PRECISION
 from edge.options import PipelineOptions
 from edge.skeleton import JOINT
@@ -40,10 +41,7 @@ TORSO_RADIUS_M = 0.10          # a slim torso's half-depth: an elbow closer to t
 
 def point_to_polyline(p, line):
     """Distance from points p [T,K,3] to the polyline line [T,L,3] -> [T,K]."""
-    a, b = line[:, None, :-1], line[:, None, 1:]                   # [T,1,L-1,3]
-    d = b - a
-    t = np.clip(np.sum((p[:, :, None] - a) * d, -1) / np.maximum(np.sum(d * d, -1), 1e-12), 0, 1)
-    return np.linalg.norm(p[:, :, None] - (a + t[..., None] * d), axis=-1).min(-1)
+    return np.linalg.norm(p - closest_on_polyline(p, line), axis=-1)
 
 
 def elbows_inside_torso(pos):

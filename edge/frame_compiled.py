@@ -11,6 +11,7 @@ from edge.imus import IMU_JOINTS
 from edge.physics import LEG_GUARD_MAX_PUSH_M, LEG_SEGMENTS
 from edge.signals import EYE_OFFSET, GRIP_OFFSET
 from edge.skeleton import ANKLES, HEAD, NUM_JOINTS, OFFSETS, PARENTS, PELVIS_TO_HEAD
+from edge.smooth import SMOOTH_JOINTS
 
 
 class CompiledFrame(FramePath):
@@ -105,13 +106,13 @@ class CompiledFrame(FramePath):
         """The core_context fields of edge.smooth.UpperBodySmoother (none when it is off)."""
         if not sm.enabled:
             return {}
-        chk = native.checked_addr
-        return dict(smooth_prev=chk(sm.prev, np.float64, (None, 11, 6), "smoother state"),
-                    smooth_speed=chk(sm.speed, np.float64, (self.p.max_samples + 1, 11), "smoother speed"),
-                    smooth_before=chk(sm.before, np.float64, (len(self.p.buffer.frame), self.p.max_samples + 1, 11, 6),
-                                      "smoother slots"),
-                    smooth_before_speed=chk(sm.before_speed, np.float64, None, "smoother slots' speed"),
-                    smooth_keep=chk(sm.keep, np.float64, None, "smoother pass-through"),
+        chk, rows, slots = native.checked_addr, self.p.max_samples + 1, self.p.buffer.slots    # the C core's ring_rows
+        return dict(smooth_prev=chk(sm.prev, np.float64, (rows, SMOOTH_JOINTS, 6), "smoother state"),
+                    smooth_speed=chk(sm.speed, np.float64, (rows, SMOOTH_JOINTS), "smoother speed"),
+                    smooth_before=chk(sm.before, np.float64, (slots, rows, SMOOTH_JOINTS, 6), "smoother slots"),
+                    smooth_before_speed=chk(sm.before_speed, np.float64, (slots, rows, SMOOTH_JOINTS),
+                                            "smoother slots' speed"),
+                    smooth_keep=chk(sm.keep, np.float64, (SMOOTH_JOINTS,), "smoother pass-through"),
                     smooth_min_cut=sm.min_cutoff, smooth_beta=sm.beta, smooth_speed_weight=sm.speed_weight)
 
     def reset(self):

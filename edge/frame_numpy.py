@@ -22,6 +22,7 @@ class NumpyFrame(FramePath):
 
     def __init__(self, pipe, bufs):
         self.p, self.bufs = pipe, bufs
+        self._recompute_rows = pipe.smoother.recompute_views(pipe.recompute.rot6d)     # smooth_recomputed's rows
 
     def reset(self):
         self.prev_points = None     # the previous frame's body points (velocity features)
@@ -97,8 +98,7 @@ class NumpyFrame(FramePath):
 
     def smooth_recomputed(self, k, first):
         """The upper body's filter (edge.smooth) on row k of a move's recompute, with state row `first`."""
-        p = self.p
-        p.smoother.apply_to(p._recompute_rows[k], 1, first)
+        self.p.smoother.apply_to(self._recompute_rows[k], 1, first)
 
     def switch_to(self, s, c, margin):
         return switch_to(self.p.buffer.cost[s, :self.p.samples], c, margin)

@@ -80,8 +80,6 @@ class Pipeline:
         # One state row per sample and the transition's, as the ring's rows (ring_rows in the C core).
         self.smoother = UpperBodySmoother(self.max_samples + 1, self.buffer.slots, o.fps, o.smooth_min_cutoff,
                                           o.smooth_beta)
-        self._recompute_rows = self.smoother.recompute_views(self.recompute.rot6d)
-        self._move_weights = [float(a) for a in transition_weight(np.arange(self.lookahead + 1), self.transition)]
         self.bufs = FrameBuffers(self.rows, self.lookahead, self.samples, self.imus, o.arm_ik, self.buffer)
         self.out = Pose()
         self._choose_paths(dec_session, models, o.use_native, o.threads)
@@ -140,7 +138,8 @@ class Pipeline:
         self._switch_scratch = {"latent": np.zeros((2, K, L)), "hidden_in": np.zeros((2, K, H), np.float32),
                                 "hidden": np.zeros((2, K, H)), "goal_in": np.zeros((2, K, 2, 3)),
                                 "goal": np.zeros((2, K, 2, 3)), "w_latent": np.repeat(w[..., None], L, 2),
-                                "w_hidden": np.repeat(w[..., None], H, 2), "w_goal": np.tile(w[..., None, None], (1, 1, 2, 3))}
+                                "w_hidden": np.repeat(w[..., None], H, 2), "w_goal": np.tile(w[..., None, None], (1, 1, 2, 3)),
+                                "a": [float(a) for a in w[1]]}     # a as Python floats: a switch makes no scalars
         self.feet = FootLock(N, leg_guard=self.options.leg_guard)
 
     def _choose_paths(self, dec_session, models, use_native, threads):
@@ -496,7 +495,7 @@ class Pipeline:
         sm = self.smoother
         if sm.enabled:                  # each frame's smoothing from its blend of c's and n's states then
             for k in range(K):
-                sm.blend_into(c, n, self._move_weights[k], N, slot=(s0 + k) % b.slots)
+                sm.blend_into(c, n, sc["a"][k], N, slot=(s0 + k) % b.slots)
                 self.path.smooth_recomputed(k, N)
         for ring, rows in runs:                              # and the spare row N of each frame
             b.override[ring] = True

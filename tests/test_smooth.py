@@ -92,10 +92,7 @@ def test_the_compiled_filter_is_the_numpy_one_to_the_bit():
     for compiled in (True, False):
         sm.prev[:], sm.speed[:] = state
         pipe.recompute.rot6d[:1] = rows[:1]
-        if compiled:
-            path.smooth_recomputed(0, 4)
-        else:
-            sm.apply_to(pipe._recompute_rows[0], 1, first=4)
+        (path if compiled else pipe.reference).smooth_recomputed(0, 4)
         results.append((pipe.recompute.rot6d[0].copy(), sm.prev[4].copy(), sm.speed[4].copy()))
     for a, b in zip(*results, strict=True):
         np.testing.assert_array_equal(a, b)
