@@ -4,8 +4,8 @@ Each canonical bone takes the world direction of the matching source bone; bone 
 canonical. Joints with one child get the shortest-arc swing from their parent's frame (no twist);
 the pelvis and chest, which fan out to several children, get a two-axis frame (hip/shoulder line and
 spine). The wrists take the source hand's own orientation against its measured neutral (motion.hands),
-so synthesised controllers roll and bend like hands; the other leaves (head, toes) keep their
-parent's orientation. The root translation is scaled by the leg-length ratio and the clip is put on the floor.
+so synthesised controllers roll and bend like hands, and the head the source head's (so the synthesised
+headset nods and turns on the neck); the toes keep their parent's orientation. The root translation is scaled by the leg-length ratio and the clip is put on the floor.
 """
 from dataclasses import dataclass
 
@@ -78,10 +78,12 @@ _FAN_FRAMES = {
 
 def retarget(clip: BvhClip, source=None, unit=0.01, hands=True):
     """Source clip -> canonical Motion, plus the source joint world positions [T,J,3] (metres) it followed.
-    hands=False gives the wrists their forearm's orientation (what motion.hands measures against)."""
-    from motion.hands import hand_world, neutral_of
+    hands=False gives the wrists their forearm's orientation and the head its neck's (what motion.hands
+    measures against)."""
+    from motion.hands import hand_world, head_neutral_of, head_world, neutral_of
     source = source or detect_source(clip)
     neutral = neutral_of(clip.path, source) if hands else None
+    head_neutral = head_neutral_of(clip.path, source) if hands else None
     mapping = SOURCE_MAPS[source]
     _, src_world = clip.world()
     src = np.stack([src_world[:, clip.index(mapping[n])] for n in JOINT_NAMES], axis=1) * unit
@@ -108,6 +110,8 @@ def retarget(clip: BvhClip, source=None, unit=0.01, hands=True):
             world[:, j] = quat.normalize(quat.mul(quat.between(u, d), parent_world))
         elif neutral is not None and name in ("l_wrist", "r_wrist"):
             world[:, j] = quat.normalize(quat.mul(hand_world(clip, source, name[0]), np.asarray(neutral[name[0]])))
+        elif head_neutral is not None and name == "head":
+            world[:, j] = quat.normalize(quat.mul(head_world(clip, source), np.asarray(head_neutral)))
         else:  # leaf: keep the parent's orientation
             world[:, j] = parent_world
         local[:, j] = quat.mul(quat.inv(parent_world), world[:, j]) if j > 0 else world[:, j]
