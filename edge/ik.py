@@ -98,9 +98,11 @@ def apply_limb_ik(local_rot, world_rot, world_pos, parents, chains, targets, wei
 
 # How strongly a controller's hand axis turns the elbow about the shoulder-wrist line, against the
 # decoder's own elbow (edge.ik.swivel_to_hands). Chosen on val's unseen people with their real hand
-# orientations and with a wrist bend added (bench/upper_body.py --bend): 2 is best at a human p50 bend
-# of 18 deg; it helps less the more the wrists bend, and gain 1 is never worse than none.
-ELBOW_FROM_HAND = 2.0
+# orientations and with a wrist bend added (bench/upper_body.py --bend): elbows 4.89/4.12 cm at 2,
+# 4.81/4.02 at 2.25, 4.74/3.94 at 2.5 with val's hands; 6.24/5.66, 6.29/5.71, 6.34/5.78 with the hands
+# bent (a human p50 bend of 18 deg). 2.25 is the least gain that brings the elbows under 4.5 cm with the
+# hands as recorded and costs 0.05 cm with them bent; gain 1 is never worse than none.
+ELBOW_FROM_HAND = 2.25
 # The torso as a line through pelvis, spine, chest and neck; an elbow nearer to it than
 # ELBOW_CLEARANCE_M is inside a slim torso (bench/upper_body.py counts those at 0.10 m), and the swivel
 # turns it out, GUARD_GAIN times the shortfall's share of the clearance.
