@@ -72,14 +72,17 @@ def test_retargeted_wrists_take_the_source_hands_own_turn_near_their_neutral(moc
 
 @pytest.mark.parametrize("source", sorted(SKELETON_CLIPS))
 def test_retargeted_head_nods_and_turns_on_the_neck_near_its_neutral(mocap, source):
-    """The head follows the source head (motion.hands' HEAD_NEUTRAL), so the synthesised headset nods and
-    turns on the neck as the person's did: near identity on the neck on average, and moving through the
-    clip, where a leaf copying the neck would never turn (the headset would then say exactly where the
-    neck points, which no person's does)."""
+    """The head follows the source head's turn on the neck about its mean over the clip (a calibrated
+    headset; motion.retarget.calibrated_head), so the synthesised headset nods and turns on the neck as
+    the person's did, where a leaf copying the neck would never turn (the headset would then say exactly
+    where the neck points, which no person's does)."""
     clip = bvh.load(mocap / SKELETON_CLIPS[source])
     motion, _ = retarget(clip)
-    turn = np.degrees(quat.angle(motion.rotations[:, JOINT["head"]]))
-    assert np.median(turn) < 45.0           # the Daz clip (CMU 05, dancing) holds its head 35 deg down
+    head = motion.rotations[:, JOINT["head"]]
+    turn = np.degrees(quat.angle(head))
+    assert np.median(turn) < 30.0
     assert np.percentile(turn, 95) - np.percentile(turn, 5) > 3.0
+    mean = quat.normalize(np.where((head @ head[0])[:, None] < 0, -head, head).mean(0))
+    assert np.degrees(quat.angle(mean)) < 1.0     # calibrated: on the neck it turns about the identity
     neck, _ = retarget(clip, hands=False)
     assert np.allclose(quat.angle(neck.rotations[:, JOINT["head"]]), 0.0, atol=1e-6)
