@@ -3,6 +3,10 @@
 The user stands upright in a T-pose (arms out, facing forward) for a few seconds. From that:
 - height scale: canonical eye height / measured headset height. The model works on the canonical
   body, so tracker positions are multiplied by it (around the floor origin) and poses divided back.
+- the headset's mounting rotation (how it sits on the face: pitched or rolled against a level head), so
+  that it reads level, facing where it faces, while the user looks ahead. The synthesised headsets
+  training and `val` see read that way (motion.retarget.calibrated_head), and the head joint is placed
+  from the headset along it.
 - per IMU tracker, a heading alignment A (yaw only: the IMU's magnetic/gyro heading reference against
   the headset's) and a mounting rotation M (how the sensor sits on the body), so that
   body orientation = A * sensor * M, and in the calibration pose every body part is upright facing
@@ -85,8 +89,8 @@ class Calibration:
 
 class FrameCalibration:
     """A Calibration applied to each frame of Signals on the way in: the user scaled onto the canonical
-    body (around the floor origin), the waist and each worn extra IMU turned from its sensor frame onto
-    its body segment (A q M). The extra IMUs' A and M are stacked once, so a frame costs one pair of
+    body (around the floor origin), the headset levelled (q M), the waist and each worn extra IMU turned
+    from its sensor frame onto its body segment (A q M). The extra IMUs' A and M are stacked once, so a frame costs one pair of
     quaternion products for all of them."""
 
     def __init__(self, calibration, imus=()):
@@ -103,7 +107,7 @@ class FrameCalibration:
         imu_rot = sig.imu_rot.copy()
         if len(k):
             imu_rot[0, k] = quat.mul(quat.mul(self.align, sig.imu_rot[0, k]), self.mount)
-        return Signals(sig.head_pos * s, sig.head_rot, sig.hand_pos * s, sig.hand_rot,
+        return Signals(sig.head_pos * s, cal.body_rotation("head", sig.head_rot), sig.hand_pos * s, sig.hand_rot,
                        cal.body_rotation("waist", sig.waist_rot), sig.waist_acc, imu_rot, sig.imu_flag)
 
 
@@ -117,6 +121,9 @@ def calibrate(head_pos, head_rot, trackers):
     heading = float(quat.yaw(mean_quat(head_rot)))
     cal = Calibration(CANONICAL_EYE_HEIGHT / height, heading)
     face = quat.from_yaw(np.array(heading))
+    # the headset is the heading reference (no A); its M levels it: head_rot * M is the face in the T-pose
+    cal.align["head"] = np.array([1.0, 0.0, 0.0, 0.0])
+    cal.mount["head"] = quat.normalize(quat.mul(quat.inv(mean_quat(head_rot)), face))
     for name, q in trackers.items():
         s = mean_quat(q)
         a = quat.from_yaw(np.array(heading - quat.yaw(s)))

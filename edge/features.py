@@ -15,7 +15,11 @@ from edge.skeleton import PELVIS_TO_HEAD
 
 NUM_POINT_FEATURES = 24
 NUM_IMU_FEATURES = 49
-NUM_FEATURES = NUM_POINT_FEATURES + NUM_IMU_FEATURES
+NUM_FEATURES = NUM_POINT_FEATURES + NUM_IMU_FEATURES     # what the CVAE reads
+NUM_ORIENTATION_FEATURES = 18
+# The decoder graph's input since v0.5: the CVAE's features, then the headset's and controllers' orientations,
+# which only its upper-body head reads (models.nets.UpperBodyHead).
+NUM_DECODER_FEATURES = NUM_FEATURES + NUM_ORIENTATION_FEATURES
 _XZ = np.array([1.0, 0.0, 1.0])
 POINTS = ("head", "l_wrist", "r_wrist", "pelvis")
 
@@ -67,13 +71,24 @@ def imu_features(imu_rot, imu_flag, yaw_q):
     return np.concatenate([six.reshape(six.shape[:-2] + (42,)), imu_flag], axis=-1)
 
 
+def orientation_features(head_rot, hand_rot, yaw_q):
+    """head_rot [...,4], hand_rot [...,2,4] world; yaw_q [...,4] -> [...,18]: the 6D of the headset's and
+    the two controllers' orientations in the character frame (the decoder's upper-body head reads them)."""
+    rot = np.concatenate([head_rot[..., None, :], hand_rot], axis=-2)
+    six = quat.matrix_to_6d(quat.to_matrix(quat.mul(quat.inv(yaw_q)[..., None, :], rot)))
+    return six.reshape(six.shape[:-2] + (18,))
+
+
 def sequence_features(sig, fps, body_scale=1.0, n_features=NUM_FEATURES):
     """Features for a whole sequence [T,n_features]; the first frame's velocity is zero. n_features=24
-    gives the 4-point features alone (the input of models trained before the extra IMUs)."""
+    gives the 4-point features alone (the input of models trained before the extra IMUs); 91 adds the
+    headset's and controllers' orientations (the decoder graphs since v0.5)."""
     pts, waist_rot = body_points(sig, body_scale)
     prev = np.concatenate([pts[:1], pts[:-1]], axis=0)
     yaw_q = heading(waist_rot)
     feats = features(pts, prev, yaw_q, fps)
     if n_features > NUM_POINT_FEATURES:
         feats = np.concatenate([feats, imu_features(sig.imu_rot, sig.imu_flag, yaw_q)], axis=-1)
+    if n_features > NUM_FEATURES:
+        feats = np.concatenate([feats, orientation_features(sig.head_rot, sig.hand_rot, yaw_q)], axis=-1)
     return feats, pts, yaw_q

@@ -4,7 +4,7 @@ compiler."""
 import numpy as np
 
 from edge import quat
-from edge.features import body_points, features, heading, imu_features
+from edge.features import body_points, features, heading, imu_features, orientation_features
 from edge.frame import (LIMB_CHAINS, LIMB_POLES, NECK, POSITION_LIMIT_M, FramePath, fk_with_segments,
                         supported_contacts, torso_segments)
 from edge.ik import apply_limb_ik, guard_legs, swivel_to_hands
@@ -55,6 +55,8 @@ class NumpyFrame(FramePath):
         feat = features(points, prev, yaw_q, p.fps)
         if p.imus:
             feat = np.concatenate([feat, imu_features(sig.imu_rot[0], sig.imu_flag[0], yaw_q)])
+        if p.orientations:
+            feat = np.concatenate([feat, orientation_features(sig.head_rot[0], sig.hand_rot[0], yaw_q)])
         q = self.bufs.quats                         # waist, hands, head: one to_matrix call
         q[0], q[1:3], q[3] = waist_rot, sig.hand_rot[0], sig.head_rot[0]
         m = quat.to_matrix(q)

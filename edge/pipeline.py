@@ -28,7 +28,7 @@ import numpy as np
 
 from edge import native, quat
 from edge.criteria import Composite, FrameContext, PhysicalPlausibility, Plausibility
-from edge.features import NUM_POINT_FEATURES
+from edge.features import NUM_FEATURES, NUM_POINT_FEATURES
 from edge.frame import FrameBuffers, Pose, ease, ring_runs
 from edge.frame_compiled import CompiledFrame
 from edge.frame_numpy import NumpyFrame
@@ -90,9 +90,11 @@ class Pipeline:
         m, N, lookahead = self.manifest, self.samples, self.lookahead
         # what runs: int8 falls back to fp32 where its start-up self-check fails (edge.int8check)
         self.precision, self.precision_note = m["precision"], m["precision_note"]
-        # The decoder's input: the 24 point features, and the extra IMUs' 49 when the model reads them.
+        # The decoder's input: the 24 point features, the extra IMUs' 49 when the model reads them, and the
+        # headset's and controllers' orientations (18) when it has an upper-body head (v0.5 on).
         self.n_features = m["features"]
         self.imus = NUM_IMUS if self.n_features > NUM_POINT_FEATURES else 0
+        self.orientations = self.n_features > NUM_FEATURES
         # A worn IMU also sets its segment's world rotation after the decoder (fk_with_segments).
         self.segments = bool(self.options.segments and self.imus)
         self.rows = N + 1 if N > 1 else N   # the extra row carries a live transition

@@ -17,7 +17,23 @@ import torch
 
 from edge.modelfiles import JACOBIAN, add_to_manifest, write_manifest
 from edge.skeleton import JOINT_NAMES, NUM_JOINTS, PARENTS
-from models.nets import CVAE, LATENT, AEStep, DecoderStep, JacobianStep, PoseAE
+from models.nets import CVAE, LATENT, AEStep, DecoderStep, JacobianStep, PoseAE, UpperBodyHead
+
+
+def load_upper(ckpt):
+    """The upper-body head (models.train_upper) in a checkpoint folder, or None where it has none."""
+    path = Path(ckpt) / "upper.pt"
+    if not path.exists():
+        return None
+    state = torch.load(path, weights_only=True, map_location="cpu")
+    head = UpperBodyHead(hidden=state["torso.mid.weight"].shape[0])
+    head.load_state_dict(state)
+    return head.eval()
+
+
+def decoder_features(cvae, upper):
+    """The decoder graph's input width: the CVAE's features, and the orientations its upper-body head reads."""
+    return upper.norm_f.mean.shape[0] if upper is not None else cvae.n_features
 
 
 def load_checkpoint(ckpt):
@@ -32,20 +48,20 @@ def load_checkpoint(ckpt):
     return cvae.eval(), ae.eval(), meta
 
 
-def export_decoder(cvae, path):
-    step = DecoderStep(cvae).eval()
+def export_decoder(cvae, path, upper=None):
+    step = DecoderStep(cvae, upper).eval()
     n = 4
-    args = (torch.zeros(n, cvae.n_features), torch.zeros(n, LATENT), torch.zeros(n, cvae.hidden))
+    args = (torch.zeros(n, decoder_features(cvae, upper)), torch.zeros(n, LATENT), torch.zeros(n, cvae.hidden))
     torch.onnx.export(step, args, str(path), dynamo=False, external_data=False, opset_version=17,
                       input_names=["features", "latent", "hidden"],
                       output_names=["rot6d", "contacts", "hidden_out"],
                       dynamic_axes={k: {0: "N"} for k in ("features", "latent", "hidden", "rot6d", "contacts", "hidden_out")})
 
 
-def export_jacobian(cvae, path):
+def export_jacobian(cvae, path, upper=None):
     """The refiner's batch (models.nets.JacobianStep): one frame's features and GRU state, R latents."""
-    args = (torch.zeros(1, cvae.n_features), torch.zeros(4, LATENT), torch.zeros(1, cvae.hidden))
-    torch.onnx.export(JacobianStep(cvae).eval(), args, str(path), dynamo=False, external_data=False, opset_version=17,
+    args = (torch.zeros(1, decoder_features(cvae, upper)), torch.zeros(4, LATENT), torch.zeros(1, cvae.hidden))
+    torch.onnx.export(JacobianStep(cvae, upper).eval(), args, str(path), dynamo=False, external_data=False, opset_version=17,
                       input_names=["features", "latent", "hidden"], output_names=["rot6d"],
                       dynamic_axes={"latent": {0: "R"}, "rot6d": {0: "R"}})
 
@@ -59,15 +75,18 @@ def export_autoencoder(ae, path):
 def export_all(ckpt, out):
     out = Path(out)
     cvae, ae, meta = load_checkpoint(ckpt)
-    export_decoder(cvae, out / "decoder.onnx")
+    upper = load_upper(ckpt)
+    export_decoder(cvae, out / "decoder.onnx", upper)
     export_autoencoder(ae, out / "autoencoder.onnx")
-    export_jacobian(cvae, out / JACOBIAN)
+    export_jacobian(cvae, out / JACOBIAN, upper)
     info = {
-        "fps": 60.0, "latent": LATENT, "hidden": cvae.hidden, "features": cvae.n_features,
+        "fps": 60.0, "latent": LATENT, "hidden": cvae.hidden, "features": decoder_features(cvae, upper),
         "joint_names": list(JOINT_NAMES), "parents": PARENTS.tolist(),
         "plausibility_threshold_m": meta["plausibility_threshold_m"],
         "training": {k: v for k, v in meta.items() if k != "plausibility_threshold_m"},
     }
+    if upper is not None:
+        info["upper_body_head"] = json.loads((Path(ckpt) / "upper_meta.json").read_text())
     # the runtime's SSI selection settings (bench/tune_selection.py) belong to the folder, not the weights:
     # a re-export keeps them (their `chosen_on` says which model they were chosen on)
     earlier = out / "manifest.json"
@@ -76,15 +95,16 @@ def export_all(ckpt, out):
     write_manifest(out, ["decoder.onnx", "autoencoder.onnx", JACOBIAN], info)
     # Keep the PyTorch weights beside the ONNX files: the parity tests compare the two.
     (out / "checkpoints").mkdir(exist_ok=True)
-    for name in ("cvae.pt", "ae.pt", "meta.json"):
-        shutil.copyfile(Path(ckpt) / name, out / "checkpoints" / name)
+    for name in ("cvae.pt", "ae.pt", "meta.json") + (("upper.pt", "upper_meta.json") if upper is not None else ()):
+        if (Path(ckpt) / name).resolve() != (out / "checkpoints" / name).resolve():
+            shutil.copyfile(Path(ckpt) / name, out / "checkpoints" / name)
 
 
 def add_jacobian(ckpt, out):
     """Export only the refiner's batch into a folder whose other models are already there, and list it
     in their manifest (the other files and their digests stay as they are)."""
     cvae, _, _ = load_checkpoint(ckpt)
-    export_jacobian(cvae, Path(out) / JACOBIAN)
+    export_jacobian(cvae, Path(out) / JACOBIAN, load_upper(ckpt))
     add_to_manifest(out, {JACOBIAN: {"source_checkpoint": "checkpoints/cvae.pt"}})
 
 

@@ -2,8 +2,8 @@
 import torch
 from torch import nn
 
-from edge.features import NUM_FEATURES
-from edge.skeleton import LEVELS, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS
+from edge.features import NUM_DECODER_FEATURES, NUM_FEATURES, NUM_ORIENTATION_FEATURES
+from edge.skeleton import JOINT, LEVELS, NUM_JOINTS, NUM_PREDICTED, OFFSETS, PARENTS
 
 LATENT = 30
 HIDDEN = 128          # v0.3's GRU width; CVAE(hidden=...) picks another (the checkpoint and manifest carry it)
@@ -130,6 +130,97 @@ class CVAE(nn.Module):
             cons.append(con)
         return torch.cat(rots), torch.cat(cons), h
 
+# The upper-body head (v0.5): which of the CVAE's 6D outputs it moves, and which it reads.
+TORSO_JOINTS = ("spine", "chest", "neck")       # they carry the pelvis and the legs, hung from the headset
+COLLAR_JOINTS = ("l_collar", "r_collar")         # they carry the shoulders and the arms only
+READS_6D = 9 * 6                                 # the 6D of spine .. r_collar (predicted joints 0-8)
+HEAD_ORIENTATION = NUM_FEATURES + 6              # features[:79]: the CVAE's 73 and the headset's orientation
+
+
+def _columns(names):
+    return [(JOINT[n] - 1) * 6 + k for n in names for k in range(6)]
+
+
+class _Branch(nn.Module):
+    """relu(W_f f + W_r r) -> relu(W h) -> out: the features part and the 6D part in two layers, so that a
+    frame's features (one row) broadcast over the refiner's R latents (JacobianStep)."""
+
+    def __init__(self, n_features, hidden, n_out):
+        super().__init__()
+        self.in_f = nn.Linear(n_features, hidden)
+        self.in_r = nn.Linear(READS_6D, hidden, bias=False)
+        self.mid = nn.Linear(hidden, hidden)
+        self.out = nn.Linear(hidden, n_out)
+        nn.init.zeros_(self.out.weight)         # an untrained head changes nothing
+        nn.init.zeros_(self.out.bias)
+
+    def hidden(self, f, r):
+        return torch.relu(self.mid(torch.relu(self.in_f(f) + self.in_r(r))))
+
+
+class UpperBodyHead(nn.Module):
+    """The CVAE decodes the torso and collars from positions alone, and the headset's orientation says much
+    about the neck and chest that positions do not (issue #41: the shoulders 4.8-5.6 cm off on unseen
+    people, with the head exact). This head adds to the CVAE's 6D of the spine, chest and neck what an
+    MLP reads from the CVAE's features, its 6D of spine..collars and the headset's orientation; and to the
+    collars' what a second MLP reads from all of that and the controllers' orientations (the reach a
+    hand's roll and bend tell, LoBSTR/SSI do not model it). The torso's MLP never reads a controller's
+    orientation, so rolling a controller about the wrist moves the collars and arms and never the legs.
+
+    features [...,91] (edge.features: the CVAE's 73, then headset and controller orientations),
+    rot6d [...,120] -> rot6d [...,120]."""
+
+    def __init__(self, hidden=64):
+        super().__init__()
+        self.hidden_size = hidden
+        self.norm_f = Normalizer(NUM_DECODER_FEATURES)
+        self.norm_r = Normalizer(READS_6D)
+        self.torso = _Branch(HEAD_ORIENTATION, hidden, 6 * len(TORSO_JOINTS))
+        self.collars = _Branch(NUM_DECODER_FEATURES, hidden, 6 * len(COLLAR_JOINTS))
+        place = torch.zeros(6 * (len(TORSO_JOINTS) + len(COLLAR_JOINTS)), ROT_OUT)
+        place[torch.arange(len(place)), _columns(TORSO_JOINTS + COLLAR_JOINTS)] = 1.0
+        self.register_buffer("place", place)     # [30,120]: the two MLPs' outputs into the 6D vector
+
+    def delta(self, features, rot6d):
+        f, r = self.norm_f(features), self.norm_r(rot6d[..., :READS_6D])
+        t = self.torso.out(self.torso.hidden(f[..., :HEAD_ORIENTATION], r))
+        c = self.collars.out(self.collars.hidden(f, r))
+        return torch.cat([t, c], dim=-1) @ self.place
+
+    def forward(self, features, rot6d):
+        return rot6d + self.delta(features, rot6d)
+
+
+class UpperBodyStep(nn.Module):
+    """UpperBodyHead in inference form: normalisation folded into the first layers, and each MLP's output
+    layer widened to the 120 6D values (zero where it moves nothing). The two MLPs stay apart to the end:
+    int8 quantizes each Gemm's input with a scale of its own, so a controller's orientation, which the
+    collars' MLP reads, must not share a Gemm with the torso's (it would move the legs by rounding)."""
+
+    def __init__(self, head: UpperBodyHead):
+        super().__init__()
+        mf, sf = head.norm_f.mean.double(), head.norm_f.std.double()
+        mr, sr = head.norm_r.mean.double(), head.norm_r.std.double()
+
+        def fold(branch, n):
+            wf = branch.in_f.weight.double() / sf[:n]
+            wr = branch.in_r.weight.double() / sr
+            return (_linear(wf, branch.in_f.bias.double() - wf @ mf[:n] - wr @ mr),
+                    _linear(wr, torch.zeros(wr.shape[0], dtype=torch.float64)), branch.mid)
+
+        self.torso_f, self.torso_r, self.torso_mid = fold(head.torso, HEAD_ORIENTATION)
+        self.collars_f, self.collars_r, self.collars_mid = fold(head.collars, NUM_DECODER_FEATURES)
+        n_t = head.torso.out.out_features
+        place_t, place_c = head.place[:n_t], head.place[n_t:]
+        self.torso_out = _linear(place_t.T @ head.torso.out.weight, head.torso.out.bias @ place_t)
+        self.collars_out = _linear(place_c.T @ head.collars.out.weight, head.collars.out.bias @ place_c)
+
+    def forward(self, features, rot6d):
+        r = rot6d[:, :READS_6D]
+        t = torch.relu(self.torso_mid(torch.relu(self.torso_f(features[:, :HEAD_ORIENTATION]) + self.torso_r(r))))
+        c = torch.relu(self.collars_mid(torch.relu(self.collars_f(features) + self.collars_r(r))))
+        return rot6d + self.torso_out(t) + self.collars_out(c)
+
 
 class DecoderStep(nn.Module):
     """One decoder frame in inference form, for export: the same function as CVAE.decode's step in
@@ -142,11 +233,17 @@ class DecoderStep(nn.Module):
     - h' = (1 - u) n + u h is computed as n + u (h - n); the rest pose's 6D is folded into the
       rotation head's bias.
 
-    Inputs: features [N,F] (F = 24 + 49), latent [N,30], hidden [N,128]; outputs: rot6d [N,120], contacts [N,2], hidden [N,128].
+    - With an upper-body head (v0.5 on, UpperBodyHead) the graph reads the headset's and controllers'
+      orientations after the CVAE's features, and its rot6d is the head's.
+
+    Inputs: features [N,F] (F = 24 + 49, + 18 with the head), latent [N,30], hidden [N,H]; outputs: rot6d [N,120],
+    contacts [N,2], hidden [N,H].
     """
 
-    def __init__(self, cvae: CVAE):
+    def __init__(self, cvae: CVAE, upper: UpperBodyHead = None):
         super().__init__()
+        self.n_cvae = cvae.n_features
+        self.upper = None if upper is None else UpperBodyStep(upper)
         self.hidden = H = cvae.hidden
         g = cvae.dec_gru
         self.prior = cvae.prior
@@ -162,6 +259,9 @@ class DecoderStep(nn.Module):
         self.contact_head = cvae.contact_head
 
     def forward(self, features, latent, hidden):
+        every = features
+        if self.upper is not None:      # the CVAE reads its 73, the upper-body head all
+            features = features[:, :self.n_cvae]
         if self.prior is not None:      # epsilon -> z through the learned conditional prior
             out = self.prior(torch.cat([self.norm(features), hidden], dim=-1))
             latent = out[:, :LATENT] + torch.exp(0.5 * out[:, LATENT:].clamp(-8, 3)) * latent
@@ -171,7 +271,10 @@ class DecoderStep(nn.Module):
         n = torch.tanh(self.cand_x(x) + r * self.cand_h(hidden))
         h = n + u * (hidden - n)
         y = torch.relu(h)
-        return self.rot_head(y), torch.sigmoid(self.contact_head(y)), h
+        rot = self.rot_head(y)
+        if self.upper is not None:
+            rot = self.upper(every, rot)
+        return rot, torch.sigmoid(self.contact_head(y)), h
 
 
 class JacobianStep(nn.Module):
@@ -183,9 +286,10 @@ class JacobianStep(nn.Module):
     Inputs: features [1,F], latent [R,30], hidden [1,128]; output: rot6d [R,120], row r equal to
     DecoderStep's rot6d for (features, latent[r], hidden) up to float rounding."""
 
-    def __init__(self, cvae: CVAE):
+    def __init__(self, cvae: CVAE, upper: UpperBodyHead = None):
         super().__init__()
-        d = DecoderStep(cvae)
+        d = DecoderStep(cvae, upper)
+        self.n_cvae, self.upper = d.n_cvae, d.upper
         self.hidden = H = d.hidden
         self.prior, self.norm = d.prior, d.norm
         w, b = d.fc.weight.detach(), d.fc.bias.detach()
@@ -197,6 +301,9 @@ class JacobianStep(nn.Module):
         self.cand_x, self.cand_h, self.rot_head = d.cand_x, d.cand_h, d.rot_head
 
     def forward(self, features, latent, hidden):
+        every = features
+        if self.upper is not None:
+            features = features[:, :self.n_cvae]
         if self.prior is not None:      # as DecoderStep: epsilon -> z through the learned conditional prior
             out = self.prior(torch.cat([self.norm(features), hidden], dim=-1))
             latent = out[:, :LATENT] + torch.exp(0.5 * out[:, LATENT:].clamp(-8, 3)) * latent
@@ -205,7 +312,8 @@ class JacobianStep(nn.Module):
         r, u = ru[:, :self.hidden], ru[:, self.hidden:]
         n = torch.tanh(self.cand_x(x) + r * self.cand_h(hidden))
         h = n + u * (hidden - n)
-        return self.rot_head(torch.relu(h))
+        rot = self.rot_head(torch.relu(h))
+        return rot if self.upper is None else self.upper(every, rot)     # features [1,F] broadcast over R
 
 
 def _linear(weight, bias):

@@ -14,7 +14,7 @@ import numpy as np
 from edge import imus, quat
 from motion.bvh import BvhError
 from motion.contacts import contact_labels
-from edge.features import sequence_features
+from edge.features import orientation_features, sequence_features
 from edge.progress import Progress
 from motion.retarget import load_motion
 from motion.synth import DeviceNoise, synthesize_from_pose, wear, world_pose
@@ -203,9 +203,12 @@ def draw_batch(rng, starts, window, noise: DeviceNoise = None, imu_noise: imus.I
     return d
 
 
-def render_batch(cs: ClipSet, d, window, noise: DeviceNoise = None, imu_noise: imus.ImuNoise = None):
+def render_batch(cs: ClipSet, d, window, noise: DeviceNoise = None, imu_noise: imus.ImuNoise = None, hands=None,
+                 orientations=False):
     """The batch that draw_batch's numbers `d` make of the clips (deterministic): time-major [W,B,...]
-    model inputs and targets."""
+    model inputs and targets. With `orientations` also "orient", the headset's and controllers'
+    orientation features the decoder's upper-body head reads (models.train_upper); `hands`: a function of
+    the batch's Signals that returns them with the controllers turned about the wrists (its augmentation)."""
     idx = d["starts"][None, :] + np.arange(window)[:, None]          # [W,B]
     rot = cs.rotations[idx].astype(np.float64)                  # [W,B,J,4]
     root = cs.root[idx].astype(np.float64)
@@ -220,12 +223,14 @@ def render_batch(cs: ClipSet, d, window, noise: DeviceNoise = None, imu_noise: i
         sig = noise.apply_drawn(sig, FPS, d["device"])
     if "worn" in d:
         sig = wear(sig, d["worn"][None], FPS, alive=d["alive"], noise=imu_noise, drawn=d.get("imu"))
+    if hands is not None:
+        sig = hands(sig)
     feats, points, yaw_q = sequence_features(sig, FPS)
     inv_yaw = quat.inv(yaw_q)[..., None, :]
     gt_rel = quat.rotate(inv_yaw, gt_pos - gt_pos[..., HEAD:HEAD + 1, :])   # head-anchored, character frame
     root_local = quat.mul(quat.inv(yaw_q), sig.waist_rot)                 # puck orientation in the yaw frame
     local_m = quat.to_matrix(rot[..., PREDICTED, :])
-    return {
+    out = {
         "features": feats.astype(np.float32),
         "gt_rel": gt_rel.astype(np.float32),
         "root_rot": quat.to_matrix(root_local).astype(np.float32),
@@ -233,14 +238,18 @@ def render_batch(cs: ClipSet, d, window, noise: DeviceNoise = None, imu_noise: i
         "contacts": cs.contacts[idx],
         "anchor_y": points[..., 0, 1].astype(np.float32),        # the tracked head joint's height (floor terms)
     }
+    if orientations:
+        out["orient"] = orientation_features(sig.head_rot, sig.hand_rot, yaw_q).astype(np.float32)
+    return out
 
 
 def make_batch(cs: ClipSet, starts, window, rng, noise: DeviceNoise = None, imu_noise: imus.ImuNoise = None,
-               with_imus=True):
+               with_imus=True, hands=None, orientations=False):
     """Time-major batch [W,B,...] of model inputs and targets, with device noise synthesised per window
     and a random set of extra IMUs (random_imus) unless with_imus is False (the 4-point case). The
     reference for models.batches, which makes the same on an accelerator."""
-    return render_batch(cs, draw_batch(rng, starts, window, noise, imu_noise, with_imus), window, noise, imu_noise)
+    return render_batch(cs, draw_batch(rng, starts, window, noise, imu_noise, with_imus), window, noise, imu_noise, hands,
+                        orientations)
 
 
 def pose_batch(cs: ClipSet, frames):

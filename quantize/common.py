@@ -111,9 +111,13 @@ def mocap_windows(data, split, windows, window, seed, noise=True, n_features=Non
     from edge.features import NUM_POINT_FEATURES
     from edge.imus import ImuNoise
     imus = n_features is None or n_features > NUM_POINT_FEATURES
-    b = make_batch(cs, pick, window, rng, DeviceNoise() if noise else None, ImuNoise() if noise else None, with_imus=imus)
+    from edge.features import NUM_FEATURES
+    b = make_batch(cs, pick, window, rng, DeviceNoise() if noise else None, ImuNoise() if noise else None, with_imus=imus,
+                   orientations=n_features is not None and n_features > NUM_FEATURES)
     if not imus:
         b["features"] = b["features"][..., :NUM_POINT_FEATURES]
+    elif "orient" in b:             # the upper-body head's orientations
+        b["features"] = np.concatenate([b["features"], b["orient"]], axis=-1)
     frames = rng.choice(len(cs.root), size=min(4096, len(cs.root)), replace=False)
     poses = pose_batch(cs, frames)
     return {"features": b["features"], "gt_rel": b["gt_rel"], "root_rot": b["root_rot"], "poses": poses}

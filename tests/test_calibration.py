@@ -22,6 +22,24 @@ def test_calibrated_tracker_reports_the_body_orientation_through_turns():
         assert np.degrees(quat.angle(quat.mul(quat.inv(body), got))) < 1e-4
 
 
+def test_calibrated_headset_reads_the_head_whatever_way_it_sits_on_the_face():
+    """A headset worn pitched 9 degrees and rolled 4 against a level head reads the head itself after a
+    T-pose calibration (looking ahead), through turns and nods; uncalibrated it keeps the tilt."""
+    from edge.calibration import FrameCalibration
+    from edge.signals import Signals
+    worn = quat.mul(rot([1, 0, 0], 9), rot([0, 0, 1], 4))
+    facing = rot([0, 1, 0], 40)
+    K = 20
+    cal = calibrate(np.tile([0, 1.7, 0], (K, 1)), np.tile(quat.mul(facing, worn), (K, 1)), {})
+    assert abs(np.degrees(cal.heading) - 40) < 1.0
+    frame = FrameCalibration(cal)
+    for head in (facing, quat.mul(rot([0, 1, 0], -70), facing), quat.mul(facing, rot([1, 0, 0], 30))):
+        sig = Signals(np.zeros((1, 3)), quat.mul(head, worn)[None], np.zeros((1, 2, 3)), np.tile([1.0, 0, 0, 0], (1, 2, 1)),
+                      np.array([[1.0, 0, 0, 0]]), np.zeros((1, 3)))
+        assert np.degrees(quat.angle(quat.mul(quat.inv(head), frame(sig).head_rot[0]))) < 1e-6
+        assert np.degrees(quat.angle(quat.mul(quat.inv(head), sig.head_rot[0]))) > 9.0
+
+
 def test_height_scale_maps_the_user_onto_the_canonical_body():
     K = 10
     cal = calibrate(np.tile([0, 1.50, 0], (K, 1)), np.tile([1.0, 0, 0, 0], (K, 1)), {})

@@ -2,7 +2,8 @@
 import numpy as np
 
 from edge import quat
-from edge.features import body_points, derive_waist_position, sequence_features
+from edge.features import (NUM_DECODER_FEATURES, body_points, derive_waist_position, heading, orientation_features,
+                           sequence_features)
 from motion.synth import DeviceNoise, synthesize
 from edge.skeleton import JOINT, NUM_JOINTS, PELVIS_HEIGHT, fk
 
@@ -27,6 +28,28 @@ def test_features_do_not_depend_on_where_the_user_stands_or_faces():
     root2 = quat.rotate(turn, root) + np.array([3.0, 0.0, -5.0])
     f1, _, _ = sequence_features(synthesize(rot2, root2, 60.0), 60.0)
     assert np.allclose(f0, f1, atol=1e-9)
+    o0, _, _ = sequence_features(synthesize(rot, root, 60.0), 60.0, n_features=NUM_DECODER_FEATURES)
+    o1, _, _ = sequence_features(synthesize(rot2, root2, 60.0), 60.0, n_features=NUM_DECODER_FEATURES)
+    assert o0.shape[-1] == NUM_DECODER_FEATURES and np.allclose(o0[:, :f0.shape[-1]], f0)
+    assert np.allclose(o0, o1, atol=1e-9)       # the orientations too are in the character's frame
+
+
+def test_orientation_features_are_the_headset_and_controllers_in_the_character_frame():
+    """The 18 orientation features (the decoder's upper-body head reads them): in the T-pose each is the
+    identity's 6D; the headset pitched down 30 degrees reads as that pitch whatever way the user faces."""
+    rot, root = walking_motion(T=4)
+    rot[:] = [1.0, 0, 0, 0]
+    sig = synthesize(rot, root, 60.0)
+    identity = np.array([1.0, 0, 0, 0, 1, 0])
+    f, _, _ = sequence_features(sig, 60.0, n_features=NUM_DECODER_FEATURES)
+    np.testing.assert_allclose(f[:, -18:], np.tile(identity, (4, 3)), atol=1e-12)
+    pitch = quat.from_axis_angle(np.array([1.0, 0, 0]), np.radians(30))
+    for yaw in (0.0, 2.5):
+        turn = quat.from_yaw(np.array(yaw))
+        sig.waist_rot = np.broadcast_to(turn, sig.waist_rot.shape).copy()
+        sig.head_rot = np.broadcast_to(quat.mul(turn, pitch), sig.head_rot.shape).copy()
+        head = orientation_features(sig.head_rot, sig.hand_rot, heading(sig.waist_rot))[:, :6]
+        np.testing.assert_allclose(head, np.tile(quat.matrix_to_6d(quat.to_matrix(pitch)), (4, 1)), atol=1e-12)
 
 
 def test_waist_is_exact_when_the_spine_is_straight():

@@ -73,10 +73,15 @@ def _torch_models(torch):
     return cvae, ae
 
 
+def _upper_head(torch):
+    from models.export import load_upper
+    return load_upper(DEFAULT_DIR / "checkpoints")
+
+
 def test_onnx_decoder_matches_pytorch_over_a_300_frame_closed_loop(torch):
     from models.nets import DecoderStep
     cvae, _ = _torch_models(torch)
-    step = DecoderStep(cvae).eval()
+    step = DecoderStep(cvae, _upper_head(torch)).eval()
     feats = _sample_features(300)
     n = 8
     m = load_manifest()
@@ -101,7 +106,7 @@ def test_written_out_gru_cell_matches_torch_gru(torch):
     from models.nets import DecoderStep
     cvae, _ = _torch_models(torch)
     step = DecoderStep(cvae).eval()
-    feats = torch.from_numpy(_sample_features(200))[:, None].repeat(1, 3, 1)
+    feats = torch.from_numpy(_sample_features(200)[:, :cvae.n_features])[:, None].repeat(1, 3, 1)
     z = torch.randn(1, 3, 30).repeat(200, 1, 1)
     with torch.no_grad():
         rot_seq, con_seq, _ = cvae.decode(feats, z)
@@ -110,6 +115,46 @@ def test_written_out_gru_cell_matches_torch_gru(torch):
             rot, con, h = step(feats[t], z[t], h)
             assert torch.allclose(rot, rot_seq[t], atol=1e-4)
             assert torch.allclose(con, con_seq[t], atol=1e-5)
+
+
+def test_upper_body_head_folded_for_export_is_the_head_it_was_trained_as(torch):
+    """UpperBodyStep (normalisation folded in, both MLPs' outputs in one Gemm) is UpperBodyHead; on one
+    frame's features broadcast over R rows of 6D (the refiner's batch) as on N rows."""
+    from models.nets import UpperBodyHead, UpperBodyStep
+    head = _upper_head(torch)
+    if head is None:
+        pytest.skip("the shipped checkpoint has no upper-body head")
+    step = UpperBodyStep(head).eval()
+    feats = torch.from_numpy(_sample_features(64))
+    rot = torch.randn(64, 120) * 0.1 + torch.tensor([1.0, 0, 0, 0, 1, 0]).repeat(20)
+    with torch.no_grad():
+        want = head(feats, rot)
+        assert torch.allclose(step(feats, rot), want, atol=2e-5)
+        assert torch.allclose(step(feats[:1], rot), head(feats[:1].expand(64, -1), rot), atol=2e-5)
+        assert (want - rot).abs().max() > 1e-3            # the trained head does move the torso
+    untrained = UpperBodyHead(16)
+    assert torch.equal(untrained(feats, rot), rot)          # an untrained head changes nothing
+
+
+def test_rolling_a_controller_moves_no_torso_joint_of_the_upper_body_head(torch):
+    """Only the collars' MLP reads the controllers' orientations: the spine, chest and neck (which carry the
+    pelvis and the legs, hung from the headset) do not move when a controller turns; the collars do."""
+    from models.nets import COLLAR_JOINTS, TORSO_JOINTS, _columns
+    from edge.features import NUM_FEATURES
+    head = _upper_head(torch)
+    if head is None:
+        pytest.skip("the shipped checkpoint has no upper-body head")
+    feats = torch.from_numpy(_sample_features(64))
+    rot = torch.tensor([1.0, 0, 0, 0, 1, 0]).repeat(64, 20)
+    turned = feats.clone()
+    turned[:, NUM_FEATURES + 6:] = turned[:, NUM_FEATURES + 6:].flip(0)      # other frames' controller turns
+    with torch.no_grad():
+        a, b = head(feats, rot), head(turned, rot)
+    torso, collars = _columns(TORSO_JOINTS), _columns(COLLAR_JOINTS)
+    assert torch.equal(a[:, torso], b[:, torso])
+    assert (a[:, collars] - b[:, collars]).abs().max() > 1e-3
+    rest = [c for c in range(120) if c not in torso + collars]
+    assert torch.equal(a[:, rest], rot[:, rest])
 
 
 def test_onnx_autoencoder_matches_pytorch(torch):

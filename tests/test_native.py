@@ -270,7 +270,7 @@ def test_the_leg_guard_in_c_moves_the_goals_numpy_moves_and_survives_legs_on_top
 
 
 def frame_inputs(pipe, sig, state):
-    """ep_frame_features and ep_imu_features (the first half of ep_frame_inputs) on one frame ->
+    """ep_frame_features, ep_imu_features and ep_orientation_features (the first half of ep_frame_inputs) on one frame ->
     (body points [4,3], features [n_features] float32, matrices [4,3,3]: waist, hands, head). `state` is
     the caller's dict of the C side's buffers, kept from frame to frame; empty on the first frame."""
     first = not state
@@ -284,12 +284,14 @@ def frame_inputs(pipe, sig, state):
     if pipe.imus:
         lib.ep_imu_features(pipe.imus, A(pipe.bufs.inputs["imu_rot"]), A(pipe.bufs.inputs["imu_flag"]), A(pipe.bufs.inputs["waist_rot"]),
                             feat.ctypes.data + 4 * 24)
+    if pipe.orientations:
+        lib.ep_orientation_features(A(pipe.bufs.frame_in), feat.ctypes.data + 4 * (24 + 49))
     np.copyto(prev, pts)
     return pts, feat, mats
 
 
 def test_frame_features_are_bit_identical_to_the_numpy_features_training_used():
-    from edge.features import body_points, features, heading, imu_features
+    from edge.features import body_points, features, heading, imu_features, orientation_features
     take = from_sample(SAMPLE)
     signals = worn_signals(take)
     pipe = Pipeline(PipelineOptions(samples=1, body_scale=1.07))
@@ -301,6 +303,8 @@ def test_frame_features_are_bit_identical_to_the_numpy_features_training_used():
         want = features(points, points if prev is None else prev, heading(waist_rot), 60.0)
         if pipe.imus:
             want = np.concatenate([want, imu_features(sig.imu_rot[0], sig.imu_flag[0], heading(waist_rot))])
+        if pipe.orientations:
+            want = np.concatenate([want, orientation_features(sig.head_rot[0], sig.hand_rot[0], heading(waist_rot))])
         want = want.astype(np.float32)
         prev = points
         q = np.stack([waist_rot, *sig.hand_rot[0], sig.head_rot[0]])

@@ -371,6 +371,48 @@ def test_a_blown_up_gru_state_is_reset_and_the_pose_recovers(take, native):
     assert _run_pair(take, native, blow_up, frames=160, samples=8)[1].state_resets >= 8   # every sample's row
 
 
+def _turned(sig, hands_deg=0.0, head_deg=0.0):
+    """The signals with both controllers rolled about their wrists by hands_deg (about the hand's own x,
+    the forearm's axis; the grips move, the wrists stay) and the headset pitched down by head_deg about
+    the head joint (the eyes move, the head joint stays)."""
+    from dataclasses import replace
+    from edge import quat
+    from edge.features import head_joint, wrist_joints
+    from edge.signals import EYE_OFFSET, GRIP_OFFSET
+    roll = quat.from_axis_angle(np.array([1.0, 0, 0]), np.radians(hands_deg))
+    hand_rot = quat.mul(sig.hand_rot, np.broadcast_to(roll, sig.hand_rot.shape))
+    hand_pos = wrist_joints(sig.hand_pos, sig.hand_rot) + quat.rotate(hand_rot, GRIP_OFFSET)
+    pitch = quat.from_axis_angle(np.array([1.0, 0, 0]), np.radians(head_deg))
+    head_rot = quat.mul(sig.head_rot, np.broadcast_to(pitch, sig.head_rot.shape))
+    head_pos = head_joint(sig.head_pos, sig.head_rot) + quat.rotate(head_rot, EYE_OFFSET)
+    return replace(sig, hand_rot=hand_rot, hand_pos=hand_pos, head_rot=head_rot, head_pos=head_pos)
+
+
+@pytest.mark.parametrize("native", [True, False])
+def test_rolling_a_controller_about_the_wrist_leaves_the_legs_where_they_are(take, native):
+    """The decoder's upper-body head reads the controllers' orientations for the collars alone: rolling
+    both controllers 60 degrees about the wrists moves the collars and shoulders and not one joint of
+    the torso or the legs (int8, as the board runs). Pitching the headset 25 degrees does move the
+    neck and chest: the head reads it."""
+    from edge.skeleton import JOINT
+    pipe = Pipeline(PipelineOptions(samples=1, use_native=native))
+    if not pipe.orientations:
+        pytest.skip("the shipped decoder reads no orientations")
+    legs = [JOINT[n] for n in ("pelvis", "spine", "chest", "neck", "head", "l_hip", "l_knee", "l_ankle", "l_toe",
+                               "r_hip", "r_knee", "r_ankle", "r_toe")]
+    shoulders = [JOINT[n] for n in ("l_shoulder", "r_shoulder")]
+    sig = take.signals.slice(0, 150)
+
+    def run(s):
+        pipe.reset()
+        return np.stack([pipe.step(s.slice(t, t + 1)).positions.copy() for t in range(s.frames)])
+    plain, rolled, nodded = run(sig), run(_turned(sig, hands_deg=60)), run(_turned(sig, head_deg=25))
+    np.testing.assert_allclose(rolled[:, legs], plain[:, legs], rtol=0, atol=1e-6)
+    assert np.linalg.norm(rolled[:, shoulders] - plain[:, shoulders], axis=-1).max() > 0.003
+    chest = [JOINT["neck"], JOINT["chest"]]
+    assert np.linalg.norm(nodded[:, chest] - plain[:, chest], axis=-1).max() > 0.01
+
+
 @pytest.mark.parametrize("native", [True, False])
 def test_the_hand_axis_turns_only_the_arms_and_keeps_the_wrists_on_the_controllers(take, native):
     """The elbow swivel (edge.ik.swivel_to_hands) runs after the IK: legs, torso, head and wrists are

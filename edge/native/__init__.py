@@ -165,6 +165,7 @@ _SIGNATURES = {
     "ep_foot_locks": [ctypes.POINTER(Skeleton), _I, _P, _P, _P, ctypes.POINTER(FootLocks), _P],
     "ep_frame_features": [_P, _P, _P, _D, _P, _P, _P],
     "ep_imu_features": [_I, _P, _P, _P, _P],
+    "ep_orientation_features": [_P, _P],
     "ep_physical_cost": [_I, _I, _P, _P, _P, ctypes.POINTER(PhysicalParams), _P],
     "ep_post": [ctypes.POINTER(Skeleton), _I, ctypes.POINTER(LimbGoals), ctypes.POINTER(PoseRows)],
     "ep_switch_to": [_I, _P, _I, _D],

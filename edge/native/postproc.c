@@ -1205,6 +1205,21 @@ void ep_imu_features(int K, const double *imu_rot, const double *imu_flag, const
     }
 }
 
+/* edge.features.orientation_features: the headset's and the two controllers' orientations (frame_in's
+ * head_rot at 3, hand_rot at 13 and 17) -> features [18]: the 6D of each in the character frame of
+ * waist_rot's heading (what the decoder's upper-body head reads). Bit-identical to numpy. */
+void ep_orientation_features(const double *in, float *features) {
+    const double *rots[3] = {in + 3, in + 13, in + 17};
+    double inv[4], local[4], m[9];
+    heading_inverse(in + 21, inv);
+    for (int k = 0; k < 3; k++) {
+        quat_mul(inv, rots[k], local);
+        quat_to_matrix(local, m);
+        const double six[6] = {m[0], m[3], m[6], m[1], m[4], m[7]};
+        for (int i = 0; i < 6; i++) features[k * 6 + i] = (float)six[i];
+    }
+}
+
 /* edge.physics.segment_distance: closest distance between segments p0-p1 and q0-q1. */
 static double segment_distance(const double *p0, const double *p1, const double *q0, const double *q1) {
     double a[3], b[3], s, t;
@@ -1340,6 +1355,8 @@ int ep_frame_inputs(const core_context *x, int slot, int first, int N, int c, in
     ep_frame_features(x->frame_in, x->frame_offsets, first ? points : x->prev, x->fps, points, feat, mats);
     if (F > 24)                 /* the extra IMUs: frame_in[25..] holds their orientations [K,4] and flags [K] */
         ep_imu_features(x->imus, x->frame_in + 25, x->frame_in + 25 + 4 * x->imus, x->frame_in + 21, feat + 24);
+    if (F > 24 + 49)            /* the upper-body head's orientations (v0.5 on) */
+        ep_orientation_features(x->frame_in, feat + 24 + 49);
     if (x->segments) {
         double *seg = x->ring_seg_m + (int64_t)slot * x->sk.J * 9, *flag = x->ring_seg_flag + (int64_t)slot * x->sk.J;
         for (int k = 0; k < x->imus; k++) {
