@@ -185,10 +185,12 @@ def test_the_layers_that_read_normalised_inputs_stay_fp32_in_the_int8_builds():
     int8 cannot hold columns 1000x apart, so quantize leaves those layers fp32."""
     pytest.importorskip("onnx", reason="reading the graphs needs the onnx package")
     import onnx
-    from quantize.build import input_layers
-    assert input_layers(DEFAULT_DIR / "decoder.onnx") == ["/fc/Gemm"]
+    from quantize.build import head_layers, input_layers
+    layers = input_layers(DEFAULT_DIR / "decoder.onnx")          # the CVAE's, and the upper-body head's (v0.5)
+    assert layers[0] == "/fc/Gemm" and set(layers[1:]) <= {"/upper/torso_f/Gemm", "/upper/collars_f/Gemm"}
+    assert set(layers[1:]) <= set(head_layers(DEFAULT_DIR / "decoder.onnx"))
     assert input_layers(DEFAULT_DIR / "autoencoder.onnx") == ["/net/net.0/Gemm"]
     int8 = onnx.load(str(DEFAULT_DIR / INT8[0])).graph
-    kept = [n for n in int8.node if n.name.startswith("/fc/")]
-    assert kept and all(n.op_type in ("Gemm", "MatMul", "Add", "FusedGemm") for n in kept)
+    kept = [n for n in int8.node if n.name.startswith(("/fc/", "/upper/"))]     # the head stays fp32 whole
+    assert kept and all(n.op_type in ("Gemm", "MatMul", "Add", "FusedGemm", "Relu", "Slice", "Constant") for n in kept)
     assert any(n.op_type in ("DynamicQuantizeMatMul", "MatMulInteger", "MatMulIntegerToFloat") for n in int8.node)

@@ -43,7 +43,9 @@ def test_the_jacobian_matches_central_differences(take):
     run_to(pipe, take, 55)                       # refine ran this frame: the batch holds its inputs
     r = pipe.refiner
     z = pipe.decoder.latent[0].astype(np.float64)
-    h = 3e-3        # float32 rounding over h stays ~1e-4 of the scale; truncation ~h (1e-3 sat at 0.046 of 0.05)
+    # float32 rounding over h against truncation ~h: with the upper-body head (v0.5) the rounding floor
+    # rose (0.14 of the scale at h = 1e-3, 0.052 at 3e-3, 0.038 at 5e-3)
+    h = 5e-3
     r0, J = r.jacobian(z, eps=h)
     central = np.stack([(r.residuals_at(z + h * e) - r.residuals_at(z - h * e)) / (2 * h) for e in np.eye(r.L)])
     assert np.abs(r0 - r.residuals_at(z)).max() < 1e-6
