@@ -192,34 +192,38 @@ class UpperBodyHead(nn.Module):
 
 
 class UpperBodyStep(nn.Module):
-    """UpperBodyHead in inference form: normalisation folded into the first layers, and each MLP's output
-    layer widened to the 120 6D values (zero where it moves nothing). The two MLPs stay apart to the end:
-    int8 quantizes each Gemm's input with a scale of its own, so a controller's orientation, which the
-    collars' MLP reads, must not share a Gemm with the torso's (it would move the legs by rounding)."""
+    """UpperBodyHead in inference form, in as few graph nodes as the same function allows (at N=16 the
+    node count costs more than the arithmetic): normalisation folded into the first layers, the two MLPs
+    side by side in one Gemm per layer (the torso's half with zero weights on the controllers' columns,
+    the middle layer block-diagonal), and their 30 outputs put into the 120 6D values by a 0/1 matrix.
+    The runtime runs it in fp32 (quantize.build.head_layers), where a zero weight contributes exactly
+    nothing: a controller's orientation still never reaches the torso."""
 
     def __init__(self, head: UpperBodyHead):
         super().__init__()
         mf, sf = head.norm_f.mean.double(), head.norm_f.std.double()
         mr, sr = head.norm_r.mean.double(), head.norm_r.std.double()
-
-        def fold(branch, n):
+        H, F = head.hidden_size, NUM_DECODER_FEATURES
+        w_f = torch.zeros(2 * H, F, dtype=torch.float64)
+        w_r = torch.zeros(2 * H, READS_6D, dtype=torch.float64)
+        bias = torch.zeros(2 * H, dtype=torch.float64)
+        for k, (branch, n) in enumerate(((head.torso, HEAD_ORIENTATION), (head.collars, F))):
             wf = branch.in_f.weight.double() / sf[:n]
             wr = branch.in_r.weight.double() / sr
-            return (_linear(wf, branch.in_f.bias.double() - wf @ mf[:n] - wr @ mr),
-                    _linear(wr, torch.zeros(wr.shape[0], dtype=torch.float64)), branch.mid)
-
-        self.torso_f, self.torso_r, self.torso_mid = fold(head.torso, HEAD_ORIENTATION)
-        self.collars_f, self.collars_r, self.collars_mid = fold(head.collars, NUM_DECODER_FEATURES)
-        n_t = head.torso.out.out_features
-        place_t, place_c = head.place[:n_t], head.place[n_t:]
-        self.torso_out = _linear(place_t.T @ head.torso.out.weight, head.torso.out.bias @ place_t)
-        self.collars_out = _linear(place_c.T @ head.collars.out.weight, head.collars.out.bias @ place_c)
+            w_f[k * H:(k + 1) * H, :n], w_r[k * H:(k + 1) * H] = wf, wr
+            bias[k * H:(k + 1) * H] = branch.in_f.bias.double() - wf @ mf[:n] - wr @ mr
+        self.first_f = _linear(w_f, bias)
+        self.first_r = _linear(w_r, torch.zeros(2 * H, dtype=torch.float64))
+        mid = torch.block_diag(head.torso.mid.weight.detach(), head.collars.mid.weight.detach())
+        self.mid = _linear(mid, torch.cat([head.torso.mid.bias, head.collars.mid.bias]))
+        t, c = head.torso.out, head.collars.out
+        out = torch.block_diag(t.weight.detach(), c.weight.detach())
+        self.out = _linear(out, torch.cat([t.bias, c.bias]))
+        self.register_buffer("place", head.place.clone())
 
     def forward(self, features, rot6d):
-        r = rot6d[:, :READS_6D]
-        t = torch.relu(self.torso_mid(torch.relu(self.torso_f(features[:, :HEAD_ORIENTATION]) + self.torso_r(r))))
-        c = torch.relu(self.collars_mid(torch.relu(self.collars_f(features) + self.collars_r(r))))
-        return rot6d + self.torso_out(t) + self.collars_out(c)
+        h = torch.relu(self.first_f(features) + self.first_r(rot6d[:, :READS_6D]))
+        return rot6d + self.out(torch.relu(self.mid(h))) @ self.place
 
 
 class DecoderStep(nn.Module):
@@ -245,12 +249,16 @@ class DecoderStep(nn.Module):
         self.n_cvae = cvae.n_features
         self.upper = None if upper is None else UpperBodyStep(upper)
         self.hidden = H = cvae.hidden
+        assert upper is None or cvae.n_features == NUM_FEATURES, "the upper-body head follows the CVAE's 73 features"
         g = cvae.dec_gru
         self.prior = cvae.prior
         self.norm = cvae.norm           # the learned prior still reads normalised features
         mean, std = cvae.norm.mean.double(), cvae.norm.std.double()     # folded in float64, stored as float32
         w = cvae.dec_fc.weight[:, LATENT:].double() / std                 # fc over [latent, (x - mean) / std]
-        self.fc = _linear(torch.cat([cvae.dec_fc.weight[:, :LATENT].double(), w], 1), cvae.dec_fc.bias.double() - w @ mean)
+        bias = cvae.dec_fc.bias.double() - w @ mean
+        if upper is not None:           # the head's orientation columns: zero weights (fp32 at run time, so exact)
+            w = torch.cat([w, torch.zeros(H, NUM_ORIENTATION_FEATURES, dtype=w.dtype)], 1)
+        self.fc = _linear(torch.cat([cvae.dec_fc.weight[:, :LATENT].double(), w], 1), bias)
         self.gates_ru = _linear(torch.cat([g.weight_ih_l0[:2 * H], g.weight_hh_l0[:2 * H]], 1),
                                 g.bias_ih_l0[:2 * H] + g.bias_hh_l0[:2 * H])
         self.cand_x = _linear(g.weight_ih_l0[2 * H:], g.bias_ih_l0[2 * H:])
@@ -260,10 +268,8 @@ class DecoderStep(nn.Module):
 
     def forward(self, features, latent, hidden):
         every = features
-        if self.upper is not None:      # the CVAE reads its 73, the upper-body head all
-            features = features[:, :self.n_cvae]
-        if self.prior is not None:      # epsilon -> z through the learned conditional prior
-            out = self.prior(torch.cat([self.norm(features), hidden], dim=-1))
+        if self.prior is not None:      # epsilon -> z through the learned conditional prior (on the CVAE's 73)
+            out = self.prior(torch.cat([self.norm(features[:, :self.n_cvae]), hidden], dim=-1))
             latent = out[:, :LATENT] + torch.exp(0.5 * out[:, LATENT:].clamp(-8, 3)) * latent
         x = torch.relu(self.fc(torch.cat([latent, features], dim=-1)))
         ru = torch.sigmoid(self.gates_ru(torch.cat([x, hidden], dim=-1)))
@@ -302,10 +308,8 @@ class JacobianStep(nn.Module):
 
     def forward(self, features, latent, hidden):
         every = features
-        if self.upper is not None:
-            features = features[:, :self.n_cvae]
         if self.prior is not None:      # as DecoderStep: epsilon -> z through the learned conditional prior
-            out = self.prior(torch.cat([self.norm(features), hidden], dim=-1))
+            out = self.prior(torch.cat([self.norm(features[:, :self.n_cvae]), hidden], dim=-1))
             latent = out[:, :LATENT] + torch.exp(0.5 * out[:, LATENT:].clamp(-8, 3)) * latent
         x = torch.relu(self.fc_latent(latent) + self.fc_features(features))          # [R,H] + [1,H]
         ru = torch.sigmoid(self.gates_x(x) + self.gates_h(hidden))
