@@ -17,7 +17,7 @@ points along the forearm.
 
 Chosen on val's unseen people in the 4-point case (no extra IMU): the mean head-anchored joint error,
 checked every --every seconds; the shoulders are printed beside it. A CPU run of 12 minutes is enough
-(the head has 30 k weights); the log goes to OUT/train_upper_log.txt.
+(the 32-wide head that ships has 12 k weights); the log goes to OUT/train_upper_log.txt.
 """
 import argparse
 import json
@@ -122,7 +122,7 @@ def main(argv=None):
     ap.add_argument("--out", default=".cache/train_upper", help="checkpoint folder (the CVAE's files and upper.pt)")
     ap.add_argument("--export", default=None, help="export the folder's ONNX models here (then: python -m quantize)")
     ap.add_argument("--minutes", type=float, default=12.0)
-    ap.add_argument("--hidden", type=int, default=64)
+    ap.add_argument("--hidden", type=int, default=32, help="each MLP's width (v0.5: 32; 64 measured too)")
     ap.add_argument("--batch", type=int, default=64, help="windows per step")
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--bend-share", type=float, default=0.5)
