@@ -192,8 +192,8 @@ class UpperBodyHead(nn.Module):
 
 
 class UpperBodyStep(nn.Module):
-    """UpperBodyHead in inference form, in as few graph nodes as the same function allows (at N=16 the
-    node count costs more than the arithmetic): normalisation folded into the first layers, the two MLPs
+    """UpperBodyHead in inference form, in as few graph nodes as the same function allows (9 against 22;
+    at N=16 it cost the same, the head's cost is its arithmetic): normalisation folded into the first layers, the two MLPs
     side by side in one Gemm per layer (the torso's half with zero weights on the controllers' columns,
     the middle layer block-diagonal), and their 30 outputs put into the 120 6D values by a 0/1 matrix.
     The runtime runs it in fp32 (quantize.build.head_layers), where a zero weight contributes exactly
@@ -267,7 +267,6 @@ class DecoderStep(nn.Module):
         self.contact_head = cvae.contact_head
 
     def forward(self, features, latent, hidden):
-        every = features
         if self.prior is not None:      # epsilon -> z through the learned conditional prior (on the CVAE's 73)
             out = self.prior(torch.cat([self.norm(features[:, :self.n_cvae]), hidden], dim=-1))
             latent = out[:, :LATENT] + torch.exp(0.5 * out[:, LATENT:].clamp(-8, 3)) * latent
@@ -279,7 +278,7 @@ class DecoderStep(nn.Module):
         y = torch.relu(h)
         rot = self.rot_head(y)
         if self.upper is not None:
-            rot = self.upper(every, rot)
+            rot = self.upper(features, rot)
         return rot, torch.sigmoid(self.contact_head(y)), h
 
 
@@ -307,7 +306,6 @@ class JacobianStep(nn.Module):
         self.cand_x, self.cand_h, self.rot_head = d.cand_x, d.cand_h, d.rot_head
 
     def forward(self, features, latent, hidden):
-        every = features
         if self.prior is not None:      # as DecoderStep: epsilon -> z through the learned conditional prior
             out = self.prior(torch.cat([self.norm(features[:, :self.n_cvae]), hidden], dim=-1))
             latent = out[:, :LATENT] + torch.exp(0.5 * out[:, LATENT:].clamp(-8, 3)) * latent
@@ -317,7 +315,7 @@ class JacobianStep(nn.Module):
         n = torch.tanh(self.cand_x(x) + r * self.cand_h(hidden))
         h = n + u * (hidden - n)
         rot = self.rot_head(torch.relu(h))
-        return rot if self.upper is None else self.upper(every, rot)     # features [1,F] broadcast over R
+        return rot if self.upper is None else self.upper(features, rot)     # features [1,F] broadcast over R
 
 
 def _linear(weight, bias):

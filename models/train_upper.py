@@ -32,9 +32,10 @@ import torch
 from edge.imus import ImuNoise
 from edge.progress import Progress
 from edge.signals import Signals
-from edge.skeleton import HEAD, JOINT, NUM_PREDICTED
+from edge.skeleton import JOINT
 from models.export import export_all, load_checkpoint
-from models.nets import LATENT, UpperBodyHead, fk_positions, matrix_from_6d
+from models.nets import LATENT, UpperBodyHead
+from models.train import head_positions
 from motion import dataset as ds
 from motion.synth import DeviceNoise, bend_hands
 
@@ -43,12 +44,6 @@ R_STD_FLOOR = 0.05
 # Sources whose hands stay in line with the forearm (python -m motion.hands: roll only)
 UNBENT_FOLDERS = ("cmu_amc2bvh", "cmu_cgspeed_mb", "hdm05_ccbysa")
 REPORT = ("neck", "l_collar", "r_collar", "l_shoulder", "r_shoulder", "pelvis", "l_knee", "r_knee")
-
-
-def head_anchored(rot6d, root_rot):
-    local = matrix_from_6d(rot6d.reshape(rot6d.shape[:-1] + (NUM_PREDICTED, 6)))
-    pos = fk_positions(root_rot, local)
-    return pos - pos[..., HEAD:HEAD + 1, :]
 
 
 def unbent_clips(cs):
@@ -95,13 +90,16 @@ class Windows:
 
 
 def joint_errors(head, batches):
-    """Mean head-anchored error per joint (cm) over the batches, the CVAE's and with the head."""
-    e0, e1 = 0.0, 0.0
+    """Mean head-anchored error per joint (cm) over the batches of the 6D head(features, rot6d) makes."""
+    e = 0.0
     with torch.no_grad():
         for b in batches:
-            e0 = e0 + (head_anchored(b["rot6d"], b["root_rot"]) - b["gt_rel"]).norm(dim=-1).mean((0, 1))
-            e1 = e1 + (head_anchored(head(b["features"], b["rot6d"]), b["root_rot"]) - b["gt_rel"]).norm(dim=-1).mean((0, 1))
-    return (e0 * 100 / len(batches)).numpy(), (e1 * 100 / len(batches)).numpy()
+            e = e + (head_positions(head(b["features"], b["rot6d"]), b["root_rot"]) - b["gt_rel"]).norm(dim=-1).mean((0, 1))
+    return (e * 100 / len(batches)).numpy()
+
+
+def cvae_alone(features, rot6d):
+    return rot6d
 
 
 def fit_normalizers(head, batches):
@@ -149,13 +147,14 @@ def main(argv=None):
         raise SystemExit(f"{a.data}: val has no unseen people to choose on (MANIFEST.tsv)")
     val = val.subset(val.people == "unseen")
     draws = Windows(cvae, train, a.seed, a.batch, bend_share=a.bend_share)
-    val_batches = [b for b in (Windows(cvae, val, a.seed + 1, 128, imus=False).draw() for _ in range(a.val_batches))]
+    val_windows = Windows(cvae, val, a.seed + 1, 128, imus=False)
+    val_batches = [val_windows.draw() for _ in range(a.val_batches)]
     head = UpperBodyHead(a.hidden)
     fit_normalizers(head, [draws.draw() for _ in range(8)])
     opt = torch.optim.Adam([p for n, p in head.named_parameters() if not n.startswith("norm")], a.lr)
     log(f"upper-body head: hidden {a.hidden}, {sum(p.numel() for p in head.parameters())} weights; "
         f"train {len(train.names)} clips, val unseen {len(val.names)} clips; {a.minutes:g} min on {torch.get_num_threads()} threads")
-    before, _ = joint_errors(head, val_batches)
+    before = joint_errors(cvae_alone, val_batches)
     best, best_state, step, t0, last = float(before.mean()), None, 0, time.time(), time.time()
     log("CVAE alone (val unseen, 4-point): mean " + f"{before.mean():.3f} cm, "
         + ", ".join(f"{n} {before[JOINT[n]]:.2f}" for n in REPORT))
@@ -163,7 +162,7 @@ def main(argv=None):
     with Progress(int(60 * a.minutes), "train upper-body head") as bar:
         while time.time() < end:
             b = draws.draw()
-            err = head_anchored(head(b["features"], b["rot6d"]), b["root_rot"]) - b["gt_rel"]
+            err = head_positions(head(b["features"], b["rot6d"]), b["root_rot"]) - b["gt_rel"]
             loss = (err ** 2).sum(-1).mean()
             opt.zero_grad()
             loss.backward()
@@ -174,7 +173,7 @@ def main(argv=None):
                 g["lr"] = a.lr * 0.5 * (1 + np.cos(np.pi * min(frac, 1.0)))
             if time.time() - last > a.every or time.time() >= end:
                 last = time.time()
-                _, e = joint_errors(head, val_batches)
+                e = joint_errors(head, val_batches)
                 mark = ""
                 if e.mean() < best:
                     best, best_state, mark = float(e.mean()), {k: v.clone() for k, v in head.state_dict().items()}, " (best)"

@@ -7,9 +7,10 @@ hand axes lean off the forearm), so no bind pose says where a neutral hand is. T
 measured instead: over a source folder's train clips, the mean rotation between the source's hand and
 the canonical forearm. Retargeting sets the canonical wrist to the source hand's world rotation
 times that neutral, so a hand held in line with its forearm, at the folder's average roll, has the
-identity local rotation, as in the canonical T-pose. The head likewise: the canonical head is the source
-head's world rotation times the folder's neutral (the mean rotation between the source's head and the
-canonical neck), so the synthesised headset nods and turns on the neck as the person's head did.
+identity local rotation, as in the canonical T-pose. The head needs no table: retargeting takes the
+source head's turn on the neck about its own mean over the clip (motion.retarget.calibrated_head, a
+calibrated headset), which no constant offset of a source's head frame changes; this module reports its
+spread.
 
     python -m motion.hands [--data ../shared/mocap] [--clips 80]
 
@@ -35,18 +36,6 @@ HAND_NEUTRAL = {
     "cmu_fbx_daz": {"l": (0.9811, -0.1195, -0.1518, -0.0122), "r": (0.9838, -0.0945, 0.1520, 0.0036)},
     "hdm05_ccbysa": {"l": (0.9825, -0.1862, 0.0002, 0.0012), "r": (0.9843, -0.1768, -0.0002, -0.0003)},
 }
-# Folder -> the head's neutral (w, x, y, z): canonical head world = source head world * neutral.
-# Measured by `python -m motion.hands --clips 60` on data v4 (every 4th frame). The head on the neck, p50 / p95:
-# nod 4-17 / 16-40 deg, turn 6-22 / 31-53 deg (Bandai the stillest, Daz the most nodding).
-HEAD_NEUTRAL = {
-    "bandai_namco_ccbync": (0.5091, -0.4947, -0.4800, -0.5155),
-    "cmu_amc2bvh": (0.9922, -0.1187, 0.0236, -0.0306),
-    "cmu_cgspeed_mb": (0.9955, -0.0922, -0.0040, -0.0214),
-    "cmu_daz_ateliercircle": (0.9874, 0.1501, 0.0396, -0.0295),
-    "cmu_daz_papagina": (0.9782, 0.1942, 0.0612, -0.0416),
-    "cmu_fbx_daz": (0.9784, 0.1683, 0.0713, -0.0964),
-    "hdm05_ccbysa": (0.9988, -0.0310, 0.0348, -0.0136),
-}
 FOLDER_SKELETON = {"bandai_namco_ccbync": "bandai", "cmu_amc2bvh": "cmu", "cmu_cgspeed_mb": "cmu", "hdm05_ccbysa": "cmu",
                    "cmu_daz_ateliercircle": "daz", "cmu_daz_papagina": "daz", "cmu_fbx_daz": "daz"}
 
@@ -63,14 +52,6 @@ def _skeleton_means():
 
 HAND_SKELETON = _skeleton_means()
 
-
-def head_neutral_of(path, source):
-    """The measured head neutral of the clip at `path` (from its folder, else its skeleton's mean), or None."""
-    for part in Path(str(path)).parts[::-1]:
-        if part in HEAD_NEUTRAL:
-            return HEAD_NEUTRAL[part]
-    folders = [f for f, s in FOLDER_SKELETON.items() if s == source and f in HEAD_NEUTRAL]
-    return tuple(quat.normalize(np.sum([HEAD_NEUTRAL[f] for f in folders], axis=0))) if folders else None
 
 
 def head_world(clip, source):
@@ -130,11 +111,11 @@ def nod_and_turn(local):
 
 
 def measure(root, clips=80, seed=0, step=4):
-    """{folder: {side: (neutral quat, [n] roll deg, [n] bend deg), "head": (neutral quat, [n] nod deg,
-    [n] turn deg)}} over up to `clips` train clips a folder."""
+    """{folder: {side: (neutral quat, [n] roll deg, [n] bend deg), "head": ([n] nod deg, [n] turn deg) of the
+    calibrated head on the neck}} over up to `clips` train clips a folder."""
     from motion import bvh
     from motion.dataset import read_manifest
-    from motion.retarget import detect_source, retarget
+    from motion.retarget import calibrated_head, detect_source, retarget
     from edge.skeleton import JOINT, fk
     by_folder = collections.defaultdict(list)
     for r in read_manifest(root):
@@ -153,7 +134,9 @@ def measure(root, clips=80, seed=0, step=4):
             for side in "lr":
                 hand = quat.to_matrix(hand_world(clip, skeleton, side)[::step])
                 pairs[side].append((hand, world[:, JOINT[f"{side}_elbow"]]))
-            pairs["head"].append((quat.to_matrix(head_world(clip, skeleton)[::step]), world[:, JOINT["neck"]]))
+            neck = quat.from_matrix(world[:, JOINT["neck"]])
+            head = calibrated_head(neck, head_world(clip, skeleton)[::step])
+            pairs["head"].append(quat.mul(quat.inv(neck), head))
         out[folder] = {"skeleton": skeleton}
         for side in "lr":
             hand = np.concatenate([h for h, _ in pairs[side]])
@@ -161,11 +144,7 @@ def measure(root, clips=80, seed=0, step=4):
             neutral = mean_rotation(np.swapaxes(hand, -1, -2) @ forearm)
             local = quat.from_matrix(np.swapaxes(forearm, -1, -2) @ hand @ neutral)
             out[folder][side] = (quat.from_matrix(neutral),) + roll_and_bend(local)
-        head = np.concatenate([h for h, _ in pairs["head"]])
-        neck = np.concatenate([n for _, n in pairs["head"]])
-        neutral = mean_rotation(np.swapaxes(head, -1, -2) @ neck)
-        local = quat.from_matrix(np.swapaxes(neck, -1, -2) @ head @ neutral)
-        out[folder]["head"] = (quat.from_matrix(neutral),) + nod_and_turn(local)
+        out[folder]["head"] = nod_and_turn(np.concatenate(pairs["head"]))
     return out
 
 
@@ -184,16 +163,12 @@ def main():
             real = "roll and bend" if b[2] > 10 else "roll only (the hand stays in line with the forearm)"
             print(f"  {folder:24s} {side}  roll {r[0]:5.1f} {r[1]:5.1f} {r[2]:5.1f}   bend {b[0]:5.1f} {b[1]:5.1f} "
                   f"{b[2]:5.1f}   {real}")
-    print(f"\nthe head against the neck, per folder (p5 / p50 / p95 of |nod| and |turn|, degrees; human: nod up to "
+    print(f"\nthe calibrated head against the neck, per folder (p5 / p50 / p95 of |nod| and |turn|, degrees; human: nod up to "
           f"{HUMAN_NOD_DEG:.0f}, turn up to {HUMAN_TURN_DEG:.0f})")
     for folder, d in m.items():
-        _, nod, turn = d["head"]
+        nod, turn = d["head"]
         n, t = np.percentile(np.abs(nod), [5, 50, 95]), np.percentile(np.abs(turn), [5, 50, 95])
         print(f"  {folder:24s}    nod {n[0]:5.1f} {n[1]:5.1f} {n[2]:5.1f}   turn {t[0]:5.1f} {t[1]:5.1f} {t[2]:5.1f}")
-    print("\nHEAD_NEUTRAL = {")
-    for folder, d in m.items():
-        print(f'    "{folder}": ({", ".join(f"{v:.4f}" for v in d["head"][0])}),  # {d["skeleton"]}')
-    print("}")
     print("\nHAND_NEUTRAL = {")
     for folder, d in m.items():
         q = {s: ", ".join(f"{v:.4f}" for v in d[s][0]) for s in "lr"}

@@ -93,10 +93,9 @@ def retarget(clip: BvhClip, source=None, unit=0.01, hands=True):
     """Source clip -> canonical Motion, plus the source joint world positions [T,J,3] (metres) it followed.
     hands=False gives the wrists their forearm's orientation and the head its neck's (what motion.hands
     measures against)."""
-    from motion.hands import hand_world, head_neutral_of, head_world, neutral_of
+    from motion.hands import hand_world, head_world, neutral_of
     source = source or detect_source(clip)
     neutral = neutral_of(clip.path, source) if hands else None
-    head_neutral = head_neutral_of(clip.path, source) if hands else None
     mapping = SOURCE_MAPS[source]
     _, src_world = clip.world()
     src = np.stack([src_world[:, clip.index(mapping[n])] for n in JOINT_NAMES], axis=1) * unit
@@ -123,8 +122,8 @@ def retarget(clip: BvhClip, source=None, unit=0.01, hands=True):
             world[:, j] = quat.normalize(quat.mul(quat.between(u, d), parent_world))
         elif neutral is not None and name in ("l_wrist", "r_wrist"):
             world[:, j] = quat.normalize(quat.mul(hand_world(clip, source, name[0]), np.asarray(neutral[name[0]])))
-        elif head_neutral is not None and name == "head":
-            world[:, j] = calibrated_head(parent_world, quat.mul(head_world(clip, source), np.asarray(head_neutral)))
+        elif hands and name == "head":
+            world[:, j] = calibrated_head(parent_world, head_world(clip, source))
         else:  # leaf: keep the parent's orientation
             world[:, j] = parent_world
         local[:, j] = quat.mul(quat.inv(parent_world), world[:, j]) if j > 0 else world[:, j]

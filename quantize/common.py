@@ -108,10 +108,9 @@ def mocap_windows(data, split, windows, window, seed, noise=True, n_features=Non
     rng = np.random.default_rng(seed)
     starts = window_starts(cs, window)
     pick = np.sort(rng.choice(starts, size=min(windows, len(starts)), replace=False))
-    from edge.features import NUM_POINT_FEATURES
+    from edge.features import NUM_FEATURES, NUM_POINT_FEATURES
     from edge.imus import ImuNoise
     imus = n_features is None or n_features > NUM_POINT_FEATURES
-    from edge.features import NUM_FEATURES
     b = make_batch(cs, pick, window, rng, DeviceNoise() if noise else None, ImuNoise() if noise else None, with_imus=imus,
                    orientations=n_features is not None and n_features > NUM_FEATURES)
     if not imus:
