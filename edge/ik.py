@@ -144,9 +144,13 @@ def swivel_to_hands(local, world, pos, parents, arms, offsets, gain=ELBOW_FROM_H
     u_len = np.sqrt(_dot(u, u))
     u = u / np.maximum(u_len, 1e-9)[..., None]
     t = _normalize(u - gain * (h - _dot(h, n)[..., None] * n))
-    elbow = sh + along[..., None] * n + u_len[..., None] * t                     # where t puts the elbow
-    away = elbow - closest_on_polyline(elbow, pos[:, torso])
-    dist = np.sqrt(_dot(away, away))
+    centre = sh + along[..., None] * n                                           # of the elbow's circle
+    elbow = centre + u_len[..., None] * t                                        # where t puts the elbow
+    gap = elbow - closest_on_polyline(elbow, pos[:, torso])
+    dist = np.sqrt(_dot(gap, gap))
+    # Out along the circle's own way from the torso (its centre's, across the arm): the elbow's own
+    # way out can run along the arm when the hand reaches across the chest, and turning gains nothing.
+    away = centre - closest_on_polyline(centre, pos[:, torso])
     away -= _dot(away, n)[..., None] * n
     push = GUARD_GAIN * np.maximum(clearance - dist, 0.0) / max(clearance, 1e-9)   # clearance 0: no guard
     t = t + push[..., None] * _normalize(away)

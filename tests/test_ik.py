@@ -145,11 +145,27 @@ def test_swivel_turns_an_elbow_out_of_the_torso_and_leaves_clear_ones_alone():
         el = P[:, ARMS[:, 1]]
         return np.linalg.norm(el - closest_on_polyline(el, P[:, TORSO_LINE]), axis=-1)
 
-    before = torso_distance(P)
+    def farthest_on_circle(P):          # the swivel circle's farthest point from the torso line, sampled
+        sh, el, wr = P[:, ARMS[:, 0]], P[:, ARMS[:, 1]], P[:, ARMS[:, 2]]
+        u, n = _elbow_side(P)
+        along = np.sum((el - sh) * n, -1, keepdims=True)
+        r = np.linalg.norm((el - sh) - along * n, axis=-1, keepdims=True)
+        v = np.cross(n, u)
+        far = np.zeros(P.shape[0:1] + (2,))
+        for a in np.linspace(0.0, 2 * np.pi, 180, endpoint=False):
+            e = sh + along * n + r * (np.cos(a) * u + np.sin(a) * v)
+            far = np.maximum(far, np.linalg.norm(e - closest_on_polyline(e, P[:, TORSO_LINE]), axis=-1))
+        return far
+
+    before, room = torso_distance(P), farthest_on_circle(P)
     swivel_to_hands(L, W, P, PARENTS, ARMS, OFFSETS, gain=0.0)
     after = torso_distance(P)
     inside = before < 0.10
     assert inside.sum() > 20
+    # Where the circle has room (15 cm), the elbow gets out, even with the hand reaching across the
+    # chest, where the elbow's own way out runs along the arm (the guard follows the circle's centre).
+    roomy = inside & (room > 0.15)
+    assert roomy.sum() > 10 and after[roomy].min() > 0.095
     # A single proportional push, not a search: never deeper, mostly well out (where the swivel circle
     # allows: a wrist near the chest keeps its elbow near too).
     assert (after[inside] >= before[inside] - 1e-9).all()

@@ -527,7 +527,7 @@ static void block_swivel(block *k, const int64_t *parents, const double *offsets
     const double *o = offsets + ic * 3;
     double on = sqrt(o[0] * o[0] + o[1] * o[1] + o[2] * o[2]);
     double axis[3] = {o[0] / on, o[1] / on, o[2] / on};
-    lane n[3], e[3], u[3], h[3], t[3], x[3], elbow[3], q[3], away[3];
+    lane n[3], e[3], u[3], h[3], t[3], x[3], centre[3], elbow[3], q[3], away[3];
     lane along, hn, ul, tl, c, s, dist, an, turn[9], a_new[9], b_new[9], v[3];
     lane_sub3(k->P[ic], k->P[ia], n);
     lane_normalize3(n);
@@ -543,10 +543,17 @@ static void block_swivel(block *k, const int64_t *parents, const double *offsets
         t[i][l] = u[i][l] - gain * (h[i][l] - hn[l] * n[i][l]);
     }
     lane_normalize3(t);
-    for (int i = 0; i < 3; i++) EACH elbow[i][l] = k->P[ia][i][l] + along[l] * n[i][l] + ul[l] * t[i][l];
+    for (int i = 0; i < 3; i++) EACH {
+        centre[i][l] = k->P[ia][i][l] + along[l] * n[i][l];
+        elbow[i][l] = centre[i][l] + ul[l] * t[i][l];
+    }
     lane_closest_on_polyline(k, torso, ntorso, elbow, q);
     lane_sub3(elbow, q, away);
     lane_dot3(away, away, dist);
+    /* out along the circle's own way from the torso (its centre's, across the arm): the elbow's own
+     * way out can run along the arm when the hand reaches across the chest */
+    lane_closest_on_polyline(k, torso, ntorso, centre, q);
+    lane_sub3(centre, q, away);
     lane_dot3(away, n, an);
     for (int i = 0; i < 3; i++) EACH away[i][l] -= an[l] * n[i][l];
     lane_normalize3(away);
@@ -948,30 +955,38 @@ static int all_finite_f32(const float *x, int64_t n) {
  * the numpy reference's order of operations. */
 #define SMOOTH_JOINTS 11
 static void smooth_rows(const core_context *x, float *rot, int stride, int R, int first) {
-    double k = x->fps / (2.0 * M_PI);
-    for (int r = 0; r < R; r++)
+    enum { C = SMOOTH_JOINTS * 6 };
+    double k = x->fps / (2.0 * M_PI), d[C], sq[SMOOTH_JOINTS], alpha[C];
+    for (int r = 0; r < R; r++) {       /* in passes over a row's 66 values and 11 joints, so each vectorises */
+        double *prev = x->smooth_prev + (int64_t)(first + r) * C;
+        double *speed = x->smooth_speed + (int64_t)(first + r) * SMOOTH_JOINTS;
+        float *v = rot + (int64_t)r * stride;
+        for (int i = 0; i < C; i++)
+            d[i] = (double)v[i] - prev[i];
         for (int j = 0; j < SMOOTH_JOINTS; j++) {
-            double *prev = x->smooth_prev + ((int64_t)(first + r) * SMOOTH_JOINTS + j) * 6;
-            double *speed = x->smooth_speed + (int64_t)(first + r) * SMOOTH_JOINTS + j;
-            float *v = rot + (int64_t)r * stride + j * 6;
-            double d[6], sq = 0.0;
-            for (int i = 0; i < 6; i++) {
-                d[i] = (double)v[i] - prev[i];
-                sq += d[i] * d[i];
-            }
-            double now = sqrt(sq) * x->fps;
-            now -= *speed;
-            now *= x->smooth_speed_weight;
-            *speed += now;
-            double cut = *speed * x->smooth_beta;
-            cut += x->smooth_min_cut;
-            double alpha = cut / (cut + k);
-            if (x->smooth_keep[j] > alpha) alpha = x->smooth_keep[j];
-            for (int i = 0; i < 6; i++) {
-                prev[i] += d[i] * alpha;
-                v[i] = (float)prev[i];
-            }
+            const double *dj = d + j * 6;
+            double s = dj[0] * dj[0];
+            for (int i = 1; i < 6; i++)
+                s += dj[i] * dj[i];
+            sq[j] = s;
         }
+        for (int j = 0; j < SMOOTH_JOINTS; j++) {
+            double now = sqrt(sq[j]) * x->fps;
+            now -= speed[j];
+            now *= x->smooth_speed_weight;
+            speed[j] += now;
+            double cut = speed[j] * x->smooth_beta;
+            cut += x->smooth_min_cut;
+            double a = cut / (cut + k);
+            sq[j] = x->smooth_keep[j] > a ? x->smooth_keep[j] : a;
+        }
+        for (int i = 0; i < C; i++)
+            alpha[i] = sq[i / 6];
+        for (int i = 0; i < C; i++) {
+            prev[i] += d[i] * alpha[i];
+            v[i] = (float)prev[i];
+        }
+    }
 }
 
 /* smooth_rows on R rows of another buffer (a move's recompute: rot [R, stride]) with the state of rows
