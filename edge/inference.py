@@ -39,11 +39,15 @@ class Decoder:
     views, so rows keep their contents and nothing is reallocated.
     """
 
-    def __init__(self, session, rows, latent_dim, hidden_dim, n_features, recurrent=True):
-        names = {i.name for i in session.get_inputs()}
-        if names != {"features", "latent", "hidden"}:
-            raise ModelError(f"decoder model: expected inputs features/latent/hidden, found {sorted(names)}")
+    def __init__(self, session, rows, latent_dim, hidden_dim, n_features, recurrent=True, shared_features=False):
+        inputs = {i.name: i for i in session.get_inputs()}
+        if set(inputs) != {"features", "latent", "hidden"}:
+            raise ModelError(f"decoder model: expected inputs features/latent/hidden, found {sorted(inputs)}")
         self.session, self.capacity = session, rows
+        # shared_features: every row reads row 0's features (one frame's N samples). A graph whose features
+        # have rows of their own (v0.5's export names them M, the others N) takes that one row and
+        # broadcasts it, so the first layer's feature part runs once a frame; older graphs read them all.
+        self.shared_features = shared_features and inputs["features"].shape[0] != inputs["latent"].shape[0]
         self.features = np.zeros((rows, n_features), np.float32)
         self.latent = np.zeros((rows, latent_dim), np.float32)
         self.hidden = [np.zeros((rows, hidden_dim), np.float32), np.zeros((rows, hidden_dim), np.float32)]
@@ -62,7 +66,7 @@ class Decoder:
         self._io = []
         for k in range(2 if self.recurrent else 1):
             io = self.session.io_binding()
-            _bind(io, "features", self.features[:rows])
+            _bind(io, "features", self.features[:1 if self.shared_features else rows])
             _bind(io, "latent", self.latent[:rows])
             _bind(io, "hidden", self.hidden[k][:rows])
             _bind(io, "rot6d", self.rot6d[:rows], output=True)

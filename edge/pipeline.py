@@ -98,7 +98,7 @@ class Pipeline:
         # A worn IMU also sets its segment's world rotation after the decoder (fk_with_segments).
         self.segments = bool(self.options.segments and self.imus)
         self.rows = N + 1 if N > 1 else N   # the extra row carries a live transition
-        self.decoder = Decoder(dec_session, self.rows, m["latent"], m["hidden"], m["features"])
+        self.decoder = Decoder(dec_session, self.rows, m["latent"], m["hidden"], m["features"], shared_features=True)
         self.recompute = Decoder(dec_session, lookahead + 1, m["latent"], m["hidden"], m["features"], recurrent=False)
         self.autoencoder = Autoencoder(ae_session, N)
         self.threshold = m["plausibility_threshold_m"]

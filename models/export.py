@@ -55,7 +55,8 @@ def export_decoder(cvae, path, upper=None):
     torch.onnx.export(step, args, str(path), dynamo=False, external_data=False, opset_version=17,
                       input_names=["features", "latent", "hidden"],
                       output_names=["rot6d", "contacts", "hidden_out"],
-                      dynamic_axes={k: {0: "N"} for k in ("features", "latent", "hidden", "rot6d", "contacts", "hidden_out")})
+                      dynamic_axes={"features": {0: "M"},     # M: N rows, or 1 that every row shares
+                                    **{k: {0: "N"} for k in ("latent", "hidden", "rot6d", "contacts", "hidden_out")}})
 
 
 def export_jacobian(cvae, path, upper=None):

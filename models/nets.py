@@ -192,10 +192,16 @@ class UpperBodyHead(nn.Module):
 
 
 class UpperBodyStep(nn.Module):
-    """UpperBodyHead in inference form, in as few graph nodes as the same function allows (9 against 22;
-    at N=16 it cost the same, the head's cost is its arithmetic): normalisation folded into the first layers, the two MLPs
-    side by side in one Gemm per layer (the torso's half with zero weights on the controllers' columns,
-    the middle layer block-diagonal), and their 30 outputs put into the 120 6D values by a 0/1 matrix.
+    """UpperBodyHead in inference form, in as few graph nodes as the same function allows: at N=16 ONNX
+    Runtime's per-node cost (about 0.7 us) is as large as the head's arithmetic (bench/pipeline.py).
+    - The normalisation is folded into the first layer; the two MLPs run side by side, one Gemm per
+      layer (the torso's half with zero weights on the controllers' columns, the middle layer and the
+      output block-diagonal).
+    - The features' part of the first layer is its own Gemm on one row (a frame's rows share it), the
+      Gemm of the 6D part adds it (Gemm's C, broadcast) and ORT fuses the ReLU.
+    - The output layer writes straight into the 6D vector: its weights placed on the 120 columns and
+      the 6D it adds to as Gemm's C. Its bias rides on the CVAE's rotation head (`rot_bias`: DecoderStep
+      adds it there), taken back out of the 6D the first layer reads.
     The runtime runs it in fp32 (quantize.build.head_layers), where a zero weight contributes exactly
     nothing: a controller's orientation still never reaches the torso."""
 
@@ -212,18 +218,22 @@ class UpperBodyStep(nn.Module):
             wr = branch.in_r.weight.double() / sr
             w_f[k * H:(k + 1) * H, :n], w_r[k * H:(k + 1) * H] = wf, wr
             bias[k * H:(k + 1) * H] = branch.in_f.bias.double() - wf @ mf[:n] - wr @ mr
-        self.first_f = _linear(w_f, bias)
-        self.first_r = _linear(w_r, torch.zeros(2 * H, dtype=torch.float64))
+        place = head.place.double()                                     # [30,120]
+        t, c = head.torso.out, head.collars.out
+        out_w = torch.block_diag(t.weight.detach(), c.weight.detach()).double()           # [30,2H]
+        rot_bias = torch.cat([t.bias, c.bias]).double() @ place                           # [120]
+        self.register_buffer("rot_bias", rot_bias.float())
+        self.first_f = _linear(w_f, bias - w_r @ rot_bias[:READS_6D])  # the 6D read carries rot_bias
+        self.first_r = _AddTo(w_r)
         mid = torch.block_diag(head.torso.mid.weight.detach(), head.collars.mid.weight.detach())
         self.mid = _linear(mid, torch.cat([head.torso.mid.bias, head.collars.mid.bias]))
-        t, c = head.torso.out, head.collars.out
-        out = torch.block_diag(t.weight.detach(), c.weight.detach())
-        self.out = _linear(out, torch.cat([t.bias, c.bias]))
-        self.register_buffer("place", head.place.clone())
+        self.out = _AddTo(place.t() @ out_w)                           # [120,2H]: straight into the 6D
 
     def forward(self, features, rot6d):
-        h = torch.relu(self.first_f(features) + self.first_r(rot6d[:, :READS_6D]))
-        return rot6d + self.out(torch.relu(self.mid(h))) @ self.place
+        """features [1 or N,F], rot6d [N,120] carrying rot_bias (the trained head's input + rot_bias:
+        DecoderStep's rotation head adds it) -> rot6d [N,120], what UpperBodyHead gives on rot6d - rot_bias."""
+        h = torch.relu(self.first_r(self.first_f(features), rot6d[:, :READS_6D]))
+        return self.out(rot6d, torch.relu(self.mid(h)))
 
 
 class DecoderStep(nn.Module):
@@ -240,8 +250,8 @@ class DecoderStep(nn.Module):
     - With an upper-body head (v0.5 on, UpperBodyHead) the graph reads the headset's and controllers'
       orientations after the CVAE's features, and its rot6d is the head's.
 
-    Inputs: features [N,F] (F = 24 + 49, + 18 with the head), latent [N,30], hidden [N,H]; outputs: rot6d [N,120],
-    contacts [N,2], hidden [N,H].
+    Inputs: features [N,F] or [1,F] (F = 24 + 49, + 18 with the head; one row is every row's), latent [N,30],
+    hidden [N,H]; outputs: rot6d [N,120], contacts [N,2], hidden [N,H].
     """
 
     def __init__(self, cvae: CVAE, upper: UpperBodyHead = None):
@@ -258,19 +268,26 @@ class DecoderStep(nn.Module):
         bias = cvae.dec_fc.bias.double() - w @ mean
         if upper is not None:           # the head's orientation columns: zero weights (fp32 at run time, so exact)
             w = torch.cat([w, torch.zeros(H, NUM_ORIENTATION_FEATURES, dtype=w.dtype)], 1)
-        self.fc = _linear(torch.cat([cvae.dec_fc.weight[:, :LATENT].double(), w], 1), bias)
+        # The first layer in its latent and feature parts: a frame's rows share their features, so the
+        # runtime feeds one row of them and the graph broadcasts it (the larger part, once per frame).
+        self.fc_features = _linear(w, bias)
+        self.fc_latent = _AddTo(cvae.dec_fc.weight[:, :LATENT])
         self.gates_ru = _linear(torch.cat([g.weight_ih_l0[:2 * H], g.weight_hh_l0[:2 * H]], 1),
                                 g.bias_ih_l0[:2 * H] + g.bias_hh_l0[:2 * H])
         self.cand_x = _linear(g.weight_ih_l0[2 * H:], g.bias_ih_l0[2 * H:])
         self.cand_h = _linear(g.weight_hh_l0[2 * H:], g.bias_hh_l0[2 * H:])
-        self.rot_head = _linear(cvae.rot_head.weight, cvae.rot_head.bias + _IDENTITY_6D)
+        rot_bias = cvae.rot_head.bias + _IDENTITY_6D
+        if self.upper is not None:      # the head's output bias, added here for nothing (UpperBodyStep)
+            rot_bias = rot_bias + self.upper.rot_bias
+        self.rot_head = _linear(cvae.rot_head.weight, rot_bias)
         self.contact_head = cvae.contact_head
 
     def forward(self, features, latent, hidden):
         if self.prior is not None:      # epsilon -> z through the learned conditional prior (on the CVAE's 73)
-            out = self.prior(torch.cat([self.norm(features[:, :self.n_cvae]), hidden], dim=-1))
+            f = features[:, :self.n_cvae].expand(hidden.shape[0], -1)
+            out = self.prior(torch.cat([self.norm(f), hidden], dim=-1))
             latent = out[:, :LATENT] + torch.exp(0.5 * out[:, LATENT:].clamp(-8, 3)) * latent
-        x = torch.relu(self.fc(torch.cat([latent, features], dim=-1)))
+        x = torch.relu(self.fc_latent(self.fc_features(features), latent))   # [1 or N,H] + [N,H]
         ru = torch.sigmoid(self.gates_ru(torch.cat([x, hidden], dim=-1)))
         r, u = ru[:, :self.hidden], ru[:, self.hidden:]
         n = torch.tanh(self.cand_x(x) + r * self.cand_h(hidden))
@@ -297,9 +314,7 @@ class JacobianStep(nn.Module):
         self.n_cvae, self.upper = d.n_cvae, d.upper
         self.hidden = H = d.hidden
         self.prior, self.norm = d.prior, d.norm
-        w, b = d.fc.weight.detach(), d.fc.bias.detach()
-        self.fc_latent = _linear(w[:, :LATENT], torch.zeros(H))
-        self.fc_features = _linear(w[:, LATENT:], b)
+        self.fc_features, self.fc_latent = d.fc_features, d.fc_latent
         w, b = d.gates_ru.weight.detach(), d.gates_ru.bias.detach()
         self.gates_x = _linear(w[:, :H], torch.zeros(2 * H))
         self.gates_h = _linear(w[:, H:], b)
@@ -309,13 +324,25 @@ class JacobianStep(nn.Module):
         if self.prior is not None:      # as DecoderStep: epsilon -> z through the learned conditional prior
             out = self.prior(torch.cat([self.norm(features[:, :self.n_cvae]), hidden], dim=-1))
             latent = out[:, :LATENT] + torch.exp(0.5 * out[:, LATENT:].clamp(-8, 3)) * latent
-        x = torch.relu(self.fc_latent(latent) + self.fc_features(features))          # [R,H] + [1,H]
+        x = torch.relu(self.fc_latent(self.fc_features(features), latent))   # [1,H] + [R,H]
         ru = torch.sigmoid(self.gates_x(x) + self.gates_h(hidden))
         r, u = ru[:, :self.hidden], ru[:, self.hidden:]
         n = torch.tanh(self.cand_x(x) + r * self.cand_h(hidden))
         h = n + u * (hidden - n)
         rot = self.rot_head(torch.relu(h))
         return rot if self.upper is None else self.upper(features, rot)     # features [1,F] broadcast over R
+
+
+class _AddTo(nn.Module):
+    """c + x @ weight.T: a Linear whose bias is a tensor given at call time (Gemm's C, broadcast), here a
+    part computed once per frame or the 6D vector the head adds to."""
+
+    def __init__(self, weight):
+        super().__init__()
+        self.register_buffer("weight_t", weight.detach().t().float().contiguous())
+
+    def forward(self, c, x):
+        return torch.addmm(c, x, self.weight_t)
 
 
 def _linear(weight, bias):
