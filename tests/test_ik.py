@@ -146,7 +146,7 @@ def test_swivel_turns_an_elbow_out_of_the_torso_and_leaves_clear_ones_alone():
         return np.linalg.norm(el - closest_on_polyline(el, P[:, TORSO_LINE]), axis=-1)
 
     def farthest_on_circle(P):          # the swivel circle's farthest point from the torso line, sampled
-        sh, el, wr = P[:, ARMS[:, 0]], P[:, ARMS[:, 1]], P[:, ARMS[:, 2]]
+        sh, el = P[:, ARMS[:, 0]], P[:, ARMS[:, 1]]
         u, n = _elbow_side(P)
         along = np.sum((el - sh) * n, -1, keepdims=True)
         r = np.linalg.norm((el - sh) - along * n, axis=-1, keepdims=True)
