@@ -193,7 +193,7 @@ class UpperBodyHead(nn.Module):
 
 class UpperBodyStep(nn.Module):
     """UpperBodyHead in inference form, in as few graph nodes as the same function allows: at N=16 ONNX
-    Runtime's per-node cost (about 0.7 us) is as large as the head's arithmetic (bench/pipeline.py).
+    Runtime's per-node cost (about 0.6 us on an Intel Xeon) is as large as the head's arithmetic.
     - The normalisation is folded into the first layer; the two MLPs run side by side, one Gemm per
       layer (the torso's half with zero weights on the controllers' columns, the middle layer and the
       output block-diagonal).

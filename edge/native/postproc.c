@@ -956,7 +956,7 @@ static int all_finite_f32(const float *x, int64_t n) {
 #define SMOOTH_JOINTS 11
 static void smooth_rows(const core_context *x, float *rot, int stride, int R, int first) {
     enum { C = SMOOTH_JOINTS * 6 };
-    double k = x->fps / (2.0 * M_PI), d[C], sq[SMOOTH_JOINTS], alpha[C];
+    double k = x->fps / (2.0 * M_PI), d[C], sq[SMOOTH_JOINTS], joint_alpha[SMOOTH_JOINTS], alpha[C];
     for (int r = 0; r < R; r++) {       /* in passes over a row's 66 values and 11 joints, so each vectorises */
         double *prev = x->smooth_prev + (int64_t)(first + r) * C;
         double *speed = x->smooth_speed + (int64_t)(first + r) * SMOOTH_JOINTS;
@@ -978,10 +978,10 @@ static void smooth_rows(const core_context *x, float *rot, int stride, int R, in
             double cut = speed[j] * x->smooth_beta;
             cut += x->smooth_min_cut;
             double a = cut / (cut + k);
-            sq[j] = x->smooth_keep[j] > a ? x->smooth_keep[j] : a;
+            joint_alpha[j] = x->smooth_keep[j] > a ? x->smooth_keep[j] : a;
         }
         for (int i = 0; i < C; i++)
-            alpha[i] = sq[i / 6];
+            alpha[i] = joint_alpha[i / 6];
         for (int i = 0; i < C; i++) {
             prev[i] += d[i] * alpha[i];
             v[i] = (float)prev[i];
