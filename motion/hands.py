@@ -26,15 +26,16 @@ import numpy as np
 from edge import quat
 
 # Folder -> side -> the neutral (w, x, y, z): canonical wrist world = source hand world * neutral.
-# Measured by `python -m motion.hands` on data v4 (80 train clips a folder, every 4th frame).
+# Measured by `python -m motion.hands` on data v4 (80 train clips a folder, every 4th frame), with the
+# collars about their neutral (motion.collars), which turns the upper arms' frames a little.
 HAND_NEUTRAL = {
-    "bandai_namco_ccbync": {"l": (0.9753, -0.1701, -0.0064, -0.1409), "r": (0.1056, 0.9826, -0.1519, -0.0186)},
-    "cmu_amc2bvh": {"l": (0.9746, -0.2238, -0.0000, 0.0000), "r": (0.9455, -0.3255, 0.0000, -0.0000)},
-    "cmu_cgspeed_mb": {"l": (0.9943, -0.1067, -0.0000, -0.0000), "r": (0.9708, -0.2398, 0.0000, -0.0000)},
-    "cmu_daz_ateliercircle": {"l": (0.9829, -0.0991, -0.1554, -0.0038), "r": (0.9770, -0.1583, 0.1412, -0.0210)},
-    "cmu_daz_papagina": {"l": (0.9802, -0.1103, -0.1601, -0.0371), "r": (0.9782, -0.1320, 0.1591, 0.0208)},
-    "cmu_fbx_daz": {"l": (0.9811, -0.1195, -0.1518, -0.0122), "r": (0.9838, -0.0945, 0.1520, 0.0036)},
-    "hdm05_ccbysa": {"l": (0.9825, -0.1862, 0.0002, 0.0012), "r": (0.9843, -0.1768, -0.0002, -0.0003)},
+    "bandai_namco_ccbync": {"l": (0.9854, -0.0918, -0.0165, -0.1421), "r": (0.0288, 0.9876, -0.1541, -0.0074)},
+    "cmu_amc2bvh": {"l": (0.9705, -0.2412, -0.0000, -0.0000), "r": (0.9403, -0.3404, 0.0000, 0.0000)},
+    "cmu_cgspeed_mb": {"l": (0.9908, -0.1355, -0.0000, -0.0000), "r": (0.9671, -0.2545, 0.0000, -0.0000)},
+    "cmu_daz_ateliercircle": {"l": (0.9782, -0.1386, -0.1547, -0.0098), "r": (0.9734, -0.1787, 0.1421, -0.0184)},
+    "cmu_daz_papagina": {"l": (0.9750, -0.1492, -0.1590, -0.0431), "r": (0.9712, -0.1759, 0.1580, 0.0277)},
+    "cmu_fbx_daz": {"l": (0.9751, -0.1612, -0.1509, -0.0186), "r": (0.9790, -0.1360, 0.1518, 0.0099)},
+    "hdm05_ccbysa": {"l": (0.9786, -0.2060, 0.0002, 0.0012), "r": (0.9821, -0.1881, -0.0002, -0.0003)},
 }
 FOLDER_SKELETON = {"bandai_namco_ccbync": "bandai", "cmu_amc2bvh": "cmu", "cmu_cgspeed_mb": "cmu", "hdm05_ccbysa": "cmu",
                    "cmu_daz_ateliercircle": "daz", "cmu_daz_papagina": "daz", "cmu_fbx_daz": "daz"}

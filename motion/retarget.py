@@ -3,7 +3,8 @@
 Each canonical bone takes the world direction of the matching source bone; bone lengths stay
 canonical. Joints with one child get the shortest-arc swing from their parent's frame (no twist);
 the pelvis and chest, which fan out to several children, get a two-axis frame (hip/shoulder line and
-spine). The wrists take the source hand's own orientation against its measured neutral (motion.hands),
+spine). The collars turn about their source's measured mean direction (motion.collars: where each
+skeleton puts its collar joint is a convention). The wrists take the source hand's own orientation against its measured neutral (motion.hands),
 so synthesised controllers roll and bend like hands, and the head the source head's turn on the neck
 relative to its mean over the clip (`calibrated_head`: the synthesised headset nods and turns on the neck
 as a calibrated headset would); the toes keep their parent's orientation. The root translation is scaled by the leg-length ratio and the clip is put on the floor.
@@ -89,13 +90,24 @@ def calibrated_head(neck_world, head_world):
     return quat.normalize(quat.mul(neck_world, quat.mul(local, quat.inv(mean)[None])))
 
 
-def retarget(clip: BvhClip, source=None, unit=0.01, hands=True):
+def _about_neutral(d, parent_world, mean_dir, rest_dir):
+    """World directions d [T,3] turned, in the parent's frame, by the swing that takes the source's mean
+    direction there to the canonical rest direction (motion.collars)."""
+    swing = quat.between(np.asarray(mean_dir, dtype=np.float64), rest_dir)
+    local = quat.rotate(quat.inv(parent_world), d)
+    return quat.rotate(parent_world, quat.rotate(np.broadcast_to(swing, parent_world.shape), local))
+
+
+def retarget(clip: BvhClip, source=None, unit=0.01, hands=True, collars=True):
     """Source clip -> canonical Motion, plus the source joint world positions [T,J,3] (metres) it followed.
     hands=False gives the wrists their forearm's orientation and the head its neck's (what motion.hands
+    measures against); collars=False the collars their source's direction as it is (what motion.collars
     measures against)."""
+    from motion.collars import collar_neutral_of
     from motion.hands import hand_world, head_world, neutral_of
     source = source or detect_source(clip)
     neutral = neutral_of(clip.path, source) if hands else None
+    collar_mean = collar_neutral_of(clip.path, source) if collars else None
     mapping = SOURCE_MAPS[source]
     _, src_world = clip.world()
     src = np.stack([src_world[:, clip.index(mapping[n])] for n in JOINT_NAMES], axis=1) * unit
@@ -118,7 +130,10 @@ def retarget(clip: BvhClip, source=None, unit=0.01, hands=True):
             c = children[j][0]
             d = src[:, c] - src[:, j]
             d = d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-9)
-            u = quat.rotate(parent_world, np.broadcast_to(OFFSETS[c] / np.linalg.norm(OFFSETS[c]), (T, 3)))
+            rest_dir = OFFSETS[c] / np.linalg.norm(OFFSETS[c])
+            if collar_mean is not None and name in ("l_collar", "r_collar"):
+                d = _about_neutral(d, parent_world, collar_mean[name[0]], rest_dir)
+            u = quat.rotate(parent_world, np.broadcast_to(rest_dir, (T, 3)))
             world[:, j] = quat.normalize(quat.mul(quat.between(u, d), parent_world))
         elif neutral is not None and name in ("l_wrist", "r_wrist"):
             world[:, j] = quat.normalize(quat.mul(hand_world(clip, source, name[0]), np.asarray(neutral[name[0]])))

@@ -173,3 +173,89 @@ def test_swivel_turns_an_elbow_out_of_the_torso_and_leaves_clear_ones_alone():
     assert (after[inside] >= 0.10).mean() > 0.4
     clear = before > ELBOW_CLEARANCE_M + 0.01
     assert np.allclose(after[clear], before[clear], atol=1e-9)
+
+
+ARM_LENGTH = np.linalg.norm(OFFSETS[ARMS[:, 1]], axis=-1) + np.linalg.norm(OFFSETS[ARMS[:, 2]], axis=-1)
+COLLARS = PARENTS[ARMS[:, 0]]
+
+
+def _consistent(L, W, P):
+    """Local, world and positions still describe one pose."""
+    W2, P2 = fk(L, np.zeros((L.shape[0], 3)))
+    return np.allclose(P2, P, atol=1e-9) and np.allclose(W2, W, atol=1e-9)
+
+
+def test_a_controller_beyond_reach_draws_the_shoulder_toward_it_and_the_wrist_onto_it():
+    """Shoulders that follow the reach (edge.ik.shoulders_to_reach): a controller farther from the
+    shoulder than REACH_START of the arm swings the collar toward it by the excess (at most
+    SHOULDER_REACH_MAX_M), so the arm IK reaches it; nearer ones leave the pose exactly as it was."""
+    from edge.ik import REACH_START, SHOULDER_REACH_MAX_M, shoulders_to_reach
+    B = 400
+    L = random_poses(B, 7)
+    W, P = fk(L, np.zeros((B, 3)))
+    rng = np.random.default_rng(8)
+    way = rng.standard_normal((B, 2, 3))
+    way /= np.linalg.norm(way, axis=-1, keepdims=True)
+    reach = rng.uniform(0.6, 1.12, (B, 2))                  # the controller's distance over the arm's length
+    targets = P[:, ARMS[:, 0]] + (reach * ARM_LENGTH)[..., None] * way
+    before = [x.copy() for x in (L, W, P)]
+    shoulders_to_reach(L, W, P, PARENTS, ARMS, OFFSETS, targets)
+    assert _consistent(L, W, P)
+    moved = np.linalg.norm(P[:, ARMS[:, 0]] - before[2][:, ARMS[:, 0]], axis=-1)
+    near = reach < REACH_START - 1e-6
+    both_near = near.all(-1)
+    assert both_near.sum() > 50 and np.allclose(P[both_near], before[2][both_near], rtol=0, atol=1e-12)
+    assert np.allclose(L[both_near], before[0][both_near], rtol=0, atol=1e-12)
+    far = ~near
+    assert far.sum() > 100 and (moved[far] > 0).all() and moved.max() <= SHOULDER_REACH_MAX_M + 1e-9
+    gap_before = np.linalg.norm(targets - before[2][:, ARMS[:, 0]], axis=-1)
+    gap_after = np.linalg.norm(targets - P[:, ARMS[:, 0]], axis=-1)
+    closer = gap_before[far] - gap_after[far]                               # toward the controller
+    assert (closer > -1e-9).all() and closer.mean() > 0.5 * moved[far].mean()
+    collar_bone = P[:, ARMS[:, 0]] - P[:, COLLARS]
+    assert np.allclose(np.linalg.norm(collar_bone, axis=-1), np.linalg.norm(OFFSETS[ARMS[:, 0]], axis=-1))
+
+    def wrist_miss(L, W, P):
+        L, W, P = L.copy(), W.copy(), P.copy()
+        apply_limb_ik(L, W, P, PARENTS, ARMS, targets, np.ones((B, 2)), POLE, None, OFFSETS)
+        return np.linalg.norm(P[:, ARMS[:, 2]] - targets, axis=-1)
+    miss_then, miss_now = wrist_miss(*before), wrist_miss(L, W, P)
+    beyond = reach > 1.0
+    assert beyond.sum() > 30 and miss_now[beyond].mean() < 0.6 * miss_then[beyond].mean()
+    assert miss_now[reach < 1.0].max() < 1e-6 and (miss_now <= miss_then + 1e-9).all()
+
+
+def test_a_straight_arm_whose_elbow_is_in_the_torso_moves_its_shoulder_out():
+    """A straight arm has no swivel circle: where its elbow is still nearer than ELBOW_MIN_M to the
+    torso's line, the collar moves the shoulder out across the arm (edge.ik.shoulders_out_of_torso) and
+    the arm is re-aimed at the wrist, the hand's rotation kept; clear elbows are left exactly alone."""
+    from edge.ik import ELBOW_MIN_M, SHOULDER_PUSH_MAX_M, TORSO_LINE, closest_on_polyline, shoulders_out_of_torso
+    B = 600
+    L = random_poses(B, 9)
+    L[:, ARMS[:, 0]] = quat.to_matrix(quat.normalize(np.random.default_rng(10).standard_normal((B, 2, 4))))
+    L[:, ARMS[:, 1]] = np.eye(3)                               # straight arms, pointing anywhere
+    W, P = fk(L, np.zeros((B, 3)))
+
+    def torso_distance(P):
+        el = P[:, ARMS[:, 1]]
+        return np.linalg.norm(el - closest_on_polyline(el, P[:, TORSO_LINE]), axis=-1)
+    before, wrists, hands = torso_distance(P), P[:, ARMS[:, 2]].copy(), W[:, ARMS[:, 2]].copy()
+    P0 = P.copy()
+    shoulders_out_of_torso(L, W, P, PARENTS, ARMS)
+    after = torso_distance(P)
+    assert _consistent(L, W, P)
+    push = np.linalg.norm(P[:, ARMS[:, 0]] - P0[:, ARMS[:, 0]], axis=-1)
+    inside = before < ELBOW_MIN_M
+    assert inside.sum() > 20
+    # One first-order step, not a search: out, bar a fraction of a millimetre where a long push curves.
+    assert (after[inside] > before[inside] - 1e-3).all() and push.max() <= SHOULDER_PUSH_MAX_M + 1e-9
+    assert (after[inside] >= ELBOW_MIN_M - 1e-3).mean() > 0.2          # out, where 4 cm of collar can take it
+    assert np.median(after[inside] - before[inside]) > 0.01
+    # The wrist keeps the hand's rotation and moves only by the step's curvature: the shoulder's arc about
+    # the collar joint and the arm's about the wrist (push^2 over twice the collar, and over twice the arm).
+    wrist_moved = np.linalg.norm(P[:, ARMS[:, 2]] - wrists, axis=-1)
+    collar = np.linalg.norm(OFFSETS[ARMS[:, 0]], axis=-1)
+    assert (wrist_moved <= push ** 2 * (0.5 / collar + 0.5 / ARM_LENGTH) + 1e-9).all()
+    assert np.allclose(W[:, ARMS[:, 2]], hands, atol=1e-12)
+    clear = ~inside.any(-1)
+    assert np.allclose(P[clear], P0[clear], rtol=0, atol=1e-12)

@@ -73,7 +73,9 @@ def test_forward_matches_numpy_6d_fk_and_head_anchor(shared):
 
 @pytest.mark.parametrize("swivel", [0.0, ELBOW_FROM_HAND])
 def test_limb_ik_matches_numpy_on_reachable_unreachable_and_straight_chains(swivel):
-    """ep_post against NumpyFrame.post, with the elbows turned to the hands (edge.ik.swivel_to_hands) and without."""
+    """ep_post against NumpyFrame.post, with the elbows turned to the hands (edge.ik.swivel_to_hands) and without:
+    the random controllers put many beyond reach (edge.ik.shoulders_to_reach) and straight arms' elbows
+    in the torso (edge.ik.shoulders_out_of_torso)."""
     R = 64
     rng = np.random.default_rng(3)
     loc, W, P = numpy_forward(random_6d(R, 4), random_rotations((R,), 5), rng.normal(0, 1, (R, 3)))

@@ -86,3 +86,45 @@ def test_retargeted_head_nods_and_turns_on_the_neck_near_its_neutral(mocap, sour
     assert np.degrees(quat.angle(mean)) < 1.0     # calibrated: on the neck it turns about the identity
     neck, _ = retarget(clip, hands=False)
     assert np.allclose(quat.angle(neck.rotations[:, JOINT["head"]]), 0.0, atol=1e-6)
+
+
+def _collar_dirs(motion):
+    """The collar bones' unit directions in the chest frame [T,2,3] (l, r)."""
+    out = []
+    for side in "lr":
+        rest = OFFSETS[JOINT[f"{side}_shoulder"]] / np.linalg.norm(OFFSETS[JOINT[f"{side}_shoulder"]])
+        local = motion.rotations[:, JOINT[f"{side}_collar"]]
+        out.append(quat.rotate(local, np.broadcast_to(rest, local.shape[:-1] + (3,))))
+    return np.stack(out, axis=1)
+
+
+@pytest.mark.parametrize("source", sorted(SKELETON_CLIPS))
+def test_retargeted_collars_turn_about_their_sources_neutral_keeping_their_motion(mocap, source):
+    """Where a skeleton puts its collar joint is a convention (motion.collars): the collars turn about
+    their folder's measured mean direction, a swing in the chest frame, so a shrug still turns them as
+    much and every limb still points as its source's does."""
+    clip = bvh.load(mocap / SKELETON_CLIPS[source])
+    as_is, _ = retarget(clip, collars=False)
+    turned, src = retarget(clip)
+    before, after = _collar_dirs(as_is), _collar_dirs(turned)
+
+    def steps(d):
+        return np.degrees(np.arccos(np.clip(np.sum(d[1:] * d[:-1], -1), -1, 1)))
+    assert np.allclose(steps(after), steps(before), atol=1e-3)
+    assert not np.allclose(after, before, atol=0.02)
+    assert direction_errors_deg(turned, src)[:, LIMB_BONES].mean() < 2.0
+
+
+def test_retargeted_shoulders_of_cmu_and_daz_sit_alike_against_the_chest(mocap):
+    """CMU's collar bones rise 22 deg, Daz's fall 13 deg and never move: copied as they are, a CMU
+    shoulder sits 6 cm above a Daz one against the chest. About their neutrals Daz's point out level on
+    every frame and CMU's sit near them."""
+    def mean_height(path, collars):
+        motion, _ = retarget(bvh.load(mocap / path), collars=collars)
+        return _collar_dirs(motion)[..., 1].mean()          # the collar bones' mean rise (sine)
+    cmu, daz = SKELETON_CLIPS["cmu"], SKELETON_CLIPS["daz"]
+    gap_before = mean_height(cmu, False) - mean_height(daz, False)
+    gap_after = mean_height(cmu, True) - mean_height(daz, True)
+    assert gap_before > 0.4 and abs(gap_after) < 0.5 * gap_before
+    daz_after = _collar_dirs(retarget(bvh.load(mocap / daz))[0])
+    assert np.allclose(daz_after, [[1.0, 0, 0], [-1.0, 0, 0]], atol=1e-3)

@@ -56,11 +56,13 @@ def shared_constants():
     """The facts postproc.c shares with the Python side, by their names in C: defined once, in edge.physics
     and edge.skeleton, and compiled in as -D flags (exact: repr of a float reads back as the same double)."""
     from edge.physics import ANKLE_HEIGHT, FLOOR_ANKLE, FLOOR_TOE, LOCK_SNAP_M, SUPPORT_FULL_M, SUPPORT_NONE_M
-    from edge.ik import ELBOW_CLEARANCE_M, GUARD_GAIN
+    from edge.ik import ELBOW_CLEARANCE_M, ELBOW_MIN_M, GUARD_GAIN, REACH_START, SHOULDER_PUSH_MAX_M, SHOULDER_REACH_MAX_M
     from edge.skeleton import TOE_HEIGHT
     return {"FLOOR_ANKLE": FLOOR_ANKLE, "FLOOR_TOE": FLOOR_TOE, "TOE_HEIGHT": TOE_HEIGHT, "ANKLE_HEIGHT": ANKLE_HEIGHT,
             "LOCK_SNAP": LOCK_SNAP_M, "SUPPORT_FULL": SUPPORT_FULL_M, "SUPPORT_NONE": SUPPORT_NONE_M,
-            "ELBOW_CLEARANCE_M": ELBOW_CLEARANCE_M, "GUARD_GAIN": GUARD_GAIN}
+            "ELBOW_CLEARANCE_M": ELBOW_CLEARANCE_M, "GUARD_GAIN": GUARD_GAIN, "ELBOW_MIN_M": ELBOW_MIN_M,
+            "SHOULDER_PUSH_MAX_M": SHOULDER_PUSH_MAX_M, "REACH_START": REACH_START,
+            "SHOULDER_REACH_MAX_M": SHOULDER_REACH_MAX_M}
 
 
 def build(force=False):

@@ -45,7 +45,8 @@ int ep_max_joints(void) { return MAX_JOINTS; }
  * joint may go, m above the floor), ANKLE_HEIGHT and edge.skeleton's TOE_HEIGHT (the joints' rest
  * heights), LOCK_SNAP_M (FootLock's floor snap) and SUPPORT_FULL_M / SUPPORT_NONE_M (the support band). */
 #if !defined(FLOOR_ANKLE) || !defined(FLOOR_TOE) || !defined(TOE_HEIGHT) || !defined(ANKLE_HEIGHT) || \
-    !defined(LOCK_SNAP) || !defined(SUPPORT_FULL) || !defined(SUPPORT_NONE)
+    !defined(LOCK_SNAP) || !defined(SUPPORT_FULL) || !defined(SUPPORT_NONE) || !defined(ELBOW_MIN_M) || \
+    !defined(SHOULDER_PUSH_MAX_M) || !defined(REACH_START) || !defined(SHOULDER_REACH_MAX_M)
 #error "build postproc.c with edge.native.build: it defines the constants shared with edge.physics"
 #endif
 
@@ -589,6 +590,144 @@ static void block_swivel(block *k, const int64_t *parents, const double *offsets
     lane_copy(k->W[ib], b_new, 9);
 }
 
+/* out = m v for a matrix and a vector per lane */
+static inline void lane_matvec3(lane *restrict m, lane *restrict v, lane *restrict out) {
+    for (int i = 0; i < 3; i++)
+        EACH out[i][l] = m[i * 3][l] * v[0][l] + m[i * 3 + 1][l] * v[1][l] + m[i * 3 + 2][l] * v[2][l];
+}
+
+/* edge.ik._swing_matrix: the shortest-arc rotation taking a's direction to b's (identity where they agree) */
+static inline void lane_swing_matrix(lane *a, lane *b, lane *restrict m) {
+    lane axis[3], c, s;
+    lane_cross3(a, b, axis);
+    lane_dot3(a, b, c);
+    lane_dot3(axis, axis, s);
+    EACH {
+        s[l] = sqrt(s[l]);
+        double r = sqrt(c[l] * c[l] + s[l] * s[l]);     /* atan2's angle: (c, s) on the unit circle */
+        c[l] = r > 0.0 ? c[l] / r : 1.0;
+        s[l] = r > 0.0 ? s[l] / r : 0.0;
+    }
+    lane_normalize3(axis);
+    lane_axis_angle_matrix_cs(axis, c, s, m);
+}
+
+/* The collar of an arm chain (shoulder ia, elbow ib, wrist ic; collar ip) swung so the shoulder goes to
+ * co + new_bone: the arm turned with it by `arm_turn` about the new shoulder (elbow and wrist
+ * positions and the three world rotations), the collar's local rotation, and with set_wrist_local the
+ * wrist's (its world rotation kept: the hand's). */
+static void lane_move_shoulder(block *k, const int64_t *parents, int ia, int ib, int ic, lane *new_bone,
+                               lane *collar_turn, lane *arm_turn, int set_wrist_local) {
+    int ip = (int)parents[ia], ipp = (int)parents[ip], below[2] = {ib, ic};
+    lane v[3], w[3], tmp[9];
+    for (int m = 0; m < 2; m++) {               /* elbow, wrist: about the shoulder, turned */
+        int j = below[m];
+        lane_sub3(k->P[j], k->P[ia], v);
+        lane_matvec3(arm_turn, v, w);
+        for (int i = 0; i < 3; i++) EACH k->P[j][i][l] = k->P[ip][i][l] + new_bone[i][l] + w[i][l];
+    }
+    for (int i = 0; i < 3; i++) EACH k->P[ia][i][l] = k->P[ip][i][l] + new_bone[i][l];
+    lane_matmul3(collar_turn, k->W[ip], tmp);
+    lane_copy(k->W[ip], tmp, 9);
+    lane_matmul3(arm_turn, k->W[ia], tmp);
+    lane_copy(k->W[ia], tmp, 9);
+    lane_matmul3(arm_turn, k->W[ib], tmp);
+    lane_copy(k->W[ib], tmp, 9);
+    lane_matmul3_tn(k->W[ipp], k->W[ip], k->L[ip]);
+    if (set_wrist_local) {
+        lane_matmul3_tn(k->W[ip], k->W[ia], k->L[ia]);
+        lane_matmul3_tn(k->W[ib], k->W[ic], k->L[ic]);
+    } else {
+        lane_matmul3(arm_turn, k->W[ic], tmp);
+        lane_copy(k->W[ic], tmp, 9);
+    }
+}
+
+/* The collar's new bone: bone + step (per lane, `step` scaled by `by`), at the bone's own length. */
+static inline void lane_collar_toward(block *k, int ip, int ia, lane *dir, lane by, lane *bone, lane *new_bone) {
+    lane len;
+    lane_sub3(k->P[ia], k->P[ip], bone);
+    lane_dot3(bone, bone, len);
+    for (int i = 0; i < 3; i++) EACH new_bone[i][l] = bone[i][l] + by[l] * dir[i][l];
+    lane_normalize3(new_bone);
+    for (int i = 0; i < 3; i++) EACH new_bone[i][l] *= sqrt(len[l]);
+}
+
+/* edge.ik.shoulders_to_reach for one arm chain on a block, before its IK: where the wrist's target (tg,
+ * rows tg_stride apart) is farther from the shoulder than `start` of the arm's length, the collar swings
+ * the shoulder toward it by the excess (at most max_move), the arm coming along as it is. */
+static void block_reach(block *k, int r0, int nl, const int64_t *parents, const double *offsets, const int64_t *chain,
+                        const double *tg, int64_t tg_stride, double start, double max_move) {
+    int ia = (int)chain[0], ib = (int)chain[1], ic = (int)chain[2], ip = (int)parents[ia];
+    const double *ob = offsets + ib * 3, *oc = offsets + ic * 3;
+    double length = sqrt(ob[0] * ob[0] + ob[1] * ob[1] + ob[2] * ob[2]) + sqrt(oc[0] * oc[0] + oc[1] * oc[1] + oc[2] * oc[2]);
+    lane goal[3], to[3], bone[3], new_bone[3], turn[9], d, by, tb;
+    int any = 0;
+    gather(goal, 3, tg, tg_stride, r0, nl);
+    lane_sub3(goal, k->P[ia], to);
+    lane_dot3(to, to, d);
+    EACH {
+        d[l] = sqrt(d[l]);
+        by[l] = clamp(d[l] - start * length, 0.0, max_move);
+        any |= by[l] > 0.0;
+    }
+    if (!any) return;       /* most frames: every sample's controller within reach */
+    lane_normalize3(to);
+    lane_sub3(k->P[ia], k->P[ip], bone);                 /* the collar moves the shoulder across its bone */
+    lane_normalize3(bone);
+    lane_dot3(to, bone, tb);
+    for (int i = 0; i < 3; i++) EACH to[i][l] -= tb[l] * bone[i][l];
+    lane_collar_toward(k, ip, ia, to, by, bone, new_bone);
+    lane_swing_matrix(bone, new_bone, turn);
+    lane_move_shoulder(k, parents, ia, ib, ic, new_bone, turn, turn, 0);
+}
+
+/* edge.ik.shoulders_out_of_torso for one arm chain on a block, after block_swivel: where the elbow is
+ * still nearer than min_gap to the torso's line (a straight arm), the collar moves the shoulder out across
+ * the arm (at most max_push) and the arm is re-aimed at the wrist, the hand's rotation kept. */
+static void block_push_shoulder(block *k, const int64_t *parents, const int64_t *chain, const int64_t *torso,
+                                int ntorso, double min_gap, double max_push) {
+    int ia = (int)chain[0], ib = (int)chain[1], ic = (int)chain[2], ip = (int)parents[ia];
+    lane q[3], gap[3], n[3], step[3], bone[3], new_bone[3], arm[3], to[3], collar_turn[9], aim[9], arm_turn[9];
+    lane dist, out, we, ws, by;
+    int any = 0;
+    lane_closest_on_polyline(k, torso, ntorso, k->P[ib], q);
+    lane_sub3(k->P[ib], q, gap);
+    lane_dot3(gap, gap, dist);
+    EACH {
+        dist[l] = sqrt(dist[l]);
+        any |= dist[l] < min_gap;
+    }
+    if (!any) return;       /* most frames: every elbow clear of the torso */
+    /* the shoulder steps across both its collar bone and the arm, to the elbow's side away from the
+     * torso; re-aimed at the wrist, the elbow moves |wrist-elbow|/|wrist-shoulder| of the step */
+    lane_sub3(k->P[ic], k->P[ia], n);
+    lane_dot3(n, n, ws);
+    lane_normalize3(n);
+    lane_sub3(k->P[ia], k->P[ip], bone);
+    lane_cross3(bone, n, step);
+    lane_normalize3(step);
+    lane_dot3(step, gap, out);
+    lane_sub3(k->P[ic], k->P[ib], arm);
+    lane_dot3(arm, arm, we);
+    EACH {
+        double sign = (out[l] > 0.0) - (out[l] < 0.0), w = sqrt(ws[l]), d = dist[l];
+        for (int i = 0; i < 3; i++) step[i][l] *= sign;
+        double lever = sqrt(we[l]) / (w > 1e-9 ? w : 1e-9);
+        double gain = lever * fabs(out[l]) / (d > 1e-9 ? d : 1e-9);
+        double short_ = min_gap - d > 0.0 ? min_gap - d : 0.0, move = short_ / (gain > 1e-3 ? gain : 1e-3);
+        by[l] = move < max_push ? move : max_push;
+    }
+    lane_collar_toward(k, ip, ia, step, by, bone, new_bone);
+    lane_swing_matrix(bone, new_bone, collar_turn);
+    lane_sub3(k->P[ic], k->P[ia], arm);
+    lane_matvec3(collar_turn, arm, to);
+    for (int i = 0; i < 3; i++) EACH arm[i][l] = k->P[ic][i][l] - (k->P[ip][i][l] + new_bone[i][l]);
+    lane_swing_matrix(to, arm, aim);
+    lane_matmul3(aim, collar_turn, arm_turn);
+    lane_move_shoulder(k, parents, ia, ib, ic, new_bone, collar_turn, arm_turn, 1);
+}
+
 /* NumpyFrame.post on one block (see ep_post): every array is the whole batch's, read at the block's rows. */
 static void block_post(block *k, int r0, int nl, const skeleton *sk, const limb_goals *g) {
     const int J = sk->J;
@@ -596,6 +735,10 @@ static void block_post(block *k, int r0, int nl, const skeleton *sk, const limb_
         block_chain(k, r0, nl, J, sk->parents, sk->offsets, sk->chains + c * 3, g->foot_goals + c * 3, 6,
                     g->foot_ik ? g->foot_weights + c : 0, 2, 0.0, sk->poles + c * 3, 0, 0, g->foot_ik,
                     g->lift ? g->lift + c : 0, 2);
+    if (g->arm_ik)
+        for (int c = 2; c < 4; c++)
+            block_reach(k, r0, nl, sk->parents, sk->offsets, sk->chains + c * 3, g->wrists + (c - 2) * 3,
+                        g->wrists_stride, REACH_START, SHOULDER_REACH_MAX_M);
     for (int c = 2; c < 4; c++)
         block_chain(k, r0, nl, J, sk->parents, sk->offsets, sk->chains + c * 3, g->wrists + (c - 2) * 3,
                     g->wrists_stride, 0, 0, g->arm_ik ? 1.0 : 0.0, sk->poles + c * 3,
@@ -604,6 +747,9 @@ static void block_post(block *k, int r0, int nl, const skeleton *sk, const limb_
         for (int c = 2; c < 4; c++)
             block_swivel(k, sk->parents, sk->offsets, sk->chains + c * 3, g->swivel, TORSO, 4, ELBOW_CLEARANCE_M,
                          GUARD_GAIN);
+    if (g->arm_ik && g->swivel > 0)
+        for (int c = 2; c < 4; c++)
+            block_push_shoulder(k, sk->parents, sk->chains + c * 3, TORSO, 4, ELBOW_MIN_M, SHOULDER_PUSH_MAX_M);
     if (g->arm_ik) {
         gather(k->W[sk->head], 9, g->head_m, g->head_stride, r0, nl);
         lane_matmul3_tn(k->W[sk->neck], k->W[sk->head], k->L[sk->head]);
