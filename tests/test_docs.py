@@ -99,8 +99,8 @@ NOT_RUNNABLE = {
     ".venv/bin/python -m models.train --data .cache/pack/edgepose-pack.npz --hidden 256 --minutes 95": TRAIN,
     ".venv/bin/python -m models.train --data ../shared/mocap --sources cmu daz hdm05": TRAIN,
     ".venv/bin/python -m models.train --data ../shared/mocap --device cuda": "needs a CUDA GPU; " + TRAIN,
-    ".venv/bin/python -m models.train_upper --ckpt .cache/train --out .cache/train_upper --export models":
-        "trains the upper-body head for 12 minutes on a trained CVAE's folder and overwrites the shipped "
+    ".venv/bin/python -m models.train_upper --ckpt .cache/train --minutes 24 --arms-from-ik --out .cache/train_upper --export models":
+        "trains the upper-body head for 24 minutes on a trained CVAE's folder and overwrites the shipped "
         "models/ (tests/test_models.py checks the head it exports)",
     ".venv/bin/torchrun --nproc_per_node=4 -m models.train --data DATA": "needs 4 GPUs; " + TRAIN,
     ".venv/bin/python -m quantize": "rebuilds the shipped models/*.int8.onnx in place (minutes); "

@@ -114,9 +114,11 @@ def test_the_filter_calms_the_torso_and_arms_and_keeps_the_wrists_on_the_control
             pose = pipe.step(take.signals.slice(t, t + 1))
             poses.append(pose.positions.copy())
         runs[cut] = np.array(poses)
-    # On this walk: chest 0.93x, neck 0.82x, collars 0.84x, shoulders 0.92x, elbows 0.95x (val's unseen
-    # people: the model card's "The arms a user sees").
-    for joints in (("chest",), ("neck",), ("l_collar", "r_collar"), ("l_shoulder", "r_shoulder"), ("l_elbow", "r_elbow")):
-        assert jerk_of(runs[3.0], joints) < 0.97 * jerk_of(runs[0.0], joints), joints
+    # On this walk (v0.5.1): chest 0.82x, neck 0.74x, collars 0.76x, shoulders 0.88x. The elbows, whose
+    # jerk here is already the truth's (76.5 against 76.4), 1.00x; on val's unseen people the filter takes
+    # them from 1.34x the truth's to 1.12x (the model card's "The arms a user sees").
+    for joints in (("chest",), ("neck",), ("l_collar", "r_collar"), ("l_shoulder", "r_shoulder")):
+        assert jerk_of(runs[3.0], joints) < 0.95 * jerk_of(runs[0.0], joints), joints
+    assert jerk_of(runs[3.0], ("l_elbow", "r_elbow")) <= 1.001 * jerk_of(runs[0.0], ("l_elbow", "r_elbow"))
     wrists = [JOINT_NAMES.index(j) for j in ("l_wrist", "r_wrist")]
     np.testing.assert_allclose(runs[3.0][:, wrists], runs[0.0][:, wrists], atol=1e-6)
