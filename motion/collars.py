@@ -17,11 +17,11 @@ straight out): retargeting turns the source collar by the rotation that takes th
 
 prints the table below, measured on the train clips of each folder, and the shoulders' shift it makes.
 """
-import argparse
-import collections
 from pathlib import Path
 
 import numpy as np
+
+from motion.hands import FOLDER_SKELETON, folder_entry, measured_from_command_line, train_clips_by_folder
 
 # Folder -> side -> the collar bone's mean unit direction in the canonical chest frame (x left, y up,
 # z forward), as retargeting without the neutral gives it. Measured by `python -m motion.collars` on
@@ -35,8 +35,6 @@ COLLAR_NEUTRAL = {
     "cmu_fbx_daz": {"l": (0.9635, -0.2289, 0.1387), "r": (-0.9635, -0.2289, 0.1387)},  # daz
     "hdm05_ccbysa": {"l": (0.9922, 0.1247, 0.0057), "r": (-0.9969, 0.0783, 0.0061)},  # cmu
 }
-FOLDER_SKELETON = {"bandai_namco_ccbync": "bandai", "cmu_amc2bvh": "cmu", "cmu_cgspeed_mb": "cmu", "hdm05_ccbysa": "cmu",
-                   "cmu_daz_ateliercircle": "daz", "cmu_daz_papagina": "daz", "cmu_fbx_daz": "daz"}
 
 
 def _unit(v):
@@ -61,10 +59,8 @@ COLLAR_SKELETON = _skeleton_means()
 def collar_neutral_of(path, source):
     """The measured mean collar direction of the clip at `path` (its folder's, else its skeleton's):
     {"l": [3], "r": [3]}, or None where nothing was measured."""
-    for part in Path(str(path)).parts[::-1]:
-        if part in COLLAR_NEUTRAL:
-            return COLLAR_NEUTRAL[part]
-    return COLLAR_SKELETON.get(source)
+    entry = folder_entry(COLLAR_NEUTRAL, path)
+    return COLLAR_SKELETON.get(source) if entry is None else entry
 
 
 def measure(root, clips=80, seed=0, step=4):
@@ -73,18 +69,12 @@ def measure(root, clips=80, seed=0, step=4):
     from edge import quat
     from edge.skeleton import JOINT, OFFSETS
     from motion import bvh
-    from motion.dataset import read_manifest
     from motion.retarget import detect_source, retarget
-    by_folder = collections.defaultdict(list)
-    for r in read_manifest(root):
-        if r["split"] == "train":
-            by_folder[r["file"].split("/")[0]].append(r["file"])
-    rng = np.random.default_rng(seed)
     out = {}
-    for folder, files in sorted(by_folder.items()):
+    for folder, files in train_clips_by_folder(root, clips, seed).items():
         dirs = {"l": [], "r": []}
         skeleton = None
-        for f in rng.choice(files, min(clips, len(files)), replace=False):
+        for f in files:
             clip = bvh.load(Path(root) / f)
             skeleton = detect_source(clip)
             motion, _ = retarget(clip, skeleton, hands=False, collars=False)
@@ -98,11 +88,7 @@ def measure(root, clips=80, seed=0, step=4):
 
 def main():
     from edge.skeleton import JOINT, OFFSETS
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--data", default="../shared/mocap")
-    ap.add_argument("--clips", type=int, default=80)
-    a = ap.parse_args()
-    m = measure(a.data, a.clips)
+    m = measured_from_command_line(__doc__, measure)
     length = np.linalg.norm(OFFSETS[JOINT["l_shoulder"]])
     print(f"the collar bone's mean direction in the chest frame, per folder, and how far the neutral moves the "
           f"shoulder ({length * 100:.0f} cm collars; x out, y up, z forward, cm)")

@@ -70,12 +70,30 @@ HUMAN_NOD_DEG = 60.0
 HUMAN_TURN_DEG = 70.0
 
 
+def folder_entry(table, path):
+    """The entry of a per-folder table for the clip at `path` (the nearest folder of its path in the table), or None."""
+    for part in Path(str(path)).parts[::-1]:
+        if part in table:
+            return table[part]
+    return None
+
+
+def train_clips_by_folder(root, clips, seed=0):
+    """{folder: up to `clips` of its train clips, drawn at random} of the mocap folder `root`: what the
+    neutrals are measured on."""
+    from motion.dataset import read_manifest
+    by_folder = collections.defaultdict(list)
+    for r in read_manifest(root):
+        if r["split"] == "train":
+            by_folder[r["file"].split("/")[0]].append(r["file"])
+    rng = np.random.default_rng(seed)
+    return {folder: rng.choice(files, min(clips, len(files)), replace=False) for folder, files in sorted(by_folder.items())}
+
+
 def neutral_of(path, source):
     """The measured neutral of the clip at `path` (from its folder, else its skeleton): {"l": q, "r": q}."""
-    for part in Path(str(path)).parts[::-1]:
-        if part in HAND_NEUTRAL:
-            return HAND_NEUTRAL[part]
-    return HAND_SKELETON.get(source)
+    entry = folder_entry(HAND_NEUTRAL, path)
+    return HAND_SKELETON.get(source) if entry is None else entry
 
 
 def hand_world(clip, source, side):
@@ -115,19 +133,13 @@ def measure(root, clips=80, seed=0, step=4):
     """{folder: {side: (neutral quat, [n] roll deg, [n] bend deg), "head": ([n] nod deg, [n] turn deg) of the
     calibrated head on the neck}} over up to `clips` train clips a folder."""
     from motion import bvh
-    from motion.dataset import read_manifest
     from motion.retarget import calibrated_head, detect_source, retarget
     from edge.skeleton import JOINT, fk
-    by_folder = collections.defaultdict(list)
-    for r in read_manifest(root):
-        if r["split"] == "train":
-            by_folder[r["file"].split("/")[0]].append(r["file"])
-    rng = np.random.default_rng(seed)
     out = {}
-    for folder, files in sorted(by_folder.items()):
+    for folder, files in train_clips_by_folder(root, clips, seed).items():
         pairs = {"l": [], "r": [], "head": []}
         skeleton = None
-        for f in rng.choice(files, min(clips, len(files)), replace=False):
+        for f in files:
             clip = bvh.load(Path(root) / f)
             skeleton = detect_source(clip)
             motion, _ = retarget(clip, skeleton, hands=False)
@@ -149,12 +161,17 @@ def measure(root, clips=80, seed=0, step=4):
     return out
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def measured_from_command_line(doc, measure):
+    """`python -m motion.hands` and `motion.collars`: parse --data and --clips, and measure on them."""
+    ap = argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default="../shared/mocap")
     ap.add_argument("--clips", type=int, default=80)
     a = ap.parse_args()
-    m = measure(a.data, a.clips)
+    return measure(a.data, a.clips)
+
+
+def main():
+    m = measured_from_command_line(__doc__, measure)
     print(f"hands against the forearm, per folder (p5 / p50 / p95 of |roll| and bend, degrees; human: roll up to "
           f"{HUMAN_ROLL_DEG:.0f}, bend up to {HUMAN_BEND_DEG:.0f})")
     for folder, d in m.items():
