@@ -224,9 +224,9 @@ def shoulders_out_of_torso(local, world, pos, parents, arms, torso=TORSO_LINE, m
     arm, whose elbow no turn moves), swing its collar so the shoulder steps across the arm and the collar
     bone, to the elbow's side away from the torso, as far as the elbow needs (at most `max_push`), and
     re-aim the arm at the wrist: turning about the wrist moves the elbow |wrist-elbow|/|wrist-shoulder|
-    of what the shoulder moves. The
-    wrist keeps the hand's rotation and moves by the square of the push over twice the arm (1.5 mm at
-    4 cm). arms [K,3] (shoulder, elbow, wrist); local, world [B,J,3,3] and pos [B,J,3] updated in place."""
+    of what the shoulder moves. The wrist keeps the hand's rotation and moves only by the step's
+    curvature (the push squared over twice the collar and over twice the arm: at most 7 mm at 4 cm).
+    arms [K,3] (shoulder, elbow, wrist); local, world [B,J,3,3] and pos [B,J,3] updated in place."""
     ia, ib, ic = arms[:, 0], arms[:, 1], arms[:, 2]
     ip = parents[ia]                                            # the collars
     co, sh, el, wr = pos[:, ip], pos[:, ia], pos[:, ib], pos[:, ic]

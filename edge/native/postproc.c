@@ -612,12 +612,14 @@ static inline void lane_swing_matrix(lane *a, lane *b, lane *restrict m) {
     lane_axis_angle_matrix_cs(axis, c, s, m);
 }
 
-/* The collar of an arm chain (shoulder ia, elbow ib, wrist ic; collar ip) swung so the shoulder goes to
- * co + new_bone: the arm turned with it by `arm_turn` about the new shoulder (elbow and wrist
- * positions and the three world rotations), the collar's local rotation, and with set_wrist_local the
- * wrist's (its world rotation kept: the hand's). */
+/* The collar of an arm chain (shoulder ia, elbow ib, wrist ic; collar ip) swung by collar_turn so the
+ * shoulder goes to co + new_bone, the arm turned by arm_turn about the new shoulder (elbow and wrist
+ * positions, shoulder and elbow world rotations) and the collar's local rotation set. Carried along
+ * (arm_turn = collar_turn: edge.ik.shoulders_to_reach) the wrist's world rotation turns too and the arm's
+ * locals stay; re_aimed at the wrist (edge.ik.shoulders_out_of_torso) the wrist keeps the hand's world
+ * rotation and the shoulder's and wrist's locals are set. */
 static void lane_move_shoulder(block *k, const int64_t *parents, int ia, int ib, int ic, lane *new_bone,
-                               lane *collar_turn, lane *arm_turn, int set_wrist_local) {
+                               lane *collar_turn, lane *arm_turn, int re_aimed) {
     int ip = (int)parents[ia], ipp = (int)parents[ip], below[2] = {ib, ic};
     lane v[3], w[3], tmp[9];
     for (int m = 0; m < 2; m++) {               /* elbow, wrist: about the shoulder, turned */
@@ -634,7 +636,7 @@ static void lane_move_shoulder(block *k, const int64_t *parents, int ia, int ib,
     lane_matmul3(arm_turn, k->W[ib], tmp);
     lane_copy(k->W[ib], tmp, 9);
     lane_matmul3_tn(k->W[ipp], k->W[ip], k->L[ip]);
-    if (set_wrist_local) {
+    if (re_aimed) {
         lane_matmul3_tn(k->W[ip], k->W[ia], k->L[ia]);
         lane_matmul3_tn(k->W[ib], k->W[ic], k->L[ic]);
     } else {
