@@ -9,7 +9,8 @@ noise, random IMU sets), decodes them at epsilon = 0 (what N=1 shows), and fits 
 head-anchored joint positions (the runtime hangs the body from the headset), every joint alike, or with
 --arms-from-ik every joint but the elbows and wrists, which the runtime's arm IK places (v0.5.1: so the
 collars fit the shoulders, not the FK wrists; shoulders 3.27 / 2.97 cm on the unseen people against
-3.83 / 3.60 fitting every joint). The first WARMUP frames of each window are left out of the loss: the runtime's GRU state is never fresh.
+3.83 / 3.60 fitting every joint). The first WARMUP frames of each window are left out of the loss: the
+runtime's GRU state is never fresh.
 
 The controllers carry each source's own hands (motion.hands), but CMU's and HDM05's hands stay in line
 with the forearm; a person's bend. In `--bend-share` of those sources' windows the hands are bent at
@@ -160,12 +161,12 @@ def main(argv=None):
     opt = torch.optim.Adam([p for n, p in head.named_parameters() if not n.startswith("norm")], a.lr)
     log(f"upper-body head: hidden {a.hidden}, {sum(p.numel() for p in head.parameters())} weights; "
         f"train {len(train.names)} clips, val unseen {len(val.names)} clips; {a.minutes:g} min on {torch.get_num_threads()} threads")
-    fitted = torch.ones(len(JOINT), dtype=torch.bool)
+    fitted = np.ones(len(JOINT), dtype=bool)        # the joints the loss and the choice count
     if a.arms_from_ik:
         fitted[[JOINT[f"{s}_{j}"] for s in "lr" for j in ("elbow", "wrist")]] = False
     log(f"fitted joints: {'all but the elbows and wrists (the arm IK places them)' if a.arms_from_ik else 'all'}")
     per_joint = joint_errors(cvae_alone, val_batches)
-    before = per_joint[fitted.numpy()]
+    before = per_joint[fitted]
     best, best_state, step, t0, last = float(before.mean()), None, 0, time.time(), time.time()
     log("CVAE alone (val unseen, 4-point): mean " + f"{before.mean():.3f} cm, "
         + ", ".join(f"{n} {per_joint[JOINT[n]]:.2f}" for n in REPORT))
@@ -174,7 +175,7 @@ def main(argv=None):
         while time.time() < end:
             b = draws.draw()
             err = head_positions(head(b["features"], b["rot6d"]), b["root_rot"]) - b["gt_rel"]
-            loss = (err[..., fitted, :] ** 2).sum(-1).mean()
+            loss = (err[..., torch.from_numpy(fitted), :] ** 2).sum(-1).mean()
             opt.zero_grad()
             loss.backward()
             opt.step()
@@ -185,10 +186,10 @@ def main(argv=None):
             if time.time() - last > a.every or time.time() >= end:
                 last = time.time()
                 e = joint_errors(head, val_batches)
-                mark = ""
-                if e[fitted.numpy()].mean() < best:
-                    best, best_state, mark = float(e[fitted.numpy()].mean()), {k: v.clone() for k, v in head.state_dict().items()}, " (best)"
-                log(f"step {step} {time.time() - t0:.0f}s loss {loss.item() * 1e4:.1f}: val unseen mean {e[fitted.numpy()].mean():.3f} cm, "
+                score, mark = float(e[fitted].mean()), ""
+                if score < best:
+                    best, best_state, mark = score, {k: v.clone() for k, v in head.state_dict().items()}, " (best)"
+                log(f"step {step} {time.time() - t0:.0f}s loss {loss.item() * 1e4:.1f}: val unseen mean {score:.3f} cm, "
                     + ", ".join(f"{n} {e[JOINT[n]]:.2f}" for n in REPORT) + mark)
             bar.update(int(time.time() - t0) - bar.n, postfix=f"step {step} loss {loss.item() * 1e4:.1f}")
     if best_state is None:

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from motion.hands import FOLDER_SKELETON, folder_entry, measured_from_command_line, train_clips_by_folder
+from motion.hands import measured_from_command_line, neutral_in, skeleton_means, train_clips_by_folder
 
 # Folder -> side -> the collar bone's mean unit direction in the canonical chest frame (x left, y up,
 # z forward), as retargeting without the neutral gives it. Measured by `python -m motion.collars` on
@@ -42,25 +42,13 @@ def _unit(v):
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
-def _skeleton_means():
-    """A clip from a folder not in the table takes its skeleton's neutral: the mean of that skeleton's folders."""
-    out = {}
-    for skeleton in set(FOLDER_SKELETON.values()):
-        folders = [f for f, s in FOLDER_SKELETON.items() if s == skeleton and f in COLLAR_NEUTRAL]
-        if folders:
-            out[skeleton] = {side: tuple(_unit(np.sum([COLLAR_NEUTRAL[f][side] for f in folders], axis=0)))
-                             for side in "lr"}
-    return out
-
-
-COLLAR_SKELETON = _skeleton_means()
+COLLAR_SKELETON = skeleton_means(COLLAR_NEUTRAL)
 
 
 def collar_neutral_of(path, source):
     """The measured mean collar direction of the clip at `path` (its folder's, else its skeleton's):
     {"l": [3], "r": [3]}, or None where nothing was measured."""
-    entry = folder_entry(COLLAR_NEUTRAL, path)
-    return COLLAR_SKELETON.get(source) if entry is None else entry
+    return neutral_in(COLLAR_NEUTRAL, COLLAR_SKELETON, path, source)
 
 
 def measure(root, clips=80, seed=0, step=4):

@@ -41,17 +41,19 @@ FOLDER_SKELETON = {"bandai_namco_ccbync": "bandai", "cmu_amc2bvh": "cmu", "cmu_c
                    "cmu_daz_ateliercircle": "daz", "cmu_daz_papagina": "daz", "cmu_fbx_daz": "daz"}
 
 
-def _skeleton_means():
-    """A clip from a folder not in the table takes its skeleton's neutral: the mean of that skeleton's folders."""
+def skeleton_means(table):
+    """{skeleton: {side: the normalised sum of its folders' entries}} of a per-folder table of unit vectors
+    or quaternions: what a clip from a folder not in the table takes."""
     out = {}
     for skeleton in set(FOLDER_SKELETON.values()):
-        folders = [f for f, s in FOLDER_SKELETON.items() if s == skeleton]
-        out[skeleton] = {side: tuple(quat.normalize(np.sum([HAND_NEUTRAL[f][side] for f in folders], axis=0)))
-                         for side in "lr"}
+        folders = [f for f, s in FOLDER_SKELETON.items() if s == skeleton and f in table]
+        if folders:
+            out[skeleton] = {side: tuple(quat.normalize(np.sum([table[f][side] for f in folders], axis=0)))
+                             for side in "lr"}
     return out
 
 
-HAND_SKELETON = _skeleton_means()
+HAND_SKELETON = skeleton_means(HAND_NEUTRAL)
 
 
 
@@ -70,12 +72,13 @@ HUMAN_NOD_DEG = 60.0
 HUMAN_TURN_DEG = 70.0
 
 
-def folder_entry(table, path):
-    """The entry of a per-folder table for the clip at `path` (the nearest folder of its path in the table), or None."""
+def neutral_in(table, by_skeleton, path, source):
+    """The entry of a per-folder table for the clip at `path` (the nearest folder of its path in the table),
+    else its skeleton's (by_skeleton, from skeleton_means), else None."""
     for part in Path(str(path)).parts[::-1]:
         if part in table:
             return table[part]
-    return None
+    return by_skeleton.get(source)
 
 
 def train_clips_by_folder(root, clips, seed=0):
@@ -92,8 +95,7 @@ def train_clips_by_folder(root, clips, seed=0):
 
 def neutral_of(path, source):
     """The measured neutral of the clip at `path` (from its folder, else its skeleton): {"l": q, "r": q}."""
-    entry = folder_entry(HAND_NEUTRAL, path)
-    return HAND_SKELETON.get(source) if entry is None else entry
+    return neutral_in(HAND_NEUTRAL, HAND_SKELETON, path, source)
 
 
 def hand_world(clip, source, side):

@@ -4,8 +4,9 @@ Each canonical bone takes the world direction of the matching source bone; bone 
 canonical. Joints with one child get the shortest-arc swing from their parent's frame (no twist);
 the pelvis and chest, which fan out to several children, get a two-axis frame (hip/shoulder line and
 spine). The collars turn about their source's measured mean direction (motion.collars: where each
-skeleton puts its collar joint is a convention). The wrists take the source hand's own orientation against its measured neutral (motion.hands),
-so synthesised controllers roll and bend like hands, and the head the source head's turn on the neck
+skeleton puts its collar joint is a convention). The wrists take the source hand's own orientation
+against its measured neutral (motion.hands), so synthesised controllers roll and bend like hands, and
+the head the source head's turn on the neck
 relative to its mean over the clip (`calibrated_head`: the synthesised headset nods and turns on the neck
 as a calibrated headset would); the toes keep their parent's orientation. The root translation is scaled by the leg-length ratio and the clip is put on the floor.
 """
