@@ -153,6 +153,7 @@ class FramePath:
       judge(s, N, c) -> int               select: the default criteria in one call (fused_criteria)
       switch_to(s, c, margin) -> int      select: SSI's test on slot s's costs
       emit(s, row, out)                   emit: the output pose of ring slot s, row `row`
+      ring_changed()                      ring rows were rewritten after poses() (a move, a change of N)
       forward_rows(s, rot6d, rows, segments, out)
                                           FK of decoder rows against slot s's inputs (the refiner's
                                           and the heading observer's)
@@ -169,6 +170,10 @@ class FramePath:
 
     def set_target_row(self, row):
         """The decoder row a live foot target pulls (-1: none)."""
+
+    def ring_changed(self):
+        """Rows of the ring were rewritten after poses() (a move's recompute, a change of N): a pose the
+        path kept for emit() is stale."""
 
     def inputs(self, sig, s, N, blend):
         raise NotImplementedError

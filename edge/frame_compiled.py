@@ -91,6 +91,7 @@ class CompiledFrame(FramePath):
             latent_dim=p.latents.shape[1], target_row=-1, target_joint=native.addr(self.bufs.target_joint),
             target_goal=native.addr(self.bufs.target_goal), target_weight=native.addr(self.bufs.target_weight),
             swivel=p.elbow_from_hand if p.arm_ik else 0.0,
+            keep_shown=int(p.lookahead == 0), shown_slot=-1, shown_row=-1,    # present-frame output: see ring_changed
             **self._smoother_fields(p.smoother),
             **(dict(zip(("ae_in", "ae_local", "ae_root_local"), ae, strict=True)) if ae else {}))
         self.core = ctypes.pointer(ctx)
@@ -117,6 +118,7 @@ class CompiledFrame(FramePath):
 
     def reset(self):
         self.first = True           # the first frame's velocity is zero: prev = points
+        self.ring_changed()
 
     def smooth_recomputed(self, k, first):
         """ep_smooth_rows: NumpyFrame.smooth_recomputed on row k of the recompute's 6D output."""
@@ -146,15 +148,22 @@ class CompiledFrame(FramePath):
 
     def poses(self, s, rows, N, blend, keep_world):
         """ep_frame_poses: FK, foot locks, the blend, IK and the ring copies of NumpyFrame.poses in one
-        call, after its finite test of the decoder's rows (False: not finite, nothing done)."""
+        call, after its finite test of the decoder's rows (False: not finite, nothing done). At look-ahead
+        0 the row this frame shows (the move's, or the shown sample's) goes to the output pose as well,
+        so emit() has nothing to make again."""
         dec = self.p.decoder
-        c, n, a = blend if blend is not None else (0, 0, 0.0)
+        c, n, a = blend if blend is not None else (self.p.switcher.current, 0, 0.0)
         return self.lib.ep_frame_poses(self.core, s, rows, N, c, n, a, self.addr["world"] if keep_world else None,
                                        self.addr["pos"], self._hidden_addr[dec.last_read],
                                        self._hidden_addr[dec.current], dec.rows) == 1
 
     def set_target_row(self, row):
         self.core.contents.target_row = row
+
+    def ring_changed(self):
+        """A move's recompute or a change of N rewrote rows of the ring: the pose ep_frame_poses left for
+        emit() may be stale, so emit() makes it again."""
+        self.core.contents.shown_row = -1
 
     def forward_rows(self, s, rot6d, rows, segments, out):
         """ep_forward: NumpyFrame.forward_rows in one C call."""
@@ -183,5 +192,6 @@ class CompiledFrame(FramePath):
         return self.lib.ep_switch_to(self.p.samples, c0 + s * cs, c, margin)
 
     def emit(self, s, row, out):
-        """ep_emit: the row's pose made again into the output Pose (the core knows its arrays)."""
+        """ep_emit: the row's pose into the output Pose (the core knows its arrays): made again from the
+        ring, unless ep_frame_poses left it there this frame."""
         self.lib.ep_emit(self.core, s, row)

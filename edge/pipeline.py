@@ -458,6 +458,7 @@ class Pipeline:
         foot locks (their old state is stale); their buffered frames copy the shown sample's, so a
         transition to one of them can be recomputed over the look-ahead like any other."""
         c, b, dec = self.switcher.current, self.buffer, self.decoder
+        self.path.ring_changed()
         dec.latent[lo:hi] = self.latents[lo:hi]
         dec.state[lo:hi] = dec.state[c]
         self.feet.copy_rows(c, slice(lo, hi))
@@ -481,6 +482,7 @@ class Pipeline:
         poses are made when they are sent. Each eased as (1 - a) x + a y in float64 (a: the move's
         weights at those frames), in preallocated scratch: a switch makes no arrays."""
         b, rc, N, sc = self.buffer, self.recompute, self.samples, self._switch_scratch
+        self.path.ring_changed()
         K = min(t, s0 + T - 1) - s0 + 1
         runs = ring_runs(s0 % b.slots, K, b.slots)
         h, g = sc["hidden_in"], sc["goal_in"]

@@ -125,6 +125,39 @@ def test_a_frames_rows_read_one_shared_row_of_features(file):
             np.testing.assert_allclose(a, b, rtol=0, atol=1e-6)
 
 
+def test_the_bound_run_is_the_public_run_and_falls_back_to_it():
+    """edge.inference.bound_run calls ONNX Runtime's C++ binding straight (skipping the Python wrapper's
+    per-call checks): the decoder's ping-pong steps give what session.run_with_iobinding gives, and a
+    session without the binding's internals gets the public call."""
+    from edge.inference import bound_run, make_session
+    m = load_manifest()
+    session = make_session(DEFAULT_DIR / "decoder.int8.onnx")
+    fast = Decoder(session, 3, m["latent"], m["hidden"], m["features"], shared_features=True)
+    public = Decoder(session, 3, m["latent"], m["hidden"], m["features"], shared_features=True)
+    public._run = [lambda io=io: session.run_with_iobinding(io) for io in public._io]
+    z = np.random.default_rng(2).standard_normal((3, m["latent"])).astype(np.float32)
+    fast.latent[:], public.latent[:] = z, z
+    for f in _sample_features(8):
+        fast.features[0] = public.features[0] = f
+        fast.step()
+        public.step()
+        for a, b in ((fast.rot6d, public.rot6d), (fast.contacts, public.contacts), (fast.state, public.state)):
+            np.testing.assert_array_equal(a, b)
+    assert fast.state.any()
+
+    class Wrapped:                  # another onnxruntime: a session object without `_sess`
+        def __init__(self):
+            self.calls = 0
+
+        def run_with_iobinding(self, io):
+            self.calls += 1
+            session.run_with_iobinding(io)
+
+    other = Wrapped()
+    bound_run(other, fast._io[0])()
+    assert other.calls == 1
+
+
 def test_written_out_gru_cell_matches_torch_gru(torch):
     from models.nets import DecoderStep
     cvae, _ = _torch_models(torch)

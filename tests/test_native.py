@@ -165,6 +165,32 @@ def test_pipeline_output_is_the_same_with_and_without_the_compiled_core(samples,
     np.testing.assert_allclose(np.array([p[1] for p in a]), np.array([p[1] for p in b]), rtol=0, atol=1e-9)
 
 
+def test_the_present_frames_pose_kept_from_poses_is_the_one_emit_would_make():
+    """At look-ahead 0 ep_frame_poses leaves the shown row's pose (a sample's, or a move's spare row)
+    in the output and ep_emit takes it instead of making it again: the stream is bit for bit the one
+    made with every pose made again, across moves between samples and a change of N."""
+    take = from_sample(SAMPLE)
+    runs = []
+    for keep in (1, 0):
+        pipe = Pipeline(PipelineOptions(samples=8))
+        assert pipe.native is not None and pipe.lookahead == 0 and pipe.path.core.contents.keep_shown == 1
+        pipe.path.core.contents.keep_shown = keep
+        poses = []
+        for t in range(360):
+            if t == 200:
+                pipe.set_samples(5)
+            pose = pipe.step(take.signals.slice(t, t + 1))
+            poses.append((pose.positions.copy(), pose.rotations.copy(), pose.contacts.copy(), pose.sample,
+                          pose.transition))
+        runs.append(poses)
+    kept, made = runs
+    assert len({p[3] for p in kept}) >= 2 and any(p[4] for p in kept)    # samples other than 0, and moves
+    assert [p[3:] for p in kept] == [p[3:] for p in made]
+    for a, b in zip(kept, made):
+        for k in range(3):
+            np.testing.assert_array_equal(a[k], b[k])
+
+
 def _python(code, **env):
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
                           env={**os.environ, **env}, cwd=os.path.dirname(os.path.dirname(__file__)))

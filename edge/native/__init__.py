@@ -157,7 +157,8 @@ class CoreContext(ctypes.Structure):
                    ("latent_dim", _I), ("target_row", _I), ("target_joint", _P), ("target_goal", _P),
                    ("target_weight", _P), ("swivel", _D), ("smooth_prev", _P), ("smooth_speed", _P), ("smooth_before", _P),
                    ("smooth_before_speed", _P),
-                   ("smooth_keep", _P), ("smooth_min_cut", _D), ("smooth_beta", _D), ("smooth_speed_weight", _D)])
+                   ("smooth_keep", _P), ("smooth_min_cut", _D), ("smooth_beta", _D), ("smooth_speed_weight", _D),
+                   ("keep_shown", _I), ("shown_slot", _I), ("shown_row", _I)])
 
 
 _SIGNATURES = {

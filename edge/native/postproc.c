@@ -1048,6 +1048,11 @@ typedef struct {
     double *smooth_before, *smooth_before_speed;  /* the samples' state before each slot's frame [slots, ring_rows, ...] */
     const double *smooth_keep;
     double smooth_min_cut, smooth_beta, smooth_speed_weight;
+    /* Present-frame output (look-ahead 0, keep_shown 1): ep_frame_poses writes the pose of the row the
+     * frame will show (shown_row of ring slot shown_slot; -1: none) straight into ep_emit's arrays, and
+     * ep_emit takes it from there instead of making it again. Anything that rewrites that row of the ring
+     * in between sets shown_row to -1 (edge.frame_compiled.CompiledFrame.ring_changed). */
+    int keep_shown, shown_slot, shown_row;
 } core_context;
 
 /* The layout of the structs above, for the loader to hold the ctypes mirrors against (edge.native.load):
@@ -1061,7 +1066,8 @@ typedef struct {
     X(ring_hidden) X(hidden) X(out_contacts) X(n_features) X(imus) X(floor_lift) X(ring_seg_m) X(ring_seg_flag) \
     X(imu_joints) X(segments) X(good_in) X(frame_len) X(position_limit) X(dec_latent) X(latents) X(latent_dim) \
     X(target_row) X(target_joint) X(target_goal) X(target_weight) X(swivel) X(smooth_prev) X(smooth_speed) \
-    X(smooth_before) X(smooth_before_speed) X(smooth_keep) X(smooth_min_cut) X(smooth_beta) X(smooth_speed_weight)
+    X(smooth_before) X(smooth_before_speed) X(smooth_keep) X(smooth_min_cut) X(smooth_beta) X(smooth_speed_weight) \
+    X(keep_shown) X(shown_slot) X(shown_row)
 int ep_layout(int64_t *out, int n) {
     int64_t v[128];
     int k = 0;
@@ -1144,8 +1150,21 @@ void ep_smooth_rows(const core_context *x, float *rot, int stride, int R, int fi
         smooth_rows(x, rot, stride, R, first);
 }
 
+/* lane l of a block's local and world rotations and positions into one pose's [J,9], [J,9] and [J,3] */
+static void block_store_lane(const block *k, int l, int J, double *local, double *world, double *pos) {
+    for (int j = 0; j < J; j++) {
+        for (int i = 0; i < 9; i++) {
+            local[j * 9 + i] = k->L[j][i][l];
+            world[j * 9 + i] = k->W[j][i][l];
+        }
+        for (int i = 0; i < 3; i++) pos[j * 3 + i] = k->P[j][i][l];
+    }
+}
+
 /* edge.pipeline.NumpyFrame.poses (Pipeline.step between the decoder and the criteria), for R rows: N samples and, when R = N + 1,
- * the transition row from sample c to sample n at blend weight a. Per block of LANES rows, kept on
+ * the transition row from sample c to sample n at blend weight a (when R = N, c is the sample the frame
+ * shows). With keep_shown, the row the frame shows (the transition row, or sample c) also goes to
+ * ep_emit's arrays, as row_pose would make it (see core_context's shown_row). Per block of LANES rows, kept on
  * the stack throughout: _forward; the samples' foot locks (_foot_goals: goals drawn by the locks, IK
  * weight 1); the transition row's goals blended from c's and n's (at IK weight 1 too) (c, n < N, so their
  * blocks came first or are this one); _post. The tracker inputs are ring slot `slot`'s, shared by
@@ -1155,11 +1174,13 @@ void ep_smooth_rows(const core_context *x, float *rot, int stride, int R, int fi
  * the decoder's input buffer, which its step does not write). Returns 1, or 0 without touching anything
  * when a value of the decoder's dec_rows rows (its output or the state it wrote, hidden_written) is not
  * finite (NumpyFrame.finite). */
-int ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n, double a, double *world,
+int ep_frame_poses(core_context *x, int slot, int R, int N, int c, int n, double a, double *world,
                    double *pos, const float *hidden_read, const float *hidden_written, int dec_rows) {
     if (!all_finite_f32(hidden_written, (int64_t)dec_rows * x->hidden)
             || !all_finite_f32(x->rot6d, (int64_t)dec_rows * x->rot6d_stride))
         return 0;                       /* NumpyFrame.finite: Pipeline._heal first, then call again */
+    x->shown_row = -1;
+    int shown = !x->keep_shown ? -1 : R > N ? N : c;
     if (x->smooth_prev) {               /* UpperBodySmoother.remember, then apply: on the decoder's own output */
         int64_t n6 = (int64_t)SMOOTH_JOINTS * 6, at = (int64_t)slot * x->ring_rows;
         copy_f64(x->smooth_before + at * n6, x->smooth_prev, N * n6);
@@ -1221,6 +1242,8 @@ int ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n, 
         }
         block_post(&k, r0, nl, sk, &goals);
         block_store(&k, r0, nl, J, 0, world, pos);
+        if (shown >= r0 && shown < r0 + nl)
+            block_store_lane(&k, shown - r0, J, x->out_local, x->out_world, x->out_pos);
         int ns = N - r0 < nl ? N - r0 : nl;     /* sample rows in this block (not the transition row) */
         if (x->ae_in && ns > 0) {                /* ep_local_pose on the block, for the plausibility score */
             lane rel[3], loc[3];
@@ -1245,6 +1268,10 @@ int ep_frame_poses(const core_context *x, int slot, int R, int N, int c, int n, 
     copy_f64(x->ring_weight + row0 * 2, x->weights, (int64_t)R * 2);
     copy_f64(x->ring_lock_weight + (int64_t)slot * (S - 1) * 2, x->locks.weight, (int64_t)N * 2);
     copy_f32(x->ring_hidden + (int64_t)slot * (S - 1) * x->hidden, hidden_read, (int64_t)N * x->hidden);
+    if (shown >= 0) {
+        x->shown_slot = slot;
+        x->shown_row = shown;
+    }
     return 1;
 }
 
@@ -1292,14 +1319,16 @@ static void row_pose(const core_context *x, int slot, int row, const pose_rows *
     block_store(&k, 0, 1, sk->J, out->local, out->world, out->pos);
 }
 
-/* edge.pipeline.NumpyFrame.emit: row_pose of row `row` of ring slot `slot` into out_local and out_pos,
- * and its foot contacts, as far as each foot is on the floor to bear them
- * (edge.pipeline.supported_contacts), into out_contacts. */
-void ep_emit(const core_context *x, int slot, int row) {
+/* edge.pipeline.NumpyFrame.emit: row_pose of row `row` of ring slot `slot` into out_local and out_pos
+ * (unless ep_frame_poses already put it there: shown_row), and its foot contacts, as far as each foot is
+ * on the floor to bear them (edge.pipeline.supported_contacts), into out_contacts. */
+void ep_emit(core_context *x, int slot, int row) {
     const skeleton *sk = &x->sk;
     int64_t r = (int64_t)slot * x->ring_rows + row;
     const pose_rows out = {x->out_local, x->out_world, x->out_pos};
-    row_pose(x, slot, row, &out);
+    if (row != x->shown_row || slot != x->shown_slot)
+        row_pose(x, slot, row, &out);
+    x->shown_row = -1;                  /* taken: a second emit of this frame makes it again */
     for (int f = 0; f < 2; f++) {
         int a = (int)sk->ankles[f], toe = toe_of(sk, f);
         double h = lowest_point(x->out_pos[a * 3 + 1], x->out_pos[toe * 3 + 1] - x->out_pos[a * 3 + 1]);
