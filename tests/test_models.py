@@ -149,9 +149,9 @@ def test_the_bound_run_is_the_public_run_and_falls_back_to_it():
         def __init__(self):
             self.calls = 0
 
-        def run_with_iobinding(self, io):
+        def run_with_iobinding(self, io, options=None):
             self.calls += 1
-            session.run_with_iobinding(io)
+            session.run_with_iobinding(io, options)
 
     other = Wrapped()
     bound_run(other, fast._io[0])()
