@@ -456,9 +456,18 @@ class Pipeline:
     def _revive(self, lo, hi):
         """Samples lo..hi-1 come back with their own latents, from the shown sample's GRU state and
         foot locks (their old state is stale); their buffered frames copy the shown sample's, so a
-        transition to one of them can be recomputed over the look-ahead like any other."""
+        transition to one of them can be recomputed over the look-ahead like any other.
+
+        A running move's buffered frames keep their spare row at the old N (lo), which becomes a sample
+        here: it moves to the new spare row (hi) first, or those frames would show the sample the move
+        leaves (a pop of 2 cm on the bundled walk)."""
         c, b, dec = self.switcher.current, self.buffer, self.decoder
         self.path.ring_changed()
+        moving = b.override & (b.trans_row == lo)
+        if moving.any():
+            for a in (b.rot6d, b.contacts, b.leg_goal, b.leg_weight):
+                a[moving, hi] = a[moving, lo]
+            b.trans_row[moving] = hi
         dec.latent[lo:hi] = self.latents[lo:hi]
         dec.state[lo:hi] = dec.state[c]
         self.feet.copy_rows(c, slice(lo, hi))

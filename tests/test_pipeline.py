@@ -307,6 +307,32 @@ def test_a_live_transition_keeps_its_source_sample_running_until_its_last_frame(
     assert {live[t] for t in range(70, 76)} == {6} and {live[t] for t in range(76, 90)} == {2}
 
 
+@pytest.mark.parametrize("tau", [0, 4])
+def test_growing_n_during_a_move_keeps_the_moves_frames(take, tau):
+    """N goes from 4 to 6 two frames into a move (the governor may raise N at any frame): the move's
+    spare row, row 4 until then, becomes sample 4's, and the move's buffered frames come out as they
+    would have without the change (before, they showed the sample the move leaves: a pop)."""
+    runs = []
+    for grow in (False, True):
+        pipe = Pipeline(PipelineOptions(samples=6, lookahead=tau, precision="fp32"), criteria=[])
+        pipe.criteria.criteria.append(ForcedSwitch(pipe, at=40))
+        pipe.set_samples(4)
+        out = {}
+        for t in range(50):
+            if grow and t == 42:
+                pipe.set_samples(6)
+            pose = pipe.step(take.signals.slice(t, t + 1))
+            if pose is not None:
+                out[pose.frame] = (pose.positions.copy(), pose.transition)
+        assert pipe.samples == (6 if grow else 4) and pipe.switches[0][2:] == (0, 3)
+        runs.append(out)
+    kept, grown = runs
+    move = [f for f in range(36, 43) if kept[f][1]]
+    assert len(move) >= 3 and all(grown[f][1] for f in move)
+    for f in move:
+        np.testing.assert_allclose(grown[f][0], kept[f][0], rtol=0, atol=1e-9)
+
+
 def test_switch_history_is_bounded_for_long_runs_but_every_switch_is_counted(take, monkeypatch):
     import edge.ssi as ssi_mod
     monkeypatch.setattr(ssi_mod, "SWITCH_HISTORY", 5)
