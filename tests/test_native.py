@@ -186,7 +186,7 @@ def test_the_present_frames_pose_kept_from_poses_is_the_one_emit_would_make():
     kept, made = runs
     assert len({p[3] for p in kept}) >= 2 and any(p[4] for p in kept)    # samples other than 0, and moves
     assert [p[3:] for p in kept] == [p[3:] for p in made]
-    for a, b in zip(kept, made):
+    for a, b in zip(kept, made, strict=True):
         for k in range(3):
             np.testing.assert_array_equal(a[k], b[k])
 
