@@ -1171,15 +1171,15 @@ static void block_store_lane(const block *k, int l, int J, double *local, double
  * every row; world rotations and positions [R,J,...] go to world and pos (world skipped when NULL).
  * Then what the ring keeps of each row goes to slot `slot`: the decoder's 6D and contacts, the leg
  * IK's goals and weights, the samples' lock weights, and the GRU state their step read (hidden_read,
- * the decoder's input buffer, which its step does not write). Returns 1, or 0 without touching anything
- * when a value of the decoder's dec_rows rows (its output or the state it wrote, hidden_written) is not
- * finite (NumpyFrame.finite). */
+ * the decoder's input buffer, which its step does not write). Returns 1, or 0 with nothing done but
+ * the kept pose forgotten when a value of the decoder's dec_rows rows (its output or the state it
+ * wrote, hidden_written) is not finite (NumpyFrame.finite). */
 int ep_frame_poses(core_context *x, int slot, int R, int N, int c, int n, double a, double *world,
                    double *pos, const float *hidden_read, const float *hidden_written, int dec_rows) {
+    x->shown_row = -1;
     if (!all_finite_f32(hidden_written, (int64_t)dec_rows * x->hidden)
             || !all_finite_f32(x->rot6d, (int64_t)dec_rows * x->rot6d_stride))
         return 0;                       /* NumpyFrame.finite: Pipeline._heal first, then call again */
-    x->shown_row = -1;
     int shown = !x->keep_shown ? -1 : R > N ? N : c;
     if (x->smooth_prev) {               /* UpperBodySmoother.remember, then apply: on the decoder's own output */
         int64_t n6 = (int64_t)SMOOTH_JOINTS * 6, at = (int64_t)slot * x->ring_rows;
