@@ -207,8 +207,16 @@ def test_without_a_compiler_the_pipeline_falls_back_to_numpy_and_says_so(tmp_pat
     assert r.stdout.startswith("numpy disabled"), r.stdout + r.stderr
 
 
+def _unoptimised_builds(monkeypatch, cache):
+    """edge.native.build into `cache` at -O0 and without -march: the rebuild tests pin down the cache's
+    key, not the code, and an unoptimised build takes 0.4 s against -O3's 4."""
+    monkeypatch.setenv("EDGEPOSE_CACHE", str(cache))
+    monkeypatch.setattr(native, "CFLAGS", tuple(f for f in native.CFLAGS if not f.startswith("-O")) + ("-O0",))
+    monkeypatch.setattr(native, "ARCH_FLAGS", ((),))
+
+
 def test_a_source_edit_rebuilds_into_a_new_cached_library(tmp_path, monkeypatch):
-    monkeypatch.setenv("EDGEPOSE_CACHE", str(tmp_path))
+    _unoptimised_builds(monkeypatch, tmp_path)
     first = native.build()
     assert first.exists() and native.build() == first
     src = tmp_path / "postproc.c"
@@ -231,7 +239,7 @@ def test_the_constants_shared_with_python_live_in_python_and_a_change_rebuilds(t
     defines = [f"-D{k}={float(v)!r}" for k, v in native.shared_constants().items()]
     assert subprocess.run(check + defines, capture_output=True, text=True).returncode == 0
     assert native.shared_constants()["FLOOR_ANKLE"] == physics.FLOOR_ANKLE
-    monkeypatch.setenv("EDGEPOSE_CACHE", str(tmp_path))
+    _unoptimised_builds(monkeypatch, tmp_path)
     first = native.build()
     monkeypatch.setattr(physics, "FLOOR_ANKLE", physics.FLOOR_ANKLE + 0.01)
     assert native.build() != first
