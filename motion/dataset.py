@@ -16,7 +16,9 @@ from motion.bvh import BvhError
 from motion.contacts import contact_labels
 from edge.features import orientation_features, sequence_features
 from edge.progress import Progress
-from motion.retarget import load_motion
+from motion import augment
+from motion.augment import Augment
+from motion.retarget import frames_at, load_motion
 from motion.synth import DeviceNoise, synthesize_from_pose, wear, world_pose
 from edge.skeleton import FEET, HEAD, PREDICTED, TOES
 
@@ -76,13 +78,15 @@ def _load(path):
 @dataclass
 class ClipSet:
     """Concatenated clips: rotations [F,J,4], root [F,3], contacts [F,2], and clip start offsets; with
-    each clip's people ("unseen" where its performer has no clip in train, else "seen"; None: unknown)."""
+    each clip's people ("unseen" where its performer has no clip in train, else "seen"; None: unknown)
+    and subject (the manifest's performer, e.g. "cmu:69"; None: unknown)."""
     names: list
     starts: np.ndarray
     rotations: np.ndarray
     root: np.ndarray
     contacts: np.ndarray
     people: np.ndarray = None
+    subjects: np.ndarray = None
 
     def lengths(self):
         return np.diff(np.append(self.starts, len(self.root)))
@@ -95,7 +99,8 @@ class ClipSet:
         lengths = self.lengths()[idx]
         return ClipSet([self.names[i] for i in idx], np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64),
                        self.rotations[frames], self.root[frames], self.contacts[frames],
-                       None if self.people is None else self.people[idx])
+                       None if self.people is None else self.people[idx],
+                       None if self.subjects is None else self.subjects[idx])
 
 
 def clip_people(root, names):
@@ -106,6 +111,15 @@ def clip_people(root, names):
         return None
     who = people_of(rows)
     return np.array([who.get(str(Path(n).relative_to(root)), "seen") for n in names])
+
+
+def clip_subjects(root, names):
+    """Each clip's subject (the manifest's performer column) from the folder's MANIFEST.tsv, or None."""
+    rows = read_manifest(root)
+    if rows is None:
+        return None
+    who = {r["file"]: r.get("subject") or "unknown" for r in rows}
+    return np.array([who.get(str(Path(n).relative_to(root)), "unknown") for n in names])
 
 
 def build(root, split, sources=None, cache_dir=".cache", workers=2):
@@ -120,7 +134,8 @@ def build(root, split, sources=None, cache_dir=".cache", workers=2):
     if cache.exists():
         d = np.load(cache, allow_pickle=False)
         names = list(d["names"])
-        return ClipSet(names, d["starts"], d["rotations"], d["root"], d["contacts"], clip_people(root, names))
+        return ClipSet(names, d["starts"], d["rotations"], d["root"], d["contacts"], clip_people(root, names),
+                       clip_subjects(root, names))
     names, rots, roots, cons = [], [], [], []
     with ProcessPoolExecutor(workers) as ex, Progress(len(paths), f"load {split}") as bar:
         for path, rot, root_pos in ex.map(_load, paths, chunksize=8):
@@ -135,7 +150,7 @@ def build(root, split, sources=None, cache_dir=".cache", workers=2):
             cons.append(contact_labels(pos[:, FEET], FPS))
     starts = np.cumsum([0] + [len(r) for r in roots[:-1]])
     cs = ClipSet(names, starts, np.concatenate(rots), np.concatenate(roots), np.concatenate(cons),
-                 clip_people(root, names))
+                 clip_people(root, names), clip_subjects(root, names))
     cache.parent.mkdir(parents=True, exist_ok=True)
     np.savez(cache, names=np.array(names), starts=starts, rotations=cs.rotations, root=cs.root, contacts=cs.contacts)
     return cs
@@ -145,6 +160,66 @@ def window_starts(cs: ClipSet, window):
     """Every valid window start (global frame index), stride 1."""
     out = [s + np.arange(n - window + 1) for s, n in zip(cs.starts, cs.lengths(), strict=True) if n >= window]
     return np.concatenate(out)
+
+
+PERSON_RULES = ("frames", "people", "sqrt", "capped")
+
+
+def people_in(subject):
+    """How many people a manifest subject is: "bandai:unlabelled(3 actors)" is three, any other one."""
+    import re
+    m = re.search(r"\((\d+) actors?\)", str(subject))
+    return int(m.group(1)) if m else 1
+
+
+class WindowDraw:
+    """Which window starts a batch takes: uniformly over frames (rule "frames", the recipe until v0.5.1),
+    or by person, each person's share of the windows set by the rule and spread evenly over that person's
+    windows. A person's share, by rule: "people" the same for everyone; "sqrt" the square root of their
+    minutes; "capped" their minutes up to `cap_minutes`. A subject that is several unlabelled people
+    (Bandai's three actors) counts as that many people, each with an equal part of its minutes."""
+
+    def __init__(self, cs: ClipSet, starts, rule="frames", cap_minutes=10.0):
+        if rule not in PERSON_RULES:
+            raise ValueError(f"window rule {rule!r}: one of {', '.join(PERSON_RULES)}")
+        self.starts, self.rule = np.asarray(starts), rule
+        self.cdf, self.shares = None, None
+        if rule == "frames":
+            return
+        if cs.subjects is None:
+            raise ValueError("drawing windows by person needs each clip's subject: read the mocap folder (its "
+                             "MANIFEST.tsv), or rebuild the pack (python -m motion.pack)")
+        clip = np.searchsorted(cs.starts, self.starts, side="right") - 1
+        subject = cs.subjects[clip]
+        names, of_start = np.unique(subject, return_inverse=True)
+        n_starts = np.bincount(of_start, minlength=len(names)).astype(np.float64)
+        frames = np.array([cs.lengths()[cs.subjects == n].sum() for n in names], np.float64)
+        people = np.array([people_in(n) for n in names], np.float64)
+        person_min = frames / FPS / 60 / people
+        per_person = {"people": np.ones_like(person_min), "sqrt": np.sqrt(person_min),
+                      "capped": np.minimum(person_min, cap_minutes)}[rule]
+        weight = per_person * people                       # the subject's share, before normalising
+        weight /= weight.sum()
+        p = weight[of_start] / n_starts[of_start]
+        self.cdf = np.cumsum(p)
+        self.cdf /= self.cdf[-1]
+        by_frames = n_starts / n_starts.sum()
+        self.shares = sorted(zip(names, people, person_min * people, by_frames, weight, strict=True),
+                             key=lambda r: -r[4])
+
+    def draw(self, rng, n):
+        if self.cdf is None:
+            return rng.choice(self.starts, n)
+        return self.starts[np.minimum(np.searchsorted(self.cdf, rng.random(n)), len(self.starts) - 1)]
+
+    def table(self):
+        """The share of the windows each subject gets, as lines to print at the start of a run."""
+        if self.shares is None:
+            return [f"windows drawn uniformly over frames ({len(self.starts):,} starts)"]
+        lines = [f"windows drawn by person, rule {self.rule!r}: subject, people, minutes, share by frames -> share"]
+        lines += [f"  {n:32s} {int(k):2d} {m:7.1f} min {f * 100:6.2f} % -> {w * 100:6.2f} %"
+                  for n, k, m, f, w in self.shares]
+        return lines
 
 
 def vigorous_starts(cs: ClipSet, starts, window, height=0.35, chunk=50_000):
@@ -187,10 +262,13 @@ def random_imus(rng, window, batch, flaky=1 / 3, p_drop=0.01, outage=100):
     return worn, alive
 
 
-def draw_batch(rng, starts, window, noise: DeviceNoise = None, imu_noise: imus.ImuNoise = None, with_imus=True):
+def draw_batch(rng, starts, window, noise: DeviceNoise = None, imu_noise: imus.ImuNoise = None, with_imus=True,
+               augment: Augment = None):
     """Every random number of a batch of windows starting at `starts` [B], in the order make_batch has
     always drawn them: the heading and floor shift, the device noise, which IMUs are worn and heard,
-    and their noise. render_batch makes the batch from them; models.batches draws the same on a device."""
+    and their noise; then, with `augment`, which windows are mirrored and their tempo (drawn last, so a
+    run without it draws what it always drew). render_batch makes the batch from them; models.batches
+    draws the same on a device."""
     B = len(starts)
     d = {"starts": np.asarray(starts), "yaw": rng.uniform(-np.pi, np.pi, B),
          "shift": np.concatenate([rng.uniform(-2, 2, (B, 1)), np.zeros((B, 1)), rng.uniform(-2, 2, (B, 1))], axis=1)}
@@ -200,7 +278,29 @@ def draw_batch(rng, starts, window, noise: DeviceNoise = None, imu_noise: imus.I
         d["worn"], d["alive"] = random_imus(rng, window, B)
         if imu_noise is not None:
             d["imu"] = imu_noise.draw(rng, (window, B, imus.NUM_IMUS))
+    if augment is not None:
+        d.update(augment.draw(rng, B))
     return d
+
+
+def window_motion(cs: ClipSet, d, window):
+    """The canonical motion of each window [W,B,...]: rotations, root and foot contacts, read at the
+    window's tempo (d["speed"], through the resampler the clips are read with) and mirrored where
+    d["mirror"] says (motion.augment)."""
+    if "speed" in d:
+        t = d["starts"][None, :] + np.arange(window)[:, None] * d["speed"][None, :]
+        rot, root = frames_at(cs.rotations, cs.root, t)
+        contacts = cs.contacts[np.rint(t).astype(np.int64)]
+    else:
+        idx = d["starts"][None, :] + np.arange(window)[:, None]          # [W,B]
+        rot, root, contacts = cs.rotations[idx].astype(np.float64), cs.root[idx].astype(np.float64), cs.contacts[idx]
+    if "mirror" in d and d["mirror"].any():
+        m = d["mirror"]
+        rot[:, m] = augment.mirror_rotations(rot[:, m])
+        root[:, m] = augment.mirror_root(root[:, m])
+        contacts = contacts.copy()
+        contacts[:, m] = augment.mirror_contacts(contacts[:, m])
+    return rot, root, contacts
 
 
 def render_batch(cs: ClipSet, d, window, noise: DeviceNoise = None, imu_noise: imus.ImuNoise = None, hands=None,
@@ -209,9 +309,7 @@ def render_batch(cs: ClipSet, d, window, noise: DeviceNoise = None, imu_noise: i
     model inputs and targets. With `orientations` also "orient", the headset's and controllers'
     orientation features the decoder's upper-body head reads (models.train_upper); `hands`: a function of
     the batch's Signals that returns them with the controllers turned about the wrists (its augmentation)."""
-    idx = d["starts"][None, :] + np.arange(window)[:, None]          # [W,B]
-    rot = cs.rotations[idx].astype(np.float64)                  # [W,B,J,4]
-    root = cs.root[idx].astype(np.float64)
+    rot, root, contacts = window_motion(cs, d, window)          # [W,B,J,4], [W,B,3], [W,B,2]
     # Random heading and floor position: the data should not teach the model where the room is.
     yaw = quat.from_yaw(d["yaw"])
     rot = rot.copy()
@@ -222,7 +320,12 @@ def render_batch(cs: ClipSet, d, window, noise: DeviceNoise = None, imu_noise: i
     if "device" in d:
         sig = noise.apply_drawn(sig, FPS, d["device"])
     if "worn" in d:
-        sig = wear(sig, d["worn"][None], FPS, alive=d["alive"], noise=imu_noise, drawn=d.get("imu"))
+        worn, alive = d["worn"], d["alive"]
+        if "mirror" in d:           # the IMU on the person's left foot is on the mirror image's right foot
+            m = d["mirror"]
+            worn, alive = np.where(m[:, None], augment.mirror_imus(worn), worn), \
+                np.where(m[None, :, None], augment.mirror_imus(alive), alive)
+        sig = wear(sig, worn[None], FPS, alive=alive, noise=imu_noise, drawn=d.get("imu"))
     if hands is not None:
         sig = hands(sig)
     feats, points, yaw_q = sequence_features(sig, FPS)
@@ -235,7 +338,7 @@ def render_batch(cs: ClipSet, d, window, noise: DeviceNoise = None, imu_noise: i
         "gt_rel": gt_rel.astype(np.float32),
         "root_rot": quat.to_matrix(root_local).astype(np.float32),
         "rot6d": quat.matrix_to_6d(local_m).reshape(local_m.shape[:-3] + (-1,)).astype(np.float32),
-        "contacts": cs.contacts[idx],
+        "contacts": contacts,
         "anchor_y": points[..., 0, 1].astype(np.float32),        # the tracked head joint's height (floor terms)
     }
     if orientations:
@@ -244,12 +347,12 @@ def render_batch(cs: ClipSet, d, window, noise: DeviceNoise = None, imu_noise: i
 
 
 def make_batch(cs: ClipSet, starts, window, rng, noise: DeviceNoise = None, imu_noise: imus.ImuNoise = None,
-               with_imus=True, hands=None, orientations=False):
+               with_imus=True, hands=None, orientations=False, augment: Augment = None):
     """Time-major batch [W,B,...] of model inputs and targets, with device noise synthesised per window
     and a random set of extra IMUs (random_imus) unless with_imus is False (the 4-point case). The
     reference for models.batches, which makes the same on an accelerator."""
-    return render_batch(cs, draw_batch(rng, starts, window, noise, imu_noise, with_imus), window, noise, imu_noise, hands,
-                        orientations)
+    return render_batch(cs, draw_batch(rng, starts, window, noise, imu_noise, with_imus, augment), window, noise,
+                        imu_noise, hands, orientations)
 
 
 def pose_batch(cs: ClipSet, frames):

@@ -135,6 +135,7 @@ def build_pack(data, out=DEFAULT_PACK, sources=None):
         arrays[f"{split}_fps"] = fps
         arrays[f"{split}_names"] = np.array(names)
         arrays[f"{split}_people"] = cs.people          # unseen / seen (motion.takes.people_of): val is chosen on unseen
+        arrays[f"{split}_subjects"] = cs.subjects      # the performer: training draws windows by person
         info["splits"][split] = {"clips": len(cs.names), "frames_60hz": int(len(cs.root)),
                                  "stored_frames": int(sum(len(r) for r in rots)), "joints": int(J),
                                  "minutes": len(cs.root) / 3600,
@@ -171,6 +172,7 @@ def load_pack(path, split, sources=None):
         folders = ds.source_folders(sources)
         keep = np.array([str(n).startswith(folders) for n in names])
     people = z[f"{split}_people"] if f"{split}_people" in z else None
+    subjects = z[f"{split}_subjects"] if f"{split}_subjects" in z else None     # packs before 7 December have none
     rots, roots, cons, kept = [], [], [], []
     starts60 = np.concatenate([[0], np.cumsum(lengths)[:-1]])
     for i in np.flatnonzero(keep):
@@ -185,7 +187,7 @@ def load_pack(path, split, sources=None):
         kept.append(str(names[i]))
     starts = np.cumsum([0] + [len(r) for r in roots[:-1]]).astype(np.int64)
     return ds.ClipSet(kept, starts, np.concatenate(rots), np.concatenate(roots), np.concatenate(cons),
-                      None if people is None else people[keep])
+                      None if people is None else people[keep], None if subjects is None else subjects[keep])
 
 
 def pack_error_mm(path, data, sources=None, chunk=100_000):

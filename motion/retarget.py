@@ -177,17 +177,24 @@ def direction_errors_deg(motion: Motion, src):
 LIMB_BONES = np.array([JOINT[f"{s}_{k}"] for s in _SIDES for k in ("elbow", "wrist", "knee", "ankle", "toe")]) - 1
 
 
+def frames_at(rotations, root, t):
+    """The motion at fractional frame positions t [...] (indices into rotations [F,J,4], root [F,3]):
+    slerp for rotations, linear for the root. -> (rotations, root). resample reads every clip through
+    it, and training's tempo augmentation (motion.augment) its windows."""
+    t = np.asarray(t, dtype=np.float64)
+    i0 = np.minimum(np.floor(t).astype(int), len(root) - 1)
+    i1 = np.minimum(i0 + 1, len(root) - 1)
+    w = t - i0
+    rot = quat.slerp(rotations[i0], rotations[i1], np.broadcast_to(w[..., None], w.shape + (rotations.shape[-2],)))
+    return rot, root[i0] * (1 - w[..., None]) + root[i1] * w[..., None]
+
+
 def resample(motion: Motion, fps=60.0):
     """Resample to a new rate: slerp for rotations, linear for the root."""
     if abs(motion.fps - fps) < 1e-3:
         return Motion(motion.rotations, motion.root, fps, motion.name)
     duration = (motion.frames - 1) / motion.fps
-    t = np.arange(0.0, duration + 1e-9, 1.0 / fps) * motion.fps
-    i0 = np.minimum(np.floor(t).astype(int), motion.frames - 1)
-    i1 = np.minimum(i0 + 1, motion.frames - 1)
-    w = t - i0
-    rot = quat.slerp(motion.rotations[i0], motion.rotations[i1], np.broadcast_to(w[:, None], (len(t), NUM_JOINTS)))
-    root = motion.root[i0] * (1 - w[:, None]) + motion.root[i1] * w[:, None]
+    rot, root = frames_at(motion.rotations, motion.root, np.arange(0.0, duration + 1e-9, 1.0 / fps) * motion.fps)
     return Motion(quat.unroll(rot), root, fps, motion.name)
 
 
