@@ -129,7 +129,7 @@ def build(root, split, sources=None, cache_dir=".cache", workers=2):
     if is_pack(root):
         return load_pack(root, split, sources)
     paths = clip_paths(root, split, sources)
-    key = hashlib.sha1(("v7|" + "|".join(map(str, paths))).encode()).hexdigest()[:12]
+    key = hashlib.sha1(("v8|" + "|".join(map(str, paths))).encode()).hexdigest()[:12]
     cache = Path(cache_dir) / f"clips-{split}-{key}.npz"
     if cache.exists():
         d = np.load(cache, allow_pickle=False)

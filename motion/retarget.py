@@ -99,11 +99,12 @@ def _about_neutral(d, parent_world, mean_dir, rest_dir):
     return quat.rotate(parent_world, quat.rotate(np.broadcast_to(swing, parent_world.shape), local))
 
 
-def retarget(clip: BvhClip, source=None, unit=0.01, hands=True, collars=True):
+def retarget(clip: BvhClip, source=None, unit=0.01, hands=True, collars=True, conventions=True):
     """Source clip -> canonical Motion, plus the source joint world positions [T,J,3] (metres) it followed.
     hands=False gives the wrists their forearm's orientation and the head its neck's (what motion.hands
     measures against); collars=False the collars their source's direction as it is (what motion.collars
-    measures against)."""
+    measures against); conventions=False the pelvis, spine, chest, neck and feet their source's
+    convention as it is (what motion.conventions measures against; motion.neutrals)."""
     from motion.collars import collar_neutral_of
     from motion.hands import hand_world, head_world, neutral_of
     source = source or detect_source(clip)
@@ -150,7 +151,11 @@ def retarget(clip: BvhClip, source=None, unit=0.01, hands=True, collars=True):
             np.linalg.norm(p[:, JOINT["l_ankle"]] - p[:, JOINT["l_knee"]], axis=-1)
     scale = (np.linalg.norm(OFFSETS[JOINT["l_knee"]]) + np.linalg.norm(OFFSETS[JOINT["l_ankle"]])) / np.median(leg(src))
     root = src[:, 0] * scale
-    motion = Motion(quat.unroll(quat.normalize(local)), root, clip.fps, clip.path)
+    local = quat.normalize(local)
+    if conventions:         # before the floor: a foot's convention sets how high its ankle stands
+        from motion.neutrals import neutral_for, normalise_conventions
+        local, _ = normalise_conventions(local, neutral_for(clip.path))
+    motion = Motion(quat.unroll(local), root, clip.fps, clip.path)
     place_on_floor(motion)
     return motion, src
 
