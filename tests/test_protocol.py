@@ -406,7 +406,8 @@ def test_frames_of_types_the_reader_does_not_accept_are_counted_as_unexpected():
 
 
 def test_bytes_fed_one_at_a_time_decode_like_one_chunk():
-    stream = b"".join(random_wire_frame(seed) for seed in range(20))
+    # each random frame twice: its random time is a clock jump that the second copy confirms
+    stream = b"".join(2 * random_wire_frame(seed) for seed in range(20))
     whole = FrameReader().feed(stream)
     reader = FrameReader()
     pieces = [m for i in range(len(stream)) for m in reader.feed(stream[i:i + 1])]
@@ -457,11 +458,45 @@ def test_unwrapped_time_runs_on_across_the_u32_wrap():
 
 
 def test_clock_going_backwards_is_counted_and_never_decreases_the_output():
+    """A sender that restarts its clock: the frame that jumps back is dropped until the next one follows
+    on from it, then the output holds and follows the new clock."""
     clock = TimestampUnwrapper()
     times = [clock.unwrap(t) for t in (5_000_000, 5_016_000, 4_000_000, 4_016_000, 10, 16_010)]
-    assert times == pytest.approx([5.0, 5.016, 5.016, 5.032, 5.032, 5.048])
-    assert clock.backward_jumps == 2
-    assert all(b >= a for a, b in zip(times, times[1:], strict=False))
+    assert times == [pytest.approx(5.0), pytest.approx(5.016), None, pytest.approx(5.032), None, pytest.approx(5.048)]
+    assert clock.backward_jumps == 2 and clock.glitches == 0
+    kept = [t for t in times if t is not None]
+    assert all(b >= a for a, b in zip(kept, kept[1:], strict=False))
+
+
+def test_a_long_silence_moves_the_clock_on_once_the_next_frame_confirms_it():
+    clock = TimestampUnwrapper()
+    times = [clock.unwrap(t) for t in (1_000_000, 1_016_000, 601_016_000, 601_032_000)]
+    assert times == [pytest.approx(1.0), pytest.approx(1.016), None, pytest.approx(601.032)]
+    assert clock.forward_jumps == 1
+
+
+@pytest.mark.parametrize("wrong_us", [2**31 - 1, 1_016_000 + 2**31 + 5, 1_016_000 ^ (0b101101 << 22), 3_000_000])
+def test_one_frame_whose_time_is_wrong_moves_the_clock_not_at_all(wrong_us):
+    """A corrupted frame whose CRC passes can carry any time: a 35-minute leap, a step across the wrap,
+    a few flipped bits. The frames after it follow the old clock, so it alone is dropped."""
+    clock = TimestampUnwrapper()
+    raw = [1_000_000, 1_016_000, wrong_us, 1_032_000, 1_048_000]
+    times = [clock.unwrap(t) for t in raw]
+    assert times == [pytest.approx(1.0), pytest.approx(1.016), None, pytest.approx(1.032), pytest.approx(1.048)]
+    assert clock.glitches == 1 and clock.backward_jumps == 0 and clock.forward_jumps == 0
+
+
+def test_a_crc_passing_frame_with_a_wrong_time_is_dropped_and_the_stream_keeps_its_clock():
+    """The case hypothesis found on the wire: a frame whose flipped bits (here in the timestamp) still
+    pass the CRC. Its messages are dropped and counted; the good frames after it keep their times."""
+    sample = example_headset_pose()
+    reader = FrameReader()
+    times = []
+    for k, t in enumerate((10.000, 10.016, 10.016 + 2**31 * 1e-6, 10.032, 10.048)):
+        sample.t = t
+        times += [m.t for m in reader.feed(encode_headset_pose(sample, k))]
+    assert times == pytest.approx([10.000, 10.016, 10.032, 10.048], abs=1e-6)
+    assert reader.stats["clock_unconfirmed"] == 1 and reader.stats["clock_jumps"] == 0
 
 
 def test_reader_stamps_messages_on_the_unwrapped_clock():
@@ -525,7 +560,7 @@ def test_fuzz_up_to_three_flipped_bits_in_a_frame_are_always_caught(wire, data):
     reader = FrameReader()
     assert reader.feed(reencode(bytes(body))) == []
     assert reader.stats == {"frames": 0, "corrupt": 1, "corrupt_framing": 1, "unexpected": 0, "missed": 0,
-                            "clock_jumps": 0}
+                            "clock_jumps": 0, "clock_unconfirmed": 0}
     assert len(reader.feed(wire)) >= 1
 
 

@@ -126,29 +126,59 @@ def seconds_to_us(t):
 
 
 class TimestampUnwrapper:
-    """u32 microsecond timestamps -> seconds that never decrease.
+    """u32 microsecond timestamps -> seconds that never decrease, and that no single frame can move.
 
-    Forward steps of less than 2**31 us (~35.8 min) are taken as time passing, across the u32 wrap.
-    Anything else is the device clock going backwards (a reboot, a glitch): it is counted in
-    `backward_jumps` and the output holds still, then follows the new clock from there.
+    A step forward of up to `max_step_s` (across the u32 wrap too) is time passing. Any other step (forward
+    by more: a long silence, or a corrupted frame whose CRC happened to pass; backward: the sender
+    restarted its clock) is believed only when the next frame confirms it by following on within
+    `max_step_s`: unwrap returns None for the frame that made it (drop it), and then either
+    - the next frame follows on from it: the jump was real. Forward, the output moves on by the whole
+      step; backward, it holds and follows the new clock from there (counted in `backward_jumps`);
+    - or the next frame follows on from the clock before it: that one frame was wrong (`glitches`).
+    `jumped` says whether the last unwrap confirmed a jump.
     """
 
-    def __init__(self):
+    def __init__(self, max_step_s=1.0):
+        self.max_step_us = int(max_step_s * 1e6)
         self._last_raw = None
         self._total_us = 0               # python int: never overflows
+        self._suspect = None             # the raw time of a frame whose jump waits for its confirmation
         self.backward_jumps = 0
-        self.jumped = False              # did the last unwrap see the clock go backwards?
+        self.forward_jumps = 0
+        self.glitches = 0
+        self.jumped = False
+
+    def _step(self, a, b):
+        return (b - a) & 0xFFFFFFFF
 
     def unwrap(self, t_us):
+        """This frame's time in seconds, or None when its clock jumped and waits for the next frame."""
+        self.jumped = False
         if self._last_raw is None:
-            self._total_us = t_us
-        else:
-            step = (t_us - self._last_raw) & 0xFFFFFFFF
-            self.jumped = step >= 1 << 31
-            if self.jumped:
-                self.backward_jumps += 1
-            else:
-                self._total_us += step
+            self._last_raw, self._total_us = t_us, t_us
+            return self._total_us * 1e-6
+        if self._suspect is not None:
+            if self._step(self._suspect, t_us) <= self.max_step_us:       # it follows the jump: real
+                jump = self._step(self._last_raw, self._suspect)
+                if jump < 1 << 31:
+                    self._total_us += jump
+                    self.forward_jumps += 1
+                else:
+                    self.backward_jumps += 1
+                self.jumped = True
+                self._last_raw, self._suspect = self._suspect, None
+            elif self._step(self._last_raw, t_us) <= self.max_step_us:   # it follows the old clock
+                self.glitches += 1
+                self._suspect = None
+            else:                                                        # another jump: wait for this one
+                self.glitches += 1
+                self._suspect = t_us
+                return None
+        step = self._step(self._last_raw, t_us)
+        if step > self.max_step_us:
+            self._suspect = t_us
+            return None
+        self._total_us += step
         self._last_raw = t_us
         return self._total_us * 1e-6
 

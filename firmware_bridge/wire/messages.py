@@ -409,7 +409,9 @@ class FrameReader:
                    corrupt_range and corrupt_value
       unexpected   good frames of a type this reader does not accept
       missed       frames lost according to sequence numbers (estimate)
-      clock_jumps  device timestamps that went backwards
+      clock_jumps  device clock jumps the next frame confirmed (backwards, or forward by over a second)
+      clock_unconfirmed  frames dropped because their clock jumped (framing.TimestampUnwrapper): a
+                   real jump costs the one frame that made it, a single wrong timestamp only itself
     Pass a Source's `stats` dict to count straight into it.
     """
 
@@ -417,7 +419,7 @@ class FrameReader:
         self.accept = frozenset(accept)
         self.tracker_names = tracker_names
         self.stats = {} if stats is None else stats
-        for key in ("frames", "corrupt", "unexpected", "missed", "clock_jumps"):
+        for key in ("frames", "corrupt", "unexpected", "missed", "clock_jumps", "clock_unconfirmed"):
             self.stats.setdefault(key, 0)
         self.last_error = ""
         self._pending = bytearray()      # bytes of the frame still being received
@@ -452,9 +454,12 @@ class FrameReader:
         except ProtocolError as error:
             self._count_corrupt(str(error), error.kind)
             return []
-        self.stats["frames"] += 1
         self._count_missed(frame)
         t = self._unwrap(frame)
+        if t is None:                    # its clock jumped: believed once the next frame follows on
+            self.stats["clock_unconfirmed"] += 1
+            return []
+        self.stats["frames"] += 1
         for message in messages:
             message.t += t
         return messages
