@@ -21,7 +21,8 @@ from edge.features import NUM_POINT_FEATURES
 from edge.imus import COMMON_SETS, FADE_S, LOST_AFTER_S, IMU_JOINTS, NUM_IMUS, ImuNoise, mask
 from edge.signals import EYE_OFFSET, GRIP_OFFSET
 from edge.skeleton import HEAD, JOINT, LEVELS, OFFSETS, PARENTS, PELVIS_TO_HEAD, PREDICTED
-from motion.dataset import FPS, ClipSet, vigorous_starts, window_starts
+from motion.augment import MIRROR_IMUS, MIRROR_JOINTS, Augment, window_span
+from motion.dataset import FPS, ClipSet, WindowDraw, vigorous_starts, window_starts
 from motion.synth import DeviceNoise
 
 WRISTS = [JOINT["l_wrist"], JOINT["r_wrist"]]
@@ -49,6 +50,20 @@ def qrot(q, v):
 
 def qnormalize(q):
     return q / q.norm(dim=-1, keepdim=True).clamp_min(1e-8)
+
+
+def qslerp(a, b, t):
+    """edge.quat.slerp: from a towards b by t [...] (the shorter way)."""
+    t = t[..., None]
+    d = (a * b).sum(-1, keepdim=True)
+    b = torch.where(d < 0, -b, b)
+    theta = torch.arccos(d.abs().clamp(-1.0, 1.0))
+    s = torch.sin(theta)
+    near = s < 1e-6
+    safe = torch.where(near, torch.ones_like(s), s)
+    wa = torch.where(near, 1.0 - t, torch.sin((1.0 - t) * theta) / safe)
+    wb = torch.where(near, t, torch.sin(t * theta) / safe)
+    return qnormalize(wa * a + wb * b)
 
 
 def qto_matrix(q):
@@ -131,7 +146,8 @@ class DeviceBatches:
     """The training split on a device and the batches made from it there (see the module docstring)."""
 
     def __init__(self, cs: ClipSet, window, device="cpu", seed=0, noise=None, imu_noise=None,
-                 dtype=torch.float32, flaky=1 / 3, vigorous=0.0):
+                 dtype=torch.float32, flaky=1 / 3, vigorous=0.0, windows_by="frames", cap_minutes=10.0,
+                 augment: Augment = None):
         self.window, self.device, self.dtype = window, torch.device(device), dtype
         self.noise = DeviceNoise() if noise is None else noise
         self.imu_noise = ImuNoise() if imu_noise is None else imu_noise
@@ -140,8 +156,14 @@ class DeviceBatches:
         self.rotations = torch.as_tensor(cs.rotations, **as_t)
         self.root = torch.as_tensor(cs.root, **as_t)
         self.contacts = torch.as_tensor(cs.contacts, device=self.device, dtype=torch.float32)
-        starts = window_starts(cs, window)
+        # a window read at up to `fastest` x needs that many more frames of its clip (motion.augment)
+        self.augment = augment
+        starts = window_starts(cs, window_span(window, augment.fastest if augment else 1.0))
         self.starts = torch.as_tensor(starts, device=self.device)
+        by_person = WindowDraw(cs, starts, windows_by, cap_minutes).cdf          # None: uniform over frames
+        self.person_cdf = None if by_person is None else torch.as_tensor(by_person, device=self.device)
+        self.mirror_joints = torch.as_tensor(MIRROR_JOINTS, device=self.device)
+        self.mirror_imus = torch.as_tensor(MIRROR_IMUS, device=self.device)
         # --vigorous: that share of every batch from windows that lift a toe (motion.dataset.vigorous_starts)
         self.vigorous = vigorous
         self.lifted = torch.as_tensor(vigorous_starts(cs, starts, window) if vigorous > 0 else starts, device=self.device)
@@ -168,7 +190,11 @@ class DeviceBatches:
     def draw(self, B, with_imus=True):
         W, K, n, dn = self.window, NUM_IMUS, self.noise, self.imu_noise
         n_lifted = int(round(self.vigorous * B))
-        pick = torch.randint(len(self.starts), (B - n_lifted,), generator=self.gen, device=self.device)
+        if self.person_cdf is None:
+            pick = torch.randint(len(self.starts), (B - n_lifted,), generator=self.gen, device=self.device)
+        else:
+            u = torch.rand(B - n_lifted, generator=self.gen, device=self.device, dtype=torch.float64)
+            pick = torch.searchsorted(self.person_cdf, u).clamp_max(len(self.starts) - 1)
         lift = torch.randint(len(self.lifted), (n_lifted,), generator=self.gen, device=self.device)
         d = {"starts": torch.cat([self.starts[pick], self.lifted[lift]]), "yaw": self._uniform(-np.pi, np.pi, B),
              "shift": torch.stack([self._uniform(-2, 2, B), torch.zeros(B, device=self.device, dtype=self.dtype),
@@ -184,6 +210,11 @@ class DeviceBatches:
                         "yaw_offset_deg": self._normal(B, K) * dn.yaw_offset_std_deg,
                         "yaw_drift_deg_s": self._normal(B, K) * dn.yaw_drift_deg_s,
                         "jitter_axis": self._normal(W, B, K, 3), "jitter_deg": self._uniform(0, dn.jitter_max_deg, W, B, K)}
+        a = self.augment
+        if a is not None and a.mirror > 0:
+            d["mirror"] = torch.rand(B, generator=self.gen, device=self.device) < a.mirror
+        if a is not None and a.retimes:
+            d["speed"] = torch.exp(self._uniform(np.log(a.slowest), np.log(a.fastest), B))
         return d
 
     def random_imus(self, B, p_drop=0.01, outage=100):
@@ -211,8 +242,7 @@ class DeviceBatches:
         W = self.window
         as_t = dict(device=self.device, dtype=self.dtype)
         t = lambda x: torch.as_tensor(x, **as_t)                      # noqa: E731 (numpy draws, in a test)
-        idx = torch.as_tensor(d["starts"], device=self.device)[None, :] + torch.arange(W, device=self.device)[:, None]
-        rot, root = self.rotations[idx], self.root[idx]                # [W,B,J,4], [W,B,3]
+        rot, root, contacts = self.window_motion(d)                    # [W,B,J,4], [W,B,3], [W,B,2]
         yaw = from_yaw(t(d["yaw"]))
         rot = torch.cat([qmul(yaw[None], rot[:, :, 0])[:, :, None], rot[:, :, 1:]], dim=2)
         root = qrot(yaw[None].expand(W, -1, -1), root) + t(d["shift"])[None]
@@ -220,8 +250,12 @@ class DeviceBatches:
         sig = self.signals(world_rot, gt_pos, {k: t(v) for k, v in d["device"].items()})
         imu_rot, imu_flag = world_rot[..., self.imu_joints, :], None
         if "worn" in d:
-            imu_rot, imu_flag = self.wear(imu_rot, t(d["worn"]), torch.as_tensor(d["alive"], device=self.device),
-                                          {k: t(v) for k, v in d["imu"].items()})
+            worn, alive = t(d["worn"]), torch.as_tensor(d["alive"], device=self.device)
+            if "mirror" in d:       # the IMU on the person's left foot is on the mirror image's right foot
+                m = torch.as_tensor(d["mirror"], device=self.device)
+                worn = torch.where(m[:, None], worn[:, self.mirror_imus], worn)
+                alive = torch.where(m[None, :, None], alive[..., self.mirror_imus], alive)
+            imu_rot, imu_flag = self.wear(imu_rot, worn, alive, {k: t(v) for k, v in d["imu"].items()})
         feats, points, yaw_q = self.features(sig, imu_rot, imu_flag)
         inv_yaw = qinv(yaw_q)
         gt_rel = qrot(inv_yaw[..., None, :].expand(gt_pos.shape[:-1] + (4,)), gt_pos - gt_pos[..., HEAD:HEAD + 1, :])
@@ -230,7 +264,30 @@ class DeviceBatches:
         f32 = torch.float32
         return {"features": feats.to(f32), "gt_rel": gt_rel.to(f32), "root_rot": qto_matrix(root_local).to(f32),
                 "rot6d": matrix_to_6d(local_m).reshape(local_m.shape[:-3] + (-1,)).to(f32),
-                "contacts": self.contacts[idx], "anchor_y": points[..., 0, 1].to(f32)}
+                "contacts": contacts, "anchor_y": points[..., 0, 1].to(f32)}
+
+    def window_motion(self, d):
+        """motion.dataset.window_motion in torch: each window's motion at its tempo, mirrored where asked."""
+        W, dev = self.window, self.device
+        starts = torch.as_tensor(d["starts"], device=dev)
+        if "speed" in d:
+            pos = starts[None, :].to(torch.float64) + torch.arange(W, device=dev, dtype=torch.float64)[:, None] \
+                * torch.as_tensor(d["speed"], device=dev, dtype=torch.float64)[None, :]
+            i0 = pos.floor().long().clamp_max(len(self.root) - 1)
+            i1 = (i0 + 1).clamp_max(len(self.root) - 1)
+            w = (pos - i0).to(self.dtype)
+            rot = qslerp(self.rotations[i0], self.rotations[i1], w[..., None].expand(-1, -1, self.rotations.shape[1]))
+            root = self.root[i0] * (1 - w[..., None]) + self.root[i1] * w[..., None]
+            contacts = self.contacts[pos.round().long()]
+        else:
+            idx = starts[None, :] + torch.arange(W, device=dev)[:, None]
+            rot, root, contacts = self.rotations[idx], self.root[idx], self.contacts[idx]
+        if "mirror" in d:
+            m = torch.as_tensor(d["mirror"], device=dev)[None, :, None]
+            rot = torch.where(m[..., None], rot[..., self.mirror_joints, :] * rot.new_tensor([1.0, 1.0, -1.0, -1.0]), rot)
+            root = torch.where(m, root * root.new_tensor([-1.0, 1.0, 1.0]), root)
+            contacts = torch.where(m, contacts.flip(-1), contacts)
+        return rot, root, contacts
 
     def signals(self, world_rot, pos, dn):
         """motion.synth.synthesize_from_pose with DeviceNoise.apply_drawn: head, controllers, waist."""

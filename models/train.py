@@ -413,16 +413,14 @@ class Trainer:
         self.on_device = a.batches == "device" or (a.batches == "auto" and self.device.type == "cuda")
         self.q, self.procs = None, []
         seed = a.seed + 1 + 1000 * rank
-        if self.on_device and (a.augment or a.windows_by != "frames"):
-            raise SystemExit("--mirror, --tempo and --windows-by are made by the numpy batch makers only: "
-                             "add --batches workers")
         if self.lead:
             starts = ds.window_starts(self.cs_train, window_span(a.window, a.augment.fastest if a.augment else 1.0))
             for line in ds.WindowDraw(self.cs_train, starts, a.windows_by, a.cap_minutes).table():
                 self.log(line)
         if self.on_device:
             from models.batches import DeviceBatches
-            self.batches = DeviceBatches(self.cs_train, a.window, self.device, seed=seed, vigorous=a.vigorous)
+            self.batches = DeviceBatches(self.cs_train, a.window, self.device, seed=seed, vigorous=a.vigorous,
+                                         windows_by=a.windows_by, cap_minutes=a.cap_minutes, augment=a.augment)
             self.log(f"batches: made on {self.device} (models.batches), {len(self.batches.starts):,} window starts")
         else:
             _TRAIN = self.cs_train

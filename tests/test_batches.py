@@ -28,6 +28,30 @@ def test_the_device_renders_the_windows_numpy_renders_from_the_same_numbers(torc
         np.testing.assert_allclose(got[k].numpy(), want[k], atol=1e-4 if k == "features" else 1e-6, err_msg=k)
 
 
+@pytest.mark.parametrize("speed", [False, True])
+def test_the_device_mirrors_and_retimes_windows_as_numpy_does(torch, val, speed):
+    from models.batches import DeviceBatches
+    rng = np.random.default_rng(4)
+    d = ds.draw_batch(rng, rng.choice(ds.window_starts(val, 80), 32), 60, DeviceNoise(), ImuNoise())
+    d["mirror"] = rng.random(32) < 0.5
+    if speed:
+        d["speed"] = rng.uniform(0.8, 1.25, 32)
+    want = ds.render_batch(val, d, 60, DeviceNoise(), ImuNoise())
+    got = DeviceBatches(val, 60, "cpu", dtype=torch.float64).render(d)
+    for k in want:
+        np.testing.assert_allclose(got[k].numpy(), want[k], atol=1e-4 if k == "features" else 1e-6, err_msg=k)
+
+
+def test_the_device_draws_windows_by_person_as_the_rule_says(torch):
+    from models.batches import DeviceBatches
+    from tests.test_augment import people_set
+    cs = people_set()
+    dev = DeviceBatches(cs, 60, "cpu", seed=2, windows_by="people")
+    starts = dev.draw(20000, with_imus=False)["starts"].numpy()
+    share = np.bincount(np.searchsorted(cs.starts, starts, side="right") - 1, minlength=3) / len(starts)
+    np.testing.assert_allclose(share, [0.2, 0.2, 0.6], atol=0.015)
+
+
 def test_the_devices_random_numbers_have_the_references_distributions(torch, val):
     from models.batches import DeviceBatches
     B = 4096
