@@ -9,7 +9,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from edge import quat
 from edge.imus import IMU_LOCATIONS
 from edge.skeleton import JOINT_NAMES
 

@@ -110,8 +110,11 @@ def measure_entry(rot, root, every, rounds=2):
         again, _, _ = measurer(out, on_the_floor(out, root), every)
         world = world_rotations(out)
         fixed = {name: entry[name] + again(name, world) for name in ("pelvis_pitch_deg",) + tuple(FEET)}  # one axis each
+
+        def with_fixed(name, w, fixed=fixed):
+            return fixed[name] if name in fixed else measure(name, w)
         # the spine, chest and neck again, in the pelvis's new frame
-        _, entry = normalise_conventions(rot, {}, lambda name, w: fixed[name] if name in fixed else measure(name, w))
+        _, entry = normalise_conventions(rot, {}, with_fixed)
     return entry
 
 

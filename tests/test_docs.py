@@ -103,6 +103,21 @@ NOT_RUNNABLE = {
         "trains the upper-body head for 24 minutes on a trained CVAE's folder and overwrites the shipped "
         "models/ (tests/test_models.py checks the head it exports)",
     ".venv/bin/torchrun --nproc_per_node=4 -m models.train --data DATA": "needs 4 GPUs; " + TRAIN,
+    ".venv/bin/python -m models.train --data ../shared/mocap --device cpu --threads 2 --workers 1 --hidden 256 "
+    "--init models/checkpoints --best-of 8 --winner-grad --eps 0.02 --clearance 10000 --lr 3e-4 --windows-by sqrt "
+    "--mirror 0.5 --tempo 0.8,1.25 --val-every 100 --no-export --minutes 45 --ckpt .cache/runs/v06 "
+    "--out .cache/runs/v06": "trains for 45 minutes on both cores (tests/test_train_recipe.py and test_augment.py "
+                             "check its parts)",
+    ".venv/bin/python -m models.train --data ../shared/mocap --device cpu --threads 2 --hidden 256 --best-of 8 "
+    "--winner-grad --eps 0.02 --clearance 10000 --lr 2e-4 --windows-by sqrt --mirror 0.5 --tempo 0.8,1.25 "
+    "--no-export --minutes 45 --resume .cache/runs/v06 --ckpt .cache/runs/v06b --out .cache/runs/v06b":
+        "continues a 45-minute run from the one above",
+    "python bench/train_step.py --best-of 16,8,4 --threads 1,2": "reads all of train (3 min of retargeting on a "
+                                                                  "fresh machine), then a minute a recipe",
+    "python -m motion.conventions": "reads all of train (3 min of retargeting on a fresh machine); "
+                                    "tests/test_conventions.py checks the measurement",
+    "scripts/eval-checkpoint .cache/runs/v06 .cache/models/v06": "needs the run above's checkpoint; exports, "
+                                                                  "quantizes and evaluates for about 10 minutes",
     ".venv/bin/python -m quantize": "rebuilds the shipped models/*.int8.onnx in place (minutes); "
                                     "tests/test_quantize.py checks the builds",
     "sudo apt install python3-venv i2c-tools gcc libc6-dev": "installs system packages on the board (root)",
