@@ -59,7 +59,8 @@ import onnxruntime
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
-from edge.inference import Decoder, open_models
+from edge.inference import Decoder
+from edge.loading import open_models
 from edge.options import PipelineOptions
 from edge.pipeline import Pipeline
 from motion.takes import from_sample

@@ -35,7 +35,8 @@ from edge.frame_numpy import NumpyFrame
 from edge.imus import IMU_JOINTS, NUM_IMUS
 from edge.heading import HeadingObserver
 from edge.ik import FootLock
-from edge.inference import Autoencoder, Decoder, open_jacobian, open_models
+from edge.inference import Autoencoder, Decoder
+from edge.loading import open_jacobian, open_models
 from edge.modelfiles import ModelError
 from edge.options import PipelineOptions
 from edge.physics import INTERSECT_M

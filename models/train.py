@@ -34,6 +34,7 @@ import torch
 from edge.progress import Progress
 from edge.imus import ImuNoise
 from edge.physics import INTERSECT_M, LEG_SEGMENTS
+from motion.pack import read_clips
 from motion.synth import DeviceNoise
 from edge.skeleton import ANKLES, HEAD, LOWER_BODY, NUM_PREDICTED, TOES
 from motion import dataset as ds
@@ -400,8 +401,8 @@ class Trainer:
 
     def load_data(self):
         a = self.a
-        self.cs_train = ds.build(a.data, "train", a.sources)
-        self.cs_val = ds.build(a.data, "val", a.sources)
+        self.cs_train = read_clips(a.data, "train", a.sources)
+        self.cs_val = read_clips(a.data, "val", a.sources)
         self.log(f"train: {len(self.cs_train.names)} clips, {len(self.cs_train.root) / 3600:.1f} min; val: "
                  f"{len(self.cs_val.names)} clips, {len(self.cs_val.root) / 3600:.1f} min (60 Hz)")
 

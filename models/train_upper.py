@@ -41,6 +41,7 @@ from models.export import export_all, load_checkpoint
 from models.nets import LATENT, UpperBodyHead
 from models.train import head_positions
 from motion import dataset as ds
+from motion.pack import read_clips
 from motion.synth import DeviceNoise, bend_hands
 
 WINDOW, WARMUP = 90, 30
@@ -148,8 +149,8 @@ def main(argv=None):
     cvae, _, meta = load_checkpoint(a.ckpt)
     for p in cvae.parameters():
         p.requires_grad_(False)
-    train = ds.build(a.data, "train")
-    val = ds.build(a.data, "val")
+    train = read_clips(a.data, "train")
+    val = read_clips(a.data, "val")
     if val.people is None or not (val.people == "unseen").any():
         raise SystemExit(f"{a.data}: val has no unseen people to choose on (MANIFEST.tsv)")
     val = val.subset(val.people == "unseen")

@@ -21,34 +21,12 @@ from pathlib import Path
 
 import numpy as np
 
-from motion.hands import measured_from_command_line, neutral_in, skeleton_means, train_clips_by_folder
-
-# Folder -> side -> the collar bone's mean unit direction in the canonical chest frame (x left, y up,
-# z forward), as retargeting without the neutral gives it. Measured by `python -m motion.collars` on
-# data v4 (80 train clips a folder, every 4th frame).
-COLLAR_NEUTRAL = {
-    "bandai_namco_ccbync": {"l": (0.9598, -0.0063, -0.2806), "r": (-0.9647, -0.0620, -0.2559)},  # bandai
-    "cmu_amc2bvh": {"l": (0.9240, 0.3816, 0.0258), "r": (-0.8984, 0.4385, 0.0231)},  # cmu
-    "cmu_cgspeed_mb": {"l": (0.9327, 0.3572, -0.0503), "r": (-0.9495, 0.3092, -0.0527)},  # cmu
-    "cmu_daz_ateliercircle": {"l": (0.9635, -0.2289, 0.1387), "r": (-0.9635, -0.2289, 0.1387)},  # daz
-    "cmu_daz_papagina": {"l": (0.9635, -0.2289, 0.1387), "r": (-0.9635, -0.2289, 0.1387)},  # daz
-    "cmu_fbx_daz": {"l": (0.9635, -0.2289, 0.1387), "r": (-0.9635, -0.2289, 0.1387)},  # daz
-    "hdm05_ccbysa": {"l": (0.9922, 0.1247, 0.0057), "r": (-0.9969, 0.0783, 0.0061)},  # cmu
-}
-
+from motion.hands import measured_from_command_line, train_clips_by_folder
+from motion.neutrals import COLLAR_NEUTRAL  # noqa: F401  (the table this module measures)
 
 def _unit(v):
     v = np.asarray(v, dtype=np.float64)
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
-
-
-COLLAR_SKELETON = skeleton_means(COLLAR_NEUTRAL)
-
-
-def collar_neutral_of(path, source):
-    """The measured mean collar direction of the clip at `path` (its folder's, else its skeleton's):
-    {"l": [3], "r": [3]}, or None where nothing was measured."""
-    return neutral_in(COLLAR_NEUTRAL, COLLAR_SKELETON, path, source)
 
 
 def measure(root, clips=80, seed=0, step=4):

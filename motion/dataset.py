@@ -123,11 +123,8 @@ def clip_subjects(root, names):
 
 
 def build(root, split, sources=None, cache_dir=".cache", workers=2):
-    """A split's clips as a ClipSet: from a training pack (motion.pack) when `root` is one, else from the
-    mocap folder through a cache of its retargeted clips."""
-    from motion.pack import is_pack, load_pack
-    if is_pack(root):
-        return load_pack(root, split, sources)
+    """A split's clips as a ClipSet, from the mocap folder `root` through a cache of its retargeted clips
+    (a training pack is read by motion.pack.read_clips, which decides between the two)."""
     paths = clip_paths(root, split, sources)
     key = hashlib.sha1(("v8|" + "|".join(map(str, paths))).encode()).hexdigest()[:12]
     cache = Path(cache_dir) / f"clips-{split}-{key}.npz"

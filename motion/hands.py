@@ -24,44 +24,9 @@ from pathlib import Path
 import numpy as np
 
 from edge import quat
+from motion.neutrals import HAND_NEUTRAL  # noqa: F401  (the table this module measures)
+from motion.retarget import hand_world, head_world
 
-# Folder -> side -> the neutral (w, x, y, z): canonical wrist world = source hand world * neutral.
-# Measured by `python -m motion.hands` on data v4 (80 train clips a folder, every 4th frame), with the
-# collars about their neutral (motion.collars), which turns the upper arms' frames a little.
-HAND_NEUTRAL = {
-    "bandai_namco_ccbync": {"l": (0.9854, -0.0918, -0.0165, -0.1421), "r": (0.0288, 0.9876, -0.1541, -0.0074)},
-    "cmu_amc2bvh": {"l": (0.9705, -0.2412, -0.0000, -0.0000), "r": (0.9403, -0.3404, 0.0000, 0.0000)},
-    "cmu_cgspeed_mb": {"l": (0.9908, -0.1355, -0.0000, -0.0000), "r": (0.9671, -0.2545, 0.0000, -0.0000)},
-    "cmu_daz_ateliercircle": {"l": (0.9782, -0.1386, -0.1547, -0.0098), "r": (0.9734, -0.1787, 0.1421, -0.0184)},
-    "cmu_daz_papagina": {"l": (0.9750, -0.1492, -0.1590, -0.0431), "r": (0.9712, -0.1759, 0.1580, 0.0277)},
-    "cmu_fbx_daz": {"l": (0.9751, -0.1612, -0.1509, -0.0186), "r": (0.9790, -0.1360, 0.1518, 0.0099)},
-    "hdm05_ccbysa": {"l": (0.9786, -0.2060, 0.0002, 0.0012), "r": (0.9821, -0.1881, -0.0002, -0.0003)},
-}
-FOLDER_SKELETON = {"bandai_namco_ccbync": "bandai", "cmu_amc2bvh": "cmu", "cmu_cgspeed_mb": "cmu", "hdm05_ccbysa": "cmu",
-                   "cmu_daz_ateliercircle": "daz", "cmu_daz_papagina": "daz", "cmu_fbx_daz": "daz"}
-
-
-def skeleton_means(table):
-    """{skeleton: {side: the normalised sum of its folders' entries}} of a per-folder table of unit vectors
-    or quaternions: what a clip from a folder not in the table takes."""
-    out = {}
-    for skeleton in set(FOLDER_SKELETON.values()):
-        folders = [f for f, s in FOLDER_SKELETON.items() if s == skeleton and f in table]
-        if folders:
-            out[skeleton] = {side: tuple(quat.normalize(np.sum([table[f][side] for f in folders], axis=0)))
-                             for side in "lr"}
-    return out
-
-
-HAND_SKELETON = skeleton_means(HAND_NEUTRAL)
-
-
-
-def head_world(clip, source):
-    """The source head's world rotation [T,4]."""
-    from motion.retarget import SOURCE_MAPS
-    world_rot, _ = clip.world()
-    return world_rot[:, clip.index(SOURCE_MAPS[source]["head"])]
 
 # Human ranges against the forearm (degrees): pronation/supination about it, and the wrist's bend
 # (flexion 0-80, extension 0-70, radial 20, ulnar 30; e.g. the AAOS normal ranges).
@@ -70,15 +35,6 @@ HUMAN_BEND_DEG = 80.0
 # The head on the neck: nodding (flexion 50, extension 60) and turning (70 each way) (AAOS normal ranges).
 HUMAN_NOD_DEG = 60.0
 HUMAN_TURN_DEG = 70.0
-
-
-def neutral_in(table, by_skeleton, path, source):
-    """The entry of a per-folder table for the clip at `path` (the nearest folder of its path in the table),
-    else its skeleton's (by_skeleton, from skeleton_means), else None."""
-    for part in Path(str(path)).parts[::-1]:
-        if part in table:
-            return table[part]
-    return by_skeleton.get(source)
 
 
 def train_clips_by_folder(root, clips, seed=0):
@@ -91,18 +47,6 @@ def train_clips_by_folder(root, clips, seed=0):
             by_folder[r["file"].split("/")[0]].append(r["file"])
     rng = np.random.default_rng(seed)
     return {folder: rng.choice(files, min(clips, len(files)), replace=False) for folder, files in sorted(by_folder.items())}
-
-
-def neutral_of(path, source):
-    """The measured neutral of the clip at `path` (from its folder, else its skeleton): {"l": q, "r": q}."""
-    return neutral_in(HAND_NEUTRAL, HAND_SKELETON, path, source)
-
-
-def hand_world(clip, source, side):
-    """The source hand's world rotation [T,4] of one side ("l" or "r")."""
-    from motion.retarget import SOURCE_MAPS
-    world_rot, _ = clip.world()
-    return world_rot[:, clip.index(SOURCE_MAPS[source][f"{side}_wrist"])]
 
 
 def mean_rotation(m):

@@ -1,6 +1,12 @@
 """Where each source's skeleton author put the body's joints, and how retargeting takes it out.
 
-Measured once per source folder by `python -m motion.conventions` (train clips, every 4th frame) on the
+Three tables, each measured once per source folder on its train clips: the hands' neutral against the
+forearm (HAND_NEUTRAL, `python -m motion.hands`), the collars' mean direction in the chest
+(COLLAR_NEUTRAL, `python -m motion.collars`), and the rest of the body's conventions
+(CONVENTION_NEUTRAL, below). The measuring modules read clips through retargeting; retargeting reads
+only these tables, so neither imports the other back.
+
+The conventions are measured by `python -m motion.conventions` (train clips, every 4th frame) on the
 retargeted clips before this normalisation, in the body's chain order (each joint measured in its
 parent's frame as already normalised):
 - "pelvis_pitch_deg": the pelvis frame's forward lean while both feet stand flat;
@@ -12,8 +18,7 @@ parent's frame as already normalised):
 normalise_conventions turns each by the constant rotation that takes its folder's mean to the canonical
 rest (the pelvis about its hips' line, a foot about its shin's), keeping each bone's motion about it;
 every other joint keeps its world orientation, but for the collars and the head, which keep their
-place on their parent (KEEP_LOCAL). This module imports nothing from `motion`, so retargeting and
-the measurement both read it.
+place on their parent (KEEP_LOCAL). This module imports nothing from `motion`.
 """
 from pathlib import Path
 
@@ -21,6 +26,81 @@ import numpy as np
 
 from edge import quat
 from edge.skeleton import JOINT, NUM_JOINTS, OFFSETS, PARENTS
+
+# --- the hands (motion.hands measures them) and the collars (motion.collars) -------------------------
+
+# Folder -> side -> the neutral (w, x, y, z): canonical wrist world = source hand world * neutral.
+# Measured by `python -m motion.hands` on data v4 (80 train clips a folder, every 4th frame), with the
+# collars about their neutral (motion.collars), which turns the upper arms' frames a little.
+HAND_NEUTRAL = {
+    "bandai_namco_ccbync": {"l": (0.9854, -0.0918, -0.0165, -0.1421), "r": (0.0288, 0.9876, -0.1541, -0.0074)},
+    "cmu_amc2bvh": {"l": (0.9705, -0.2412, -0.0000, -0.0000), "r": (0.9403, -0.3404, 0.0000, 0.0000)},
+    "cmu_cgspeed_mb": {"l": (0.9908, -0.1355, -0.0000, -0.0000), "r": (0.9671, -0.2545, 0.0000, -0.0000)},
+    "cmu_daz_ateliercircle": {"l": (0.9782, -0.1386, -0.1547, -0.0098), "r": (0.9734, -0.1787, 0.1421, -0.0184)},
+    "cmu_daz_papagina": {"l": (0.9750, -0.1492, -0.1590, -0.0431), "r": (0.9712, -0.1759, 0.1580, 0.0277)},
+    "cmu_fbx_daz": {"l": (0.9751, -0.1612, -0.1509, -0.0186), "r": (0.9790, -0.1360, 0.1518, 0.0099)},
+    "hdm05_ccbysa": {"l": (0.9786, -0.2060, 0.0002, 0.0012), "r": (0.9821, -0.1881, -0.0002, -0.0003)},
+}
+FOLDER_SKELETON = {"bandai_namco_ccbync": "bandai", "cmu_amc2bvh": "cmu", "cmu_cgspeed_mb": "cmu", "hdm05_ccbysa": "cmu",
+                   "cmu_daz_ateliercircle": "daz", "cmu_daz_papagina": "daz", "cmu_fbx_daz": "daz"}
+
+
+
+
+def skeleton_means(table):
+    """{skeleton: {side: the normalised sum of its folders' entries}} of a per-folder table of unit vectors
+    or quaternions: what a clip from a folder not in the table takes."""
+    out = {}
+    for skeleton in set(FOLDER_SKELETON.values()):
+        folders = [f for f, s in FOLDER_SKELETON.items() if s == skeleton and f in table]
+        if folders:
+            out[skeleton] = {side: tuple(quat.normalize(np.sum([table[f][side] for f in folders], axis=0)))
+                             for side in "lr"}
+    return out
+
+
+HAND_SKELETON = skeleton_means(HAND_NEUTRAL)
+
+
+def neutral_in(table, by_skeleton, path, source):
+    """The entry of a per-folder table for the clip at `path` (the nearest folder of its path in the table),
+    else its skeleton's (by_skeleton, from skeleton_means), else None."""
+    for part in Path(str(path)).parts[::-1]:
+        if part in table:
+            return table[part]
+    return by_skeleton.get(source)
+
+
+def hand_neutral_of(path, source):
+    """The measured neutral of the clip at `path` (from its folder, else its skeleton): {"l": q, "r": q}."""
+    return neutral_in(HAND_NEUTRAL, HAND_SKELETON, path, source)
+
+
+
+# Folder -> side -> the collar bone's mean unit direction in the canonical chest frame (x left, y up,
+# z forward), as retargeting without the neutral gives it. Measured by `python -m motion.collars` on
+# data v4 (80 train clips a folder, every 4th frame).
+COLLAR_NEUTRAL = {
+    "bandai_namco_ccbync": {"l": (0.9598, -0.0063, -0.2806), "r": (-0.9647, -0.0620, -0.2559)},  # bandai
+    "cmu_amc2bvh": {"l": (0.9240, 0.3816, 0.0258), "r": (-0.8984, 0.4385, 0.0231)},  # cmu
+    "cmu_cgspeed_mb": {"l": (0.9327, 0.3572, -0.0503), "r": (-0.9495, 0.3092, -0.0527)},  # cmu
+    "cmu_daz_ateliercircle": {"l": (0.9635, -0.2289, 0.1387), "r": (-0.9635, -0.2289, 0.1387)},  # daz
+    "cmu_daz_papagina": {"l": (0.9635, -0.2289, 0.1387), "r": (-0.9635, -0.2289, 0.1387)},  # daz
+    "cmu_fbx_daz": {"l": (0.9635, -0.2289, 0.1387), "r": (-0.9635, -0.2289, 0.1387)},  # daz
+    "hdm05_ccbysa": {"l": (0.9922, 0.1247, 0.0057), "r": (-0.9969, 0.0783, 0.0061)},  # cmu
+}
+
+
+COLLAR_SKELETON = skeleton_means(COLLAR_NEUTRAL)
+
+
+def collar_neutral_of(path, source):
+    """The measured mean collar direction of the clip at `path` (its folder's, else its skeleton's):
+    {"l": [3], "r": [3]}, or None where nothing was measured."""
+    return neutral_in(COLLAR_NEUTRAL, COLLAR_SKELETON, path, source)
+
+
+# --- the pelvis, spine, chest, neck and feet (motion.conventions measures them) ----------------------
 
 # Joint -> the child whose bone it turns, in chain order (a parent before its children).
 NORMALISED = {"spine": "chest", "chest": "neck", "neck": "head"}

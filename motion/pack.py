@@ -2,7 +2,7 @@
 
     python -m motion.pack [--data ../shared/mocap] [--out .cache/pack/edgepose-pack.npz] [--sources ...]
 
-`models.train --data PACK` (and motion.dataset.build) read it instead of the mocap folder. What it holds
+`models.train --data PACK` (through read_clips, which also reads a mocap folder) reads it instead of the mocap folder. What it holds
 is what training reads, motion.dataset's ClipSet per split, in this form:
 - rotations: each joint's local quaternion in Q13 integers (1/8192; the error is measured at build time
   as FK joint positions on every frame, in mm, and printed and recorded); each clip keeps its own
@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from edge.progress import Progress
+from motion import dataset as ds
 
 ROT_SCALE = 8192.0          # Q13 quaternion components
 ROOT_SCALE = 10000.0        # 0.1 mm
@@ -36,6 +37,12 @@ class PackError(ValueError):
 
 def is_pack(path):
     return Path(path).is_file() and str(path).endswith(".npz")
+
+
+def read_clips(data, split, sources=None):
+    """A split's clips as a motion.dataset.ClipSet from `data`, a training pack or a mocap folder (through
+    motion.dataset.build's cache of retargeted clips): what training reads, wherever it runs."""
+    return load_pack(data, split, sources) if is_pack(data) else ds.build(data, split, sources)
 
 
 def _second_difference(x):
@@ -112,7 +119,6 @@ def _expand(q_native, root_native, fps):
 
 def build_pack(data, out=DEFAULT_PACK, sources=None):
     """Read (or reuse the cache of) the retargeted train and val sets and write the pack. Returns its info."""
-    from motion import dataset as ds
     out = Path(out)
     rows = ds.read_manifest(data)
     if rows is None:
@@ -152,7 +158,6 @@ def build_pack(data, out=DEFAULT_PACK, sources=None):
 
 def load_pack(path, split, sources=None):
     """A split of the pack as motion.dataset.ClipSet (float32, 60 Hz), optionally only some sources."""
-    from motion import dataset as ds
     try:
         z = np.load(path, allow_pickle=False)
         info = json.loads(str(z["info"]))
@@ -194,7 +199,6 @@ def pack_error_mm(path, data, sources=None, chunk=100_000):
     """What the pack's rounding costs: FK joint positions (world, from the root) of every frame of the
     pack's clips against the cache built from the BVH files.
     -> {split: {"mean": mm, "max": mm, "worst_clip": name}} (a frame's error is its worst joint's)."""
-    from motion import dataset as ds
     from motion.synth import world_pose
     out = {}
     for split in ("train", "val"):
@@ -214,7 +218,6 @@ def pack_error_mm(path, data, sources=None, chunk=100_000):
 
 
 def main(argv=None):
-    from motion import dataset as ds
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default="../shared/mocap")
     ap.add_argument("--out", default=str(DEFAULT_PACK))

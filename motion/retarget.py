@@ -16,6 +16,7 @@ import numpy as np
 
 from edge import quat
 from motion.bvh import BvhClip, BvhError
+from motion.neutrals import collar_neutral_of, hand_neutral_of, neutral_for, normalise_conventions
 from edge.skeleton import JOINT, JOINT_NAMES, NUM_JOINTS, OFFSETS, PARENTS, TOE_HEIGHT
 
 _SIDES = ("l", "r")
@@ -105,10 +106,8 @@ def retarget(clip: BvhClip, source=None, unit=0.01, hands=True, collars=True, co
     measures against); collars=False the collars their source's direction as it is (what motion.collars
     measures against); conventions=False the pelvis, spine, chest, neck and feet their source's
     convention as it is (what motion.conventions measures against; motion.neutrals)."""
-    from motion.collars import collar_neutral_of
-    from motion.hands import hand_world, head_world, neutral_of
     source = source or detect_source(clip)
-    neutral = neutral_of(clip.path, source) if hands else None
+    neutral = hand_neutral_of(clip.path, source) if hands else None
     collar_mean = collar_neutral_of(clip.path, source) if collars else None
     mapping = SOURCE_MAPS[source]
     _, src_world = clip.world()
@@ -153,7 +152,6 @@ def retarget(clip: BvhClip, source=None, unit=0.01, hands=True, collars=True, co
     root = src[:, 0] * scale
     local = quat.normalize(local)
     if conventions:         # before the floor: a foot's convention sets how high its ankle stands
-        from motion.neutrals import neutral_for, normalise_conventions
         local, _ = normalise_conventions(local, neutral_for(clip.path))
     motion = Motion(quat.unroll(local), root, clip.fps, clip.path)
     place_on_floor(motion)
@@ -208,3 +206,15 @@ def load_motion(path, fps=60.0):
     from motion import bvh
     motion, _ = retarget(bvh.load(path))
     return resample(motion, fps)
+
+
+def head_world(clip, source):
+    """The source head's world rotation [T,4]."""
+    world_rot, _ = clip.world()
+    return world_rot[:, clip.index(SOURCE_MAPS[source]["head"])]
+
+
+def hand_world(clip, source, side):
+    """The source hand's world rotation [T,4] of one side ("l" or "r")."""
+    world_rot, _ = clip.world()
+    return world_rot[:, clip.index(SOURCE_MAPS[source][f"{side}_wrist"])]

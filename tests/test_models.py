@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from edge.features import sequence_features
-from edge.inference import Decoder, load_models
+from edge.inference import Decoder
+from edge.loading import load_models
 from edge.modelfiles import DEFAULT_DIR, ModelError, load_manifest
 from motion.takes import from_sample
 from tests.conftest import SAMPLE

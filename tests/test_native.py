@@ -9,7 +9,8 @@ import pytest
 
 from edge import native, quat
 from edge.ik import ELBOW_FROM_HAND
-from edge.inference import Autoencoder, open_models
+from edge.inference import Autoencoder
+from edge.loading import open_models
 from edge.options import PipelineOptions
 from edge.frame import LIMB_CHAINS, LIMB_POLES
 from edge.pipeline import Pipeline

@@ -78,7 +78,7 @@ def test_the_jacobian_graph_decodes_each_latent_as_the_decoder_does(take):
 def test_a_wrong_graph_as_the_jacobian_fails_at_start_up_with_the_fix():
     """A file in the Jacobian's place that is not JacobianStep (here the decoder step: three outputs) is
     refused when the refiner is built, saying how to make the right one."""
-    from edge.inference import open_models
+    from edge.loading import open_models
     from edge.modelfiles import ModelError
     m, decoder, _ = open_models(precision="fp32")
     with pytest.raises(ModelError, match="jacobian-only"):

@@ -47,22 +47,22 @@ def tiny_pack(tiny_mocap, tmp_path_factory):
 
 
 def test_the_pack_holds_the_frames_training_reads(tiny_mocap, tiny_pack):
-    from motion import dataset as ds
+    from motion.pack import read_clips
     path, info = tiny_pack
     assert info["splits"]["train"]["stored_frames"] < info["splits"]["train"]["frames_60hz"]   # 30 fps kept as 30
     # 140_04 is the clip whose 24 fps frames the first v4 pack kept as if they were 30 fps (294 mm off)
     assert info["error_mm"]["train"]["max"] < 1.0 and info["error_mm"]["val"]["max"] < 1.0
     for split in ("train", "val"):
-        want, got = ds.build(tiny_mocap, split), ds.build(path, split)
+        want, got = read_clips(tiny_mocap, split), read_clips(path, split)
         assert np.array_equal(want.starts, got.starts) and np.array_equal(want.contacts, got.contacts)
         # every quaternion to Q13 rounding (the interpolated 24 and 30 fps frames included), every root to 0.1 mm
         dots = np.abs(np.sum(want.rotations.astype(np.float64) * got.rotations, axis=-1))
         assert np.degrees(2 * np.arccos(np.clip(dots, -1, 1))).max() < 0.05
         assert np.abs(want.root - got.root).max() < 1e-4
-    only_cmu = ds.build(path, "train", ["cmu"])
+    only_cmu = read_clips(path, "train", ["cmu"])
     assert [n.split("/")[0] for n in only_cmu.names] == ["cmu_amc2bvh"]
-    assert [n.split("/")[0] for n in ds.build(path, "train", ["daz"]).names] == ["cmu_fbx_daz"]
-    assert [n.split("/")[0] for n in ds.build(path, "train", ["cmu_fbx_daz"]).names] == ["cmu_fbx_daz"]
+    assert [n.split("/")[0] for n in read_clips(path, "train", ["daz"]).names] == ["cmu_fbx_daz"]
+    assert [n.split("/")[0] for n in read_clips(path, "train", ["cmu_fbx_daz"]).names] == ["cmu_fbx_daz"]
 
 
 def test_train_device_trains_two_widths_and_resumes_from_what_it_brought_back(torch, tiny_pack, tmp_path):
