@@ -58,11 +58,11 @@ class CompiledFrame(FramePath):
         crit = p.criteria.criteria
         if (ae and 1 <= len(crit) <= 2 and type(crit[0]) is Plausibility and crit[0].scorer is p.scorer
                 and (len(crit) == 1 or (type(crit[1]) is PhysicalPlausibility and crit[1].params is not None))):
-            sc = p.scorer
+            leg_rows, legs, leg_err = p.scorer.leg_error_buffers()
             self._physical_cost = np.zeros(N)
             self._selection = native.Selection(
                 ae_out=native.addr(p.autoencoder.out), ae_rot_dim=p.autoencoder.out.shape[1],
-                leg_rows=native.addr(sc._leg_rows), legs=native.addr(sc._legs), leg_err=native.addr(sc._err),
+                leg_rows=leg_rows, legs=legs, leg_err=leg_err,
                 physical=ctypes.addressof(crit[1].params) if len(crit) > 1 else None,
                 physical_cost=native.addr(self._physical_cost), pos=a["pos"], ring_cost=native.addr(b.cost),
                 cost_stride=b.cost.shape[1])

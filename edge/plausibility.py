@@ -93,3 +93,9 @@ class PlausibilityScorer:
         """Addresses of (autoencoder input, character-frame positions, pelvis rotations) to prepare, or None."""
         a = self._a
         return (a["inp"], a["local"], a["root_local"]) if self._native else None
+
+    def leg_error_buffers(self):
+        """Addresses of (the legs' rows of the autoencoder's output, the leg joints, the error [B] it
+        writes) for a caller that scores in its own C call (edge.frame_compiled's fused selection), or None."""
+        a = self._a
+        return (a["leg_rows"], a["legs"], a["err"]) if self._native else None
