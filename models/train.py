@@ -317,6 +317,9 @@ def parse_args(argv=None):
                     help="probability that a window is the left/right mirror image of its motion (motion.augment)")
     ap.add_argument("--tempo", default="1,1", metavar="SLOWEST,FASTEST",
                     help="windows read at a tempo drawn from this range, e.g. 0.8,1.25 (1,1: as recorded)")
+    ap.add_argument("--source-conventions", action="store_true",
+                    help="train on clips with each source's skeleton conventions left in (motion.neutrals; the "
+                         "side-by-side run for taking them out); val is read as always")
     ap.add_argument("--posterior", action="store_true", help="encoder also sees the target pose (q(z|x,y))")
     ap.add_argument("--learned-prior", action="store_true",
                     help="conditional prior p(z | trackers, GRU state); implies --posterior")
@@ -401,7 +404,7 @@ class Trainer:
 
     def load_data(self):
         a = self.a
-        self.cs_train = read_clips(a.data, "train", a.sources)
+        self.cs_train = read_clips(a.data, "train", a.sources, conventions=not a.source_conventions)
         self.cs_val = read_clips(a.data, "val", a.sources)
         self.log(f"train: {len(self.cs_train.names)} clips, {len(self.cs_train.root) / 3600:.1f} min; val: "
                  f"{len(self.cs_val.names)} clips, {len(self.cs_val.root) / 3600:.1f} min (60 Hz)")

@@ -4,6 +4,7 @@ Reads `MANIFEST.tsv` from the mocap folder; `--sources` keeps e.g. CMU only (Ban
 """
 import argparse
 import csv
+import functools
 import hashlib
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
@@ -67,9 +68,9 @@ def clip_paths(root, split=None, sources=None):
             if (split is None or r["split"] == split) and (folders is None or r["file"].startswith(folders))]
 
 
-def _load(path):
+def _load(path, conventions=True):
     try:
-        m = load_motion(path, FPS)
+        m = load_motion(path, FPS, conventions)
         return str(path), m.rotations.astype(np.float32), m.root.astype(np.float32)
     except BvhError as e:
         return str(path), None, str(e)
@@ -122,11 +123,13 @@ def clip_subjects(root, names):
     return np.array([who.get(str(Path(n).relative_to(root)), "unknown") for n in names])
 
 
-def build(root, split, sources=None, cache_dir=".cache", workers=2):
+def build(root, split, sources=None, cache_dir=".cache", workers=2, conventions=True):
     """A split's clips as a ClipSet, from the mocap folder `root` through a cache of its retargeted clips
-    (a training pack is read by motion.pack.read_clips, which decides between the two)."""
+    (a training pack is read by motion.pack.read_clips, which decides between the two). conventions=False
+    leaves each source's skeleton conventions in (motion.neutrals): the clips as cache v7 had them, for
+    the side-by-side run that measures what taking them out does."""
     paths = clip_paths(root, split, sources)
-    key = hashlib.sha1(("v8|" + "|".join(map(str, paths))).encode()).hexdigest()[:12]
+    key = hashlib.sha1(("v8|" if conventions else "v7|").encode() + "|".join(map(str, paths)).encode()).hexdigest()[:12]
     cache = Path(cache_dir) / f"clips-{split}-{key}.npz"
     if cache.exists():
         d = np.load(cache, allow_pickle=False)
@@ -135,7 +138,7 @@ def build(root, split, sources=None, cache_dir=".cache", workers=2):
                        clip_subjects(root, names))
     names, rots, roots, cons = [], [], [], []
     with ProcessPoolExecutor(workers) as ex, Progress(len(paths), f"load {split}") as bar:
-        for path, rot, root_pos in ex.map(_load, paths, chunksize=8):
+        for path, rot, root_pos in ex.map(functools.partial(_load, conventions=conventions), paths, chunksize=8):
             bar.update()
             if rot is None:
                 print(f"skipped: {root_pos}")

@@ -39,10 +39,15 @@ def is_pack(path):
     return Path(path).is_file() and str(path).endswith(".npz")
 
 
-def read_clips(data, split, sources=None):
+def read_clips(data, split, sources=None, conventions=True):
     """A split's clips as a motion.dataset.ClipSet from `data`, a training pack or a mocap folder (through
-    motion.dataset.build's cache of retargeted clips): what training reads, wherever it runs."""
-    return load_pack(data, split, sources) if is_pack(data) else ds.build(data, split, sources)
+    motion.dataset.build's cache of retargeted clips): what training reads, wherever it runs.
+    conventions=False (each source's skeleton conventions left in) reads a mocap folder only."""
+    if not is_pack(data):
+        return ds.build(data, split, sources, conventions=conventions)
+    if not conventions:
+        raise PackError(f"{data}: a pack holds the clips with the conventions taken out; read the mocap folder")
+    return load_pack(data, split, sources)
 
 
 def _second_difference(x):

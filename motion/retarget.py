@@ -201,10 +201,11 @@ def resample(motion: Motion, fps=60.0):
     return Motion(quat.unroll(rot), root, fps, motion.name)
 
 
-def load_motion(path, fps=60.0):
-    """BVH file -> canonical Motion at the model rate."""
+def load_motion(path, fps=60.0, conventions=True):
+    """BVH file -> canonical Motion at the model rate (conventions=False: each source's skeleton
+    conventions left in, motion.neutrals)."""
     from motion import bvh
-    motion, _ = retarget(bvh.load(path))
+    motion, _ = retarget(bvh.load(path), conventions=conventions)
     return resample(motion, fps)
 
 

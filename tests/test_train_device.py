@@ -65,6 +65,20 @@ def test_the_pack_holds_the_frames_training_reads(tiny_mocap, tiny_pack):
     assert [n.split("/")[0] for n in read_clips(path, "train", ["cmu_fbx_daz"]).names] == ["cmu_fbx_daz"]
 
 
+def test_the_clips_with_their_sources_conventions_left_in_are_read_beside_the_others(tiny_mocap, tiny_pack, tmp_path):
+    from motion import dataset as ds
+    from motion.pack import PackError, read_clips
+    from motion.retarget import load_motion
+    kept = ds.build(tiny_mocap, "val", cache_dir=tmp_path, conventions=False)
+    taken_out = ds.build(tiny_mocap, "val", cache_dir=tmp_path)
+    assert len(list(tmp_path.glob("clips-val-*.npz"))) == 2        # two caches, never one for both
+    assert kept.names == taken_out.names and not np.allclose(kept.rotations, taken_out.rotations, atol=1e-3)
+    first = load_motion(kept.names[0], ds.FPS, conventions=False)
+    assert np.array_equal(kept.rotations[:len(first.rotations)], first.rotations.astype(np.float32))
+    with pytest.raises(PackError, match="read the mocap folder"):
+        read_clips(tiny_pack[0], "train", conventions=False)
+
+
 def test_train_device_trains_two_widths_and_resumes_from_what_it_brought_back(torch, tiny_pack, tmp_path):
     pack, _ = tiny_pack
     env = dict(os.environ, PYTHON=sys.executable, OUT=str(tmp_path / "run1"))
