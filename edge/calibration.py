@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from edge import quat
+from edge.shutdown import replace_whole
 from edge.signals import EYE_OFFSET, Signals
 from edge.skeleton import PELVIS_HEIGHT, PELVIS_TO_HEAD
 
@@ -59,8 +60,9 @@ class Calibration:
                 "trackers": {k: {"align": self.align[k].tolist(), "mount": self.mount[k].tolist()} for k in self.mount}}
 
     def save(self, path):
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        Path(path).write_text(json.dumps(self.to_json(), indent=2) + "\n")
+        """Write the calibration whole: a stop or a crash mid-write leaves the previous file (edge.shutdown)."""
+        with replace_whole(path) as tmp:
+            tmp.write_text(json.dumps(self.to_json(), indent=2) + "\n")
 
     @classmethod
     def load(cls, path):

@@ -2,12 +2,12 @@
 import json
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
 from edge.calibration import CalibrationError, calibrate as solve_calibration
 from edge.progress import Progress
+from edge.shutdown import StopSignals, replace_whole
 from firmware_bridge import config as config_mod
 from firmware_bridge.samples import HeadsetSample
 from firmware_bridge.transports import TransportError
@@ -26,18 +26,20 @@ def run(args):
     if cfg is None:
         return 2
     from firmware_bridge.service import Service
-    try:
-        service = Service(cfg, status=sys.stderr)      # the stderr of now, not of import time
-    except (TransportError, CalibrationError) as e:
-        print(f"edge run: {e}", file=sys.stderr)
-        return 2
-    try:
-        summary = service.run(args.seconds)
-    except KeyboardInterrupt:
-        summary = service.summary()
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(summary, indent=2) + "\n")
+    # SIGTERM (systemd) and Ctrl-C end the loop at its next tick, as its time limit does: the outputs
+    # (the BVH's frame count) flushed and closed, the summary written (edge.shutdown).
+    with StopSignals() as stop:
+        try:
+            service = Service(cfg, status=sys.stderr)      # the stderr of now, not of import time
+        except (TransportError, CalibrationError) as e:
+            print(f"edge run: {e}", file=sys.stderr)
+            return 2
+        summary = service.run(args.seconds, stop=stop.requested)
+        if stop.requested():
+            print(f"edge run: stopped by {stop.signal_name}; outputs closed", file=sys.stderr)
+        if args.json:
+            with replace_whole(args.json) as tmp:
+                tmp.write_text(json.dumps(summary, indent=2) + "\n")
     return 0
 
 
@@ -60,8 +62,8 @@ def calibrate(args):
     print("Stand upright, arms out to the sides (T-pose), facing forward. Hold still...", file=sys.stderr)
     heads, rots, trackers = [], [], {name: [] for name in cfg.tracker_names}
     start = time.monotonic()
-    with Progress(int(args.seconds * 10), "calibrate") as bar:
-        while time.monotonic() - start < args.seconds:
+    with StopSignals() as stop, Progress(int(args.seconds * 10), "calibrate") as bar:
+        while time.monotonic() - start < args.seconds and not stop.requested():
             for link in links:
                 for s in link.drain(time.monotonic):
                     if isinstance(s, HeadsetSample):
@@ -74,6 +76,10 @@ def calibrate(args):
             bar.update()
     for link in links:
         link.close()
+    if stop.requested():
+        print(f"edge calibrate: stopped by {stop.signal_name} before the T-pose was measured; "
+              f"{args.out} is as it was", file=sys.stderr)
+        return 130
     missing = [n for n, q in trackers.items() if not q] + ([] if heads else ["headset"])
     if missing:
         print(f"edge calibrate: no data from {', '.join(missing)} in {args.seconds:.0f} s; check they are on and "

@@ -10,6 +10,7 @@ import time
 import numpy as np
 
 from edge.progress import Progress
+from edge.shutdown import StopSignals
 from edgetools.sim.session import Session, SerialLog
 from firmware_bridge.transports import parse_url
 
@@ -99,12 +100,13 @@ def session_from_taps(taps, name, start, clock):
         np.array(i.a if i else []).reshape(-1, 3), None, {"recorded": time.strftime("%Y-%m-%dT%H:%M:%S")})
 
 
-def record(urls, seconds, clock=time.monotonic, opener=None, name="recording", progress=True):
+def record(urls, seconds, clock=time.monotonic, opener=None, name="recording", progress=True, stop=None):
+    """The traffic of the transports at `urls` for `seconds`, or until stop() says so, as a Session."""
     taps = open_taps(urls, clock, opener)
     start = clock()
     try:
         with Progress(int(seconds * 10), "record") if progress else _NoBar() as bar:
-            while clock() - start < seconds:
+            while clock() - start < seconds and not (stop and stop()):
                 for tap in taps.values():
                     tap.poll()
                 time.sleep(0.001)
@@ -136,8 +138,12 @@ def main(args):
     except config_mod.ConfigError as e:
         print(f"edge: {e}", file=sys.stderr)
         return 2
-    session = record([cfg.headset] + cfg.trackers, args.seconds, name=args.out)
-    session.save(args.out)
+    # SIGTERM or Ctrl-C ends the recording early and keeps what it caught (edge.shutdown)
+    with StopSignals() as stop:
+        session = record([cfg.headset] + cfg.trackers, args.seconds, name=args.out, stop=stop.requested)
+        if stop.requested():
+            print(f"edge record: stopped by {stop.signal_name}; saving what was recorded", file=sys.stderr)
+        session.save(args.out)
     print(f"wrote {args.out}: {len(session.headset.frames)} headset frames, {len(session.hub.frames)} hub frames, "
           f"{len(session.can_t)} CAN frames, {len(session.i2c_t)} I2C reads", file=sys.stderr)
     return 0

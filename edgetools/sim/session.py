@@ -14,6 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from edge.shutdown import replace_whole
+
 from edge import quat
 from edge.imus import IMU_LOCATIONS, ImuNoise
 from edge.signals import Signals
@@ -93,7 +95,12 @@ class Session:
         for i, log in enumerate(self.slimevr.values()):
             extra.update(zip((f"slimevr{i}_t", f"slimevr{i}_len", f"slimevr{i}_bytes"), pack(log), strict=True))
         slimevr_macs = list(self.slimevr)
-        np.savez_compressed(path, kind="edgepose-session", version=1, meta=json.dumps(
+        path = str(path) if str(path).endswith(".npz") else f"{path}.npz"      # as numpy names it
+        with replace_whole(path) as tmp, open(tmp, "wb") as f:      # the old file or the new one, never half
+            self._savez(f, ht, hl, hd, bt, bl, bd, slimevr_macs, extra)
+
+    def _savez(self, f, ht, hl, hd, bt, bl, bd, slimevr_macs, extra):
+        np.savez_compressed(f, kind="edgepose-session", version=1, meta=json.dumps(
             {"name": self.name, "fps": self.fps, "duration": self.duration, "transports": list(self.transports),
              "slimevr_macs": slimevr_macs, **self.meta}), headset_t=ht, headset_len=hl, headset_bytes=hd, hub_t=bt, hub_len=bl, hub_bytes=bd,
             can_t=self.can_t, can_id=self.can_id, can_data=self.can_data, i2c_t=self.i2c_t,
