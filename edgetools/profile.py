@@ -258,7 +258,7 @@ class PacedRun:
         import numpy as np
         from edge.governor import SampleGovernor
         from edge.pipeline import STAGES
-        from firmware_bridge.service import Pacer
+        from firmware_bridge.links import Pacer
         self.cfg, self.samples, self.frames, self.adaptive, self.hog = cfg, samples, frames, adaptive, hog
         self.period = 1.0 / cfg["hz"]
         self.feeder = Feeder(cfg["hz"], f"profile{os.getpid()}-{samples}-{frames}")

@@ -47,7 +47,7 @@ def calibrate(args):
     cfg = _load(args)
     if cfg is None:
         return 2
-    from firmware_bridge.service import Link
+    from firmware_bridge.links import Link
     try:
         links = [Link(u) for u in [cfg.headset] + cfg.trackers]
     except TransportError as e:

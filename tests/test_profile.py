@@ -217,7 +217,7 @@ def test_a_scripted_stall_is_reported_apart_and_costs_no_rung(monkeypatch):
     their wait to run, none as the frame's own; the probe still fits. A frame that really costs 15 ms
     of CPU is the frame's own miss, and the probe does not fit with two of them."""
     import numpy as np
-    from firmware_bridge.service import Pacer
+    from firmware_bridge.links import Pacer
     from edge.pipeline import STAGES
 
     class Pipe:

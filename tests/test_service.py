@@ -161,7 +161,7 @@ def test_a_service_that_runs_late_lowers_n_and_keeps_streaming():
 
     def impossible_budget(service):
         assert service.governor is not None and service.pipeline.samples == 16
-        service.governor = SampleGovernor(0.001, 16)
+        service.governor = service.report.governor = SampleGovernor(0.001, 16)     # the tick's and the report's
 
     service, frames, ear = run_board(2.0, {"samples": 16, "lookahead": 3}, prepare=impossible_budget)
     summary = service.summary()
@@ -176,7 +176,7 @@ def test_a_links_counters_survive_a_reconnect(tmp_path):
     """Corrupt frames counted before an unplug still count after the device comes back (real ptys)."""
     from edgetools.sim.devices import SerialDevice
     from edgetools.sim.session import SerialLog
-    from firmware_bridge.service import REOPEN_AFTER_S, Link
+    from firmware_bridge.links import REOPEN_AFTER_S, Link
     garbage = b"\x05\x01\x02\x03\x04\x00"                      # COBS-valid, CRC wrong: counted as corrupt
     dev = SerialDevice("hub", SerialLog([0.0] * 3, [garbage] * 3), tmp_path)
     link = Link(f"serial://{dev.path}?role=hub", required=False)
@@ -204,7 +204,7 @@ def test_a_can_source_stuck_in_bus_errors_is_closed_and_reopened():
     """A bus that keeps raising CanError (bus-off) shows as state "error" and is reopened after
     ERROR_REOPEN_S, on python-can's virtual bus."""
     import can
-    from firmware_bridge.service import ERROR_REOPEN_S, Link
+    from firmware_bridge.links import ERROR_REOPEN_S, Link
     from firmware_bridge.transports import open_source
     opened = []
 
@@ -258,7 +258,7 @@ def test_a_pose_stream_port_plugged_in_after_start_is_opened_and_gets_the_poses(
     cfg = pty_board_config(hpath, tpath, {"pose_stream": f"serial://{port}"}, {"samples": 1, "adaptive": False})
     status = io.StringIO()
     service = Service(cfg, status=status)
-    assert service.pose_out.source is None and f"pose stream serial://{port}" in status.getvalue()
+    assert service.outputs.port.source is None and f"pose stream serial://{port}" in status.getvalue()
     stop = threading.Event()
     feeder = threading.Thread(target=feed, args=(take, hm, tm, stop), daemon=True)
     runner = threading.Thread(target=lambda: service.run(stop=stop.is_set), daemon=True)
@@ -299,7 +299,7 @@ def test_a_headsets_targets_reach_the_refiner_and_bad_ones_are_refused_with_a_re
             os.write(fd, messages.encode_target(t, k))
 
     service, frames, _ = run_board(1.6, {"samples": 1, "adaptive": False},
-                                   prepare=lambda s: setattr(s, "status", status), headset=send_targets)
+                                   prepare=lambda s: setattr(s.report, "status", status), headset=send_targets)
     s = service.summary()
     assert s["targets_in"] == 4 and s["targets_refused"] == 3
     assert s["targets_refused_by_reason"] == {"non_finite": 1, "unknown_joint": 1, "out_of_reach": 1}

@@ -44,7 +44,7 @@ def test_sigterm_at_a_random_moment_of_a_session_leaves_a_bvh_and_a_summary_that
             take = folder / "out/take.bvh"
             try:
                 # streaming: the first rows past the header have reached the file (Python's buffer, ~12 frames)
-                assert wait_until(lambda: take.exists() and take.stat().st_size > 9000, 60, proc), proc.stderr.read()
+                assert wait_until(lambda take=take: take.exists() and take.stat().st_size > 9000, 60, proc), proc.stderr.read()
                 time.sleep(rng.uniform(0.0, 2.0))
                 proc.send_signal(signal.SIGTERM)
                 _, err = proc.communicate(timeout=20)

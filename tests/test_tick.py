@@ -49,8 +49,9 @@ def test_poll_sync_and_the_pose_stream_allocate_no_arrays_tick_after_tick(servic
             peaks["poll"][i] = peak_of(svc.poll)[1]
             (sig, health), peaks["sync"][i] = peak_of(lambda now=now: svc.sync.frame(now, svc._frame))
             pose = svc.pipeline.step(svc.calibrated(sig))
-            peaks["emit"][i] = peak_of(lambda pose=pose, health=health: (svc._emit(pose, health), svc._age(health.newest_rx)))[1]
-            svc.frame_ms.append(0.0)            # as tick() does, so the ring stays full
+            peaks["emit"][i] = peak_of(lambda pose=pose, health=health: svc.latency.pose(
+                health.newest_rx, svc.outputs.send(pose, health, svc.pipeline.t, svc.pipeline.samples)))[1]
+            svc.latency.frame(0.0)              # as tick() does, so the ring stays full
         growth = tracemalloc.get_traced_memory()[0] - start
     finally:
         tracemalloc.stop()

@@ -298,7 +298,7 @@ def test_the_service_survives_anything_on_the_socket(service, messages):
         svc.step(time.monotonic())
     answer_pings(ws, seconds=0.05)
     assert source.stats["sent"] > sent
-    assert np.all(np.isfinite(svc._pose.root_pos))
+    assert np.all(np.isfinite(svc.outputs.frame.root_pos))
 
 
 # --- start-up ----------------------------------------------------------------------------------------

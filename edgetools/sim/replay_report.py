@@ -13,7 +13,7 @@ def report(session, summary, m, service, ear, opened, errors, faults, speed, dur
         "source": session.name, "speed": speed, "seconds": duration, "faults": faults,
         "trackers": list(service.sync.trackers), "placement": session.meta.get("placement"),
         "slimevr": summary.get("slimevr", {}),
-        "trackers_used_by_model": [n for n, _ in service._imu_slots] if service.pipeline.imus else [],
+        "trackers_used_by_model": [n for n, _ in service.imu_slots] if service.pipeline.imus else [],
         "frames_in": summary["frames_in"], "frames_out": summary["frames_out"], "poses_decoded": m.decoded,
         "packets_corrupt": int(summary["packets_corrupt"] + ear.stats["corrupt"]),
         "packets_lost": int(summary["packets_lost"] + ear.stats.get("missed", 0)),

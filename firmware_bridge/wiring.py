@@ -1,0 +1,32 @@
+"""The parts of `edge run` made from its config, each start-up problem said once and the service
+carried on: a device that is not there is waited for, a setting that changes nothing is named."""
+from edge.governor import SampleGovernor
+from firmware_bridge.links import REOPEN_AFTER_S, Link
+
+
+def open_links(cfg, opener, say):
+    """The headset's Link, then one per tracker source; a source that is not there yet is retried."""
+    links = [Link(cfg.headset, opener)] + [Link(u, opener, required=False) for u in cfg.trackers]
+    if links[0].start_error:
+        say(f"headset {links[0].url}: {links[0].start_error}; waiting for it (retrying every "
+            f"{REOPEN_AFTER_S:g} s; no poses until it sends)")
+    for link in links[1:]:
+        if link.start_error:
+            say(f"{link.url}: {link.start_error}; carrying on without it and retrying")
+    return links
+
+
+def make_governor(cfg):
+    """Adaptive N and K (edge.governor): lowered when ticks run late, raised when there is slack (K costs
+    only while a target is live); None when the config fixes them."""
+    steps = cfg.refine["steps"] if cfg.refine else 0
+    if cfg.adaptive and (cfg.samples > 1 or steps):
+        return SampleGovernor(1000.0 / cfg.hz, cfg.samples, max_steps=steps)
+    return None
+
+
+def status_printer(status):
+    """say(text): 'edge run: text' on the status stream, or nothing without one."""
+    if status is None:
+        return lambda text: None
+    return lambda text: print(f"edge run: {text}", file=status)
