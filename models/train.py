@@ -278,6 +278,25 @@ def pick_device(name, local_rank):
     return torch.device("cpu")
 
 
+def val_batches(cs_val, windows, device="cpu"):
+    """{"unseen none": [4 batches], "unseen imus": .., "seen none": .., "seen imus": ..}: fixed noisy
+    windows of 4 s (seeded: every run and models.validate draw the same), with no extra IMUs and with
+    random sets of them, for the people the model never saw and those it saw."""
+    out = {}
+    people = cs_val.people if cs_val.people is not None else np.full(len(cs_val.names), "seen")
+    for who in ("unseen", "seen"):
+        if not (people == who).any():
+            continue
+        part = cs_val.subset(people == who)
+        vrng = np.random.default_rng(1234)
+        vstarts = ds.window_starts(part, 240)
+        for kind in ("none", "imus"):
+            out[f"{who} {kind}"] = [
+                to_t(ds.make_batch(part, vrng.choice(vstarts, windows), 240, vrng, DeviceNoise(),
+                                   ImuNoise(), with_imus=kind == "imus"), device) for _ in range(4)]
+    return out
+
+
 def validate(model, batches):
     model.eval()
     with torch.no_grad():
@@ -468,19 +487,8 @@ class Trainer:
         # Validation (rank 0): fixed noisy windows of 4 s, latent at the prior mean (what N=1 runs), with
         # no extra IMUs (the 4-point case) and with random sets of them, for the people the model never
         # saw (val subjects with no clip in train) and those it saw; selection on the unseen people's mean.
-        self.val_batches = {}
+        self.val_batches = val_batches(self.cs_val, a.val_windows, self.device) if self.lead else {}
         if self.lead:
-            people = self.cs_val.people if self.cs_val.people is not None else np.full(len(self.cs_val.names), "seen")
-            for who in ("unseen", "seen"):
-                if not (people == who).any():
-                    continue
-                part = self.cs_val.subset(people == who)
-                vrng = np.random.default_rng(1234)
-                vstarts = ds.window_starts(part, 240)
-                for kind in ("none", "imus"):
-                    self.val_batches[f"{who} {kind}"] = [
-                        to_t(ds.make_batch(part, vrng.choice(vstarts, a.val_windows), 240, vrng, DeviceNoise(),
-                                           ImuNoise(), with_imus=kind == "imus"), self.device) for _ in range(4)]
             self.choose_on = [k for k in self.val_batches if k.startswith("unseen")] or list(self.val_batches)
             self.log(f"validation: {', '.join(self.val_batches)}; chosen on {' + '.join(self.choose_on)}")
 
