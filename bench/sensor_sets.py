@@ -66,6 +66,9 @@ def main():
     ap.add_argument("--no-disconnect", action="store_true", help="skip the faulty-sensor runs")
     ap.add_argument("--leg-guard", type=float, default=None,
                     help="the foot IK's leg clearance in m (edge.ik.guard_legs; 0: off; default the runtime's)")
+    ap.add_argument("--conventions", choices=("out", "in"), default="out",
+                    help="score against val retargeted with the sources' skeleton conventions taken out (today's "
+                         "ruler, motion.neutrals) or left in (the ruler before it, v0.5.1's published figures)")
     a = ap.parse_args()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -74,7 +77,8 @@ def main():
     options = PipelineOptions(samples=a.samples, precision=a.precision, refine=refine, heading=heading)
     if a.leg_guard is not None:
         options = replace(options, leg_guard=a.leg_guard)
-    common = {"data": a.data, "options": options, "max_clips": a.max_clips, "people": a.people}
+    common = {"data": a.data, "options": options, "max_clips": a.max_clips, "people": a.people,
+              "conventions": a.conventions == "out"}
     if a.perfect_heading:
         common["imu_noise"] = ImuNoise(yaw_offset_std_deg=0.0, yaw_drift_deg_s=0.0)
     jobs = []

@@ -80,13 +80,14 @@ def take_signals(take, trackers, faults=None, seed=0, index=0, imu_noise=None, h
 
 
 def evaluate(paths, options=None, *, split=None, people=None, models=None, trackers=(), faults=None, imu_noise=None,
-             hand_bend=None, max_frames=None, max_clips=None, dump=None, log=print):
+             hand_bend=None, max_frames=None, max_clips=None, dump=None, log=print, conventions=True):
     """Every clip of `paths` (BVH files, folders, sample .npz; a folder filtered by its MANIFEST.tsv's
     `split`, and with `people` to the performers the model never saw or those it saw) through a
     Pipeline(options, models), wearing the extra IMUs `trackers` (with `faults`: DragPoser's disconnect
     protocol; `imu_noise`: edge.imus.ImuNoise by default), scored after a WARMUP_S warm-up. Returns the
     JSON `edge eval` writes, with the same metrics for unseen and seen people apart under "people";
-    `dump` also writes one .npz per clip."""
+    `dump` also writes one .npz per clip. conventions=False scores BVH clips against their retargeting
+    with the sources' skeleton conventions left in (the ruler before motion.neutrals)."""
     options = PipelineOptions() if options is None else options
     files = _clips(paths, split, max_clips, people)
     who = people_of_files(paths, files)
@@ -103,7 +104,7 @@ def evaluate(paths, options=None, *, split=None, people=None, models=None, track
     with Progress(len(files), "eval") as bar:
         for index, f in enumerate(files):
             try:
-                take = load_take(f)
+                take = load_take(f) if conventions else load_take(f, conventions=False)
             except BvhError as e:
                 tally.skipped.append(str(e))
                 log(f"skipped: {e}")

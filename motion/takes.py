@@ -36,9 +36,11 @@ def _imus_of(signals):
     return {name: signals.imu_rot[:, k] for k, name in enumerate(IMU_LOCATIONS)}
 
 
-def from_bvh(path, fps=FPS, rng=None, noise=None):
+def from_bvh(path, fps=FPS, rng=None, noise=None, conventions=True):
+    """A BVH clip retargeted (conventions=False: with its source's skeleton conventions left in, the
+    ruler before motion.neutrals), its devices synthesised."""
     from motion.retarget import load_motion
-    m = load_motion(path, fps)
+    m = load_motion(path, fps, conventions)
     _, pos = world_pose(m.rotations, m.root)
     sig = synthesize(m.rotations, m.root, fps, rng, noise)
     return Take(str(path), sig, pos, fps, _imus_of(sig))

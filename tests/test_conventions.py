@@ -99,3 +99,19 @@ def test_retargeting_takes_each_folders_convention_out(mocap, path):
     entry = neutral_for(path)
     assert abs(np.mean([entry[a] for a in FEET])) > 5
     assert elevations[0] - elevations[1] == pytest.approx(np.mean([entry[a] for a in FEET]), abs=1.5)
+
+
+def test_evaluation_scores_on_the_ruler_asked_for(mocap):
+    """edge eval's takes (and bench/sensor_sets.py --conventions in) can be scored against the clip with
+    its source's conventions left in, the ruler v0.5.1's figures were published on."""
+    from motion.retarget import load_motion
+    from motion.synth import world_pose
+    from motion.takes import from_bvh
+    path = mocap / "cmu_fbx_daz/15/15_01.bvh"
+    if not path.exists():
+        pytest.skip("cmu_fbx_daz/15/15_01.bvh not in this data version")
+    kept, taken_out = from_bvh(path, conventions=False), from_bvh(path)
+    m = load_motion(path, kept.fps, conventions=False)
+    assert np.allclose(kept.gt_pos, world_pose(m.rotations, m.root)[1])
+    feet = [JOINT["l_toe"], JOINT["r_toe"]]
+    assert np.abs(kept.gt_pos[:, feet] - taken_out.gt_pos[:, feet]).max() > 0.01
