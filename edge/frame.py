@@ -196,3 +196,15 @@ class FramePath:
 
     def forward_rows(self, s, rot6d, rows, segments, out):
         raise NotImplementedError
+
+
+class RowFk:
+    """FK of one decoder row of a ring slot, without the IMU override: `fk(s, row, out)` fills out =
+    (local, world, pos) [1,...]. What the heading observer compares the IMUs with when the decoder is
+    its reference; made from the frame path and the ring it reads, so the observer needs neither."""
+
+    def __init__(self, path, rot6d):
+        self.path, self.rot6d = path, rot6d         # a FramePath; the ring's decoded rows [slots,rows,D]
+
+    def __call__(self, s, row, out):
+        self.path.forward_rows(s, self.rot6d[s, row:row + 1], 1, False, out)

@@ -114,7 +114,7 @@ class HeadingObserver:
     o + b + noise, so the filter splits what it sees between o and b by their priors, and the rate
     comes from how the measurement moves over seconds."""
 
-    def __init__(self, fps=60.0, settings=None):
+    def __init__(self, fps=60.0, settings=None, decoder_fk=None):
         s = self.settings = HeadingSettings() if settings is None else settings
         if s.reference not in ("pelvis", "decoder"):
             raise ValueError(f"reference must be 'pelvis' or 'decoder', got {s.reference!r}")
@@ -146,8 +146,9 @@ class HeadingObserver:
         self._waist_y = np.zeros(4)
         self._raw_views = (self.raw[:, :2], self.raw[:, 2:])
         self._swapped_views = (self._swapped[:, :2], self._swapped[:, 2:])
-        # observe_frame's FK of one decoder row, without the IMU override, and what fills it (the pipeline's).
-        self.decoder_fk = None
+        # observe_frame's FK of one decoder row, without the IMU override (edge.frame.RowFk over the
+        # pipeline's frame path and ring; needed only with the decoder as the reference).
+        self.decoder_fk = decoder_fk
         self._sig, self._imu_rot_view = None, None
         self._fk = (np.zeros((1, NUM_JOINTS, 3, 3)), np.zeros((1, NUM_JOINTS, 3, 3)), np.zeros((1, NUM_JOINTS, 3)))
         self.reset()
@@ -228,8 +229,8 @@ class HeadingObserver:
         """observe() on a pipeline's frame t, from its inputs (edge.frame.FrameBuffers.inputs: the
         named views of the frame's signals): against the body (body_references: the waist puck, the
         chest halfway to the headset), or against decoder row `row` of ring slot s through
-        `decoder_fk(s, row, out)` (FK from the waist without the IMU override), which the pipeline
-        binds when it makes the observer."""
+        `decoder_fk(s, row, out)` (FK from the waist without the IMU override), handed to the observer
+        when it is made."""
         if t % self.every or not np.count_nonzero(inputs["imu_flag"]):     # not this frame, or no extra IMU worn
             return False
         if self.reference == "pelvis":

@@ -29,7 +29,7 @@ import numpy as np
 from edge import native, quat
 from edge.criteria import Composite, FrameContext, PhysicalPlausibility, Plausibility
 from edge.features import NUM_FEATURES, NUM_POINT_FEATURES
-from edge.frame import FrameBuffers, Pose, ease, ring_runs
+from edge.frame import FrameBuffers, Pose, RowFk, ease, ring_runs
 from edge.frame_compiled import CompiledFrame
 from edge.frame_numpy import NumpyFrame
 from edge.imus import IMU_JOINTS, NUM_IMUS
@@ -155,14 +155,13 @@ class Pipeline:
         self.path = CompiledFrame(self, self.bufs, self.native) if self.native else self.reference
         self.timing, self.stage_ns = False, np.zeros(len(STAGES) + 1, np.int64)
         # The extra IMUs' heading observer (edge.heading), on when IMUs are worn and options.heading is set.
-        self.heading = HeadingObserver(fps, o.heading) if o.heading is not None and self.imus else None
-        if self.heading is not None:
-            self.heading.decoder_fk = self._decoder_row_fk
+        self.heading = (HeadingObserver(fps, o.heading, decoder_fk=RowFk(self.path, self.buffer.rot6d))
+                        if o.heading is not None and self.imus else None)
         # Latent refinement of the shown sample (edge.refine), when options.refine is set.
         self.refiner = None
         if o.refine is not None:
-            compiled = (self.native, self.path.core, lambda: self._slot_now) if self.native else None
-            self.refiner = Refiner(dec_session, m, self._forward_rows, o.refine, fps, compiled=compiled,
+            compiled = (self.native, self.path.core) if self.native else None
+            self.refiner = Refiner(dec_session, m, self.path.forward_rows, o.refine, fps, compiled=compiled,
                                    jacobian_session=open_jacobian(models, threads, self.precision))
         self._legs = self.refiner.term("legs") if self.refiner is not None else None     # LegsApart, armed each frame
         if self._legs is not None:
@@ -316,9 +315,9 @@ class Pipeline:
             self._set_target_row(-1)
             return
         dec, f = self.decoder, self.feet
-        self._slot_now = s
         out = self.refiner.refine(self.t, dec.latent[c], self.latents[c], dec.hidden[dec.last_read][c], dec.features[0],
-                                  self.buffer.seg_m[s], self.buffer.seg_flag[s], f.lock_pos[c], f.weight[c], row=c)
+                                  self.buffer.seg_m[s], self.buffer.seg_flag[s], f.lock_pos[c], f.weight[c], row=c,
+                                  slot=s)
         if out is not None:
             dec.rot6d[c], dec.contacts[c], dec.state[c] = out
         pulls = self.refiner.foot_pull(self.t, self.bufs.target_joint, self.bufs.target_goal, self.bufs.target_weight)
@@ -329,16 +328,6 @@ class Pipeline:
         if row != self.bufs.target_row[0]:
             self.bufs.target_row[0] = row
             self.path.set_target_row(row)
-
-    def _decoder_row_fk(self, s, row, out):
-        """FK of decoder row `row` of ring slot s without the IMU override, into out (the heading
-        observer's reference when it is the decoder)."""
-        self.path.forward_rows(s, self.buffer.rot6d[s, row:row + 1], 1, False, out)
-
-    def _forward_rows(self, rot6d, rows, segments, out):
-        """FK of `rows` decoder rows (rot6d [R,D] float32) against the live frame's inputs, into out =
-        (local, world, pos): the refiner's forward."""
-        self.path.forward_rows(self._slot_now, rot6d, rows, segments, out)
 
     def _judge(self, sig, s, N, c, keep_world):
         """Any criteria (edge.criteria, composed): frame t's costs into ring slot s, then the sample to

@@ -288,9 +288,10 @@ class RefineSettings:
 class Refiner:
     """K Gauss-Newton steps a frame on one row's latent (see the module's docstring).
 
-    `decoder_session` is the pipeline's decoder model; `forward(rot6d [R,D] float32, rows, segments,
-    out)` is the pipeline's FK of decoder rows against the live frame's inputs (CompiledFrame's C
-    call or NumpyFrame's numpy), into out = (local, world, pos) [R,...]."""
+    `decoder_session` is the pipeline's decoder model; `forward(slot, rot6d [R,D] float32, rows,
+    segments, out)` is the frame path's FK of decoder rows against a ring slot's inputs
+    (CompiledFrame.forward_rows, one C call, or NumpyFrame's), into out = (local, world, pos) [R,...];
+    each refine() says which slot. compiled = (the C library, the core context) for ep_refine_step."""
 
     def __init__(self, decoder_session, manifest, forward, settings=None, fps=60.0, compiled=None,
                  jacobian_session=None):
@@ -330,10 +331,10 @@ class Refiner:
         self._legs_kept = False                         # whether KeepPose's mask lets the legs go
         self.ctx = RefineContext()
         self._live = None               # this frame's live targets (TargetReach.live), as KeepPose's mask was made for
-        # The compiled step (ep_refine_step): compiled = (the C library, the pipeline's core context, a
-        # function giving this frame's ring slot). It takes TargetReach, KeepPose and FloorContact;
+        # The compiled step (ep_refine_step): compiled = (the C library, the pipeline's core context);
+        # refine() hands it the frame's ring slot. It takes TargetReach, KeepPose and FloorContact;
         # a frame with the IMU term live takes the numpy step.
-        self._c = None
+        self._c, self._slot = None, 0
         if compiled is not None:
             self._c = compiled
             self._init_compiled(L, R)
@@ -428,15 +429,16 @@ class Refiner:
         return pulls
 
     # ---- one frame
-    def refine(self, frame, latent, prior_latent, hidden, features, seg_m, seg_flag, lock_pos, lock_weight, row=0):
+    def refine(self, frame, latent, prior_latent, hidden, features, seg_m, seg_flag, lock_pos, lock_weight, row=0,
+               slot=0):
         """Refine `latent` [L] float32 (in place) for this frame: K steps from it against the live terms,
         with the prior towards `prior_latent` and continuity with `latent` as it came in. `hidden` [H]
         is the GRU state the row read, `features` [F] the frame's decoder input, lock_pos [2,3] and
-        lock_weight [2] its foot locks (`row` of FootLock's state, where the compiled step reads them).
-        Returns the refined row's decode (rot6d [D], contacts [2], GRU state out [H]), or None when no
+        lock_weight [2] its foot locks (`row` of FootLock's state, where the compiled step reads them);
+        `slot` is the frame's ring slot, whose inputs the FK of the moved rows is measured against. Returns the refined row's decode (rot6d [D], contacts [2], GRU state out [H]), or None when no
         term is live."""
         ctx = self.ctx
-        self._row = row
+        self._row, self._slot = row, slot
         ctx.frame, ctx.seg_m, ctx.seg_flag, ctx.lock_pos, ctx.lock_weight = frame, seg_m, seg_flag, lock_pos, lock_weight
         reach = self._reach
         live = reach.live(frame) if reach is not None else ()
@@ -540,13 +542,13 @@ class Refiner:
         else:
             addrs = None
         if self._c_on:
-            lib, core, slot = self._c
+            lib, core = self._c
             if addrs:       # the refiner's own latent: its batch rows filled in C (a fifth of _fill_batch's cost)
                 lib.ep_refine_fill(*self._fill_args)
             else:
                 self._fill_batch(z, self._steps)
             self.batch.step()
-            cost = lib.ep_refine_step(core, self._c_args, slot(), *(addrs or map(native.addr, (z, z_prev, zp))))
+            cost = lib.ep_refine_step(core, self._c_args, self._slot, *(addrs or map(native.addr, (z, z_prev, zp))))
             if cost >= 0:
                 return cost
         r, J = self.jacobian(z)
@@ -609,9 +611,9 @@ class Refiner:
         b, ctx = self.batch, self.ctx
         b.step()
         R = b.rows
-        self.forward(b.rot6d, R, True, (self._local[:R], self._world[:R], self._pos[:R]))
+        self.forward(self._slot, b.rot6d, R, True, (self._local[:R], self._world[:R], self._pos[:R]))
         ctx.positions, ctx.ref_positions = self._pos[:R], self._pos[R - 1]
         if raw:
-            self.forward(b.rot6d, R, False, (self._local[:R], self._raw_world[:R], self._raw_pos[:R]))
+            self.forward(self._slot, b.rot6d, R, False, (self._local[:R], self._raw_world[:R], self._raw_pos[:R]))
             ctx.raw_world = self._raw_world[:R]
         return np.concatenate([t.residuals(ctx) for t in terms], axis=1)
