@@ -20,16 +20,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from edge.options import PipelineOptions
-from motion.evaluate import evaluate
-
-
-def _eval(job):
-    path, kw = job
-    if not Path(path).exists():
-        r = evaluate([kw.pop("data")], kw.pop("options"), split="val", log=lambda *a: None, **kw)
-        r.pop("per_clip", None)
-        Path(path).write_text(json.dumps(r, indent=2) + "\n")
-    return json.loads(Path(path).read_text())
+from bench.cached import run_cached
 
 
 def verdicts(dump_a, dump_b):
@@ -72,7 +63,7 @@ def main():
                                                     "models": a.models, "dump": str(out / f"n{n}_{p}"), "max_clips": a.max_clips})
             for n in ns for p in ("int8", "fp32")}
     with ProcessPoolExecutor(a.jobs) as ex:
-        res = dict(zip(jobs, ex.map(_eval, jobs.values()), strict=True))
+        res = dict(zip(jobs, ex.map(run_cached, jobs.values()), strict=True))
     print(f"val, int8 against fp32, CPU: {cpu_name()}")
     print(f"{'N':>4} {'mpjpe int8':>11} {'fp32':>8} {'ratio':>7} {'skate int8/fp32':>16} {'physical int8/fp32':>19} "
           f"{'verdicts same':>14}")

@@ -12,7 +12,6 @@ foot skate against N=1's, and floor + leg-crossing faults (penetration_rate + le
 against the same N's plain run. Evals already in --out are reused. About 40 s an eval on 2 cores.
 """
 import argparse
-import json
 import sys
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
@@ -23,19 +22,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from edge.inference import DEFAULT_PRECISION
 from edge.options import PipelineOptions
 from edge.refine import DEFAULT_TERMS, LegsApart, RefineSettings
-from motion.evaluate import evaluate
+from bench.cached import run_cached
 
 GUARDS_ONLY = tuple(t for t in DEFAULT_TERMS if t != "legs")
-
-
-def _eval(job):
-    path, data, options, models = job
-    if Path(path).exists():
-        return json.loads(Path(path).read_text())
-    r = evaluate([data], options, split="val", models=models, log=lambda *a: None)
-    r.pop("per_clip", None)
-    Path(path).write_text(json.dumps(r, indent=2) + "\n")
-    return r
 
 
 def variants(N, clearances, seed, precision):
@@ -79,7 +68,7 @@ def main():
                 slug = name.replace(", ", "-").replace(" ", "_")
                 jobs.append((N, seed, name, (str(out / f"N{N}-s{seed}-{slug}-{a.precision}.json"), a.data, o, a.models)))
     with ProcessPoolExecutor(a.jobs) as pool:
-        results = list(pool.map(_eval, [j[3] for j in jobs]))
+        results = list(pool.map(run_cached, [(path, {"data": data, "options": options, "models": models}) for *_, (path, data, options, models) in jobs]))
     rows = {(N, seed, name): r for (N, seed, name, _), r in zip(jobs, results, strict=True)}
     one = rows[(1, 0, "plain")]
     print(f"val, {a.precision}, tau = 0; N=1: mpjpe {one['mpjpe_cm']:.3f} cm, skate {one['foot_skate_cm_s']:.2f} cm/s, "

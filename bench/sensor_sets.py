@@ -24,7 +24,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from edge.options import PipelineOptions
-from motion.evaluate import evaluate
+from bench.cached import run_cached
 from edge.imus import ImuNoise, parse_set
 from edge.inference import DEFAULT_PRECISION
 
@@ -35,13 +35,7 @@ LIMITS = {"shins": 0.85, "thighs+shins": 0.65, "all seven": 0.42}     # mpjpe ag
 
 def _run(job):
     name, path, kwargs = job
-    if Path(path).exists():
-        r = json.loads(Path(path).read_text())
-        if "people" in r or kwargs.get("people"):
-            return name, r                     # an eval of an older version has no people split: run it again
-    r = evaluate([kwargs.pop("data")], kwargs.pop("options"), split="val", log=lambda *a: None, **kwargs)
-    Path(path).write_text(json.dumps(r, indent=2) + "\n")
-    return name, r
+    return name, run_cached((path, {**kwargs, "keep_per_clip": True}))
 
 
 def main():

@@ -19,19 +19,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from edge.options import PipelineOptions
-from motion.evaluate import evaluate
+from bench.cached import run_cached
 from edge.inference import DEFAULT_PRECISION
 from edgetools.study import run_study
-
-
-def _eval(job):
-    path, kw = job
-    if Path(path).exists():
-        return json.loads(Path(path).read_text())
-    r = evaluate([kw.pop("data")], kw.pop("options"), split="val", log=lambda *a: None, **kw)
-    r.pop("per_clip", None)
-    Path(path).write_text(json.dumps(r, indent=2) + "\n")
-    return r
 
 
 def _study(job):
@@ -82,7 +72,7 @@ def main():
         t: (out / f"study_{t.replace('-', '_')}.json", {"data": a.data, "task": t, "runs": a.runs, "models": a.models,
                                                         "precision": a.precision}) for t in ("high-kick", "low-kick")}
     with ProcessPoolExecutor(a.jobs) as ex:
-        ev = dict(zip(jobs, ex.map(_eval, jobs.values()), strict=True))
+        ev = dict(zip(jobs, ex.map(run_cached, jobs.values()), strict=True))
         st = dict(zip(studies, ex.map(_study, studies.values()), strict=True))
     n1, ssi, base = ev["n1"], ev["ssi"], ev["no_ssi"]
     drawn = [ssi] + [ev[f"ssi_seed{k}"] for k in seeds[1:]]

@@ -18,18 +18,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from edge.options import PipelineOptions
-from motion.evaluate import evaluate
+from bench.cached import run_cached
 from edge.modelfiles import DEFAULT_DIR
-
-
-def _run(job):
-    path, kw = job
-    if Path(path).exists():
-        return json.loads(Path(path).read_text())
-    r = evaluate([kw.pop("data")], kw.pop("options"), split="val", log=lambda *a: None, **kw)
-    r.pop("per_clip", None)
-    Path(path).write_text(json.dumps(r, indent=2) + "\n")
-    return r
 
 
 def selection(w):
@@ -57,7 +47,7 @@ def main():
     jobs = [(out / "n1.json", {**kw, "options": PipelineOptions(samples=1)})] + [
         (out / f"w{w:g}.json", {**kw, "options": PipelineOptions(samples=a.samples, selection=selection(w))}) for w in ws]
     with ProcessPoolExecutor(2) as ex:
-        n1, *runs = ex.map(_run, jobs)
+        n1, *runs = ex.map(run_cached, jobs)
     print(f"val subset: {n1['clips']} clips, {n1['frames']} frames; N=1 mpjpe {n1['mpjpe_cm']:.3f}, "
           f"skate {n1['foot_skate_cm_s']:.2f}, physical sum {physical(n1):.4f}")
     print(f"{'weight':>7} {'mpjpe':>7} {'skate':>7} {'pen':>7} {'legs':>7} {'float':>7} {'sum':>7} {'switches':>9}")
