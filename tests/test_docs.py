@@ -118,6 +118,8 @@ NOT_RUNNABLE = {
                                     "tests/test_conventions.py checks the measurement",
     "scripts/eval-checkpoint .cache/runs/v06 .cache/models/v06": "needs the run above's checkpoint; exports, "
                                                                   "quantizes and evaluates for about 10 minutes",
+    ".venv/bin/python -m models.validate .cache/runs/v06 --conventions in": "needs the run above's checkpoint; "
+                                                                            "reads val's clips (a minute)",
     ".venv/bin/python -m quantize": "rebuilds the shipped models/*.int8.onnx in place (minutes); "
                                     "tests/test_quantize.py checks the builds",
     "sudo apt install python3-venv i2c-tools gcc libc6-dev": "installs system packages on the board (root)",
