@@ -20,7 +20,9 @@ from edgetools.sim.quest import EmulatedQuest, QuestHeadset
 from tests.conftest import ROOT, SAMPLE
 
 MISSING = EmulatedQuest.missing()
-pytestmark = pytest.mark.skipif(MISSING is not None, reason=MISSING or "")
+# alone: these compare real-time runs through Chromium with the serial path's; beside another test
+# process on a 2-core machine the page path runs up to 15 % behind (./scripts/test runs them after the rest)
+pytestmark = [pytest.mark.skipif(MISSING is not None, reason=MISSING or ""), pytest.mark.alone]
 SESSION = ROOT / "samples" / "cmu_09_12_walk.session.npz"
 LEFT, RIGHT = (38, 140, 255), (255, 140, 25)          # mirror.js's bone colours, as 8-bit RGB
 
@@ -102,7 +104,8 @@ def test_a_take_through_the_page_matches_the_serial_replay(take, tmp_path, monke
     assert ratio <= 1.10
     assert web["poses_decoded"] > 500 and page["bodies"] >= 0.9 * web["poses_decoded"]
     assert page["drawn"] > 0.9 * page["xrFrames"] - 72 and page["samples"] == 8 and page["latencyMs"] > 0
-    assert bone_pixels(tmp_path / "mirror.png") > 100        # the mirrored body is on screen
+    shots = sorted(tmp_path.glob("mirror*.png"))            # the body is on screen in one of the pictures
+    assert len(shots) == 3 and max(bone_pixels(p) for p in shots) > 100
     assert not headset.quest.console_errors
 
 

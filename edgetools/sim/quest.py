@@ -269,7 +269,13 @@ class QuestHeadset:
         self.state, self.log = self.quest.state(), self.quest.log()
         self.state["emulated_frames"] = self.quest.page.evaluate("window.__quest.frames")
         if self.screenshot:
-            self.quest.page.screenshot(path=str(self.screenshot))
+            # Three pictures 0.15 s apart: on a loaded 2-core machine one can land between the page's
+            # draws (a cleared canvas); a body that is drawn shows in at least one.
+            import time
+            shot = Path(self.screenshot)
+            for k in range(3):
+                self.quest.page.screenshot(path=str(shot if k == 0 else shot.with_name(f"{shot.stem}-{k}{shot.suffix}")))
+                time.sleep(0.15)
 
     def close(self):
         self.quest.close()
