@@ -31,7 +31,7 @@ def main(args):
     try:
         result = evaluate(args.data, pipeline_options(args), split=args.split, people=args.people, models=args.models,
                           trackers=parse_set(args.trackers), faults=args.faults, max_frames=args.max_frames,
-                          dump=args.dump)
+                          max_clips=args.max_clips, dump=args.dump)
     except (FileNotFoundError, ValueError) as e:
         print(f"edge eval: {e}", file=sys.stderr)
         return 2

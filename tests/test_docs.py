@@ -49,8 +49,8 @@ RUN = {
         "replay line, read from the script, runs here for 2 s at full speed instead of 16 s in real time",
         add="--seconds 2 --speed max"),
     ".venv/bin/edge eval --data ../shared/mocap --split val --json out/val.json": Short(
-        "all 193 val clips, 90 frames each (30 scored after the 1 s warm-up): ~10 s instead of minutes",
-        add="--max-frames 90"),
+        "an even spread of 60 val clips, 90 frames each (30 scored after the 1 s warm-up): seconds instead "
+        "of minutes", add="--max-frames 90 --max-clips 60"),
     ".venv/bin/edge replay samples/cmu_09_12_walk.session.npz --vmc 192.168.1.20:39539 --vrchat 192.168.1.20:9000 "
     "--json out/replay.json": Short(
         "the receivers on this machine (the docs' PC address may have no route here); 2 s at full speed",
