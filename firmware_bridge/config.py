@@ -126,6 +126,21 @@ def load(path):
 
 
 def from_dict(raw, where="config"):
+    """A parsed TOML document -> Config, every section checked; the first problem is a ConfigError that
+    names the file, the section and what is allowed."""
+    check_sections(raw, where)
+    if "headset" not in raw or "url" not in raw["headset"]:
+        raise ConfigError(f"{where}: [headset] url is required (e.g. serial:///dev/ttyAMA0?role=headset)")
+    cfg = Config(headset=raw["headset"]["url"], trackers=[t.get("url") for t in raw.get("trackers", [])], path=where)
+    read_devices(cfg, where)
+    read_output(cfg, raw.get("output", {}), where)
+    read_runtime(cfg, raw.get("runtime", {}), where)
+    cfg.refine = refine_section(raw.get("refine", {}), where)
+    return cfg
+
+
+def check_sections(raw, where):
+    """Only the known sections, each a table (or a list of them) of its known keys."""
     for key, value in raw.items():
         if key not in SECTIONS:
             raise ConfigError(f"{where}: unknown section [{key}]; sections are {', '.join(sorted(SECTIONS))}")
@@ -136,10 +151,10 @@ def from_dict(raw, where="config"):
             if unknown:
                 raise ConfigError(f"{where}: unknown key {sorted(unknown)[0]!r} in [{key}]; "
                                   f"allowed: {', '.join(sorted(SECTIONS[key]))}")
-    if "headset" not in raw or "url" not in raw["headset"]:
-        raise ConfigError(f"{where}: [headset] url is required (e.g. serial:///dev/ttyAMA0?role=headset)")
-    out, rt = raw.get("output", {}), raw.get("runtime", {})
-    cfg = Config(headset=raw["headset"]["url"], trackers=[t.get("url") for t in raw.get("trackers", [])], path=where)
+
+
+def read_devices(cfg, where):
+    """The headset's and trackers' URLs parse, and the trackers they name are the model's, once each."""
     for url, what in [(cfg.headset, "[headset] url")] + [(u, "[[trackers]] url") for u in cfg.trackers]:
         if not isinstance(url, str):
             raise ConfigError(f"{where}: {what} is missing")
@@ -157,6 +172,10 @@ def from_dict(raw, where="config"):
     if unknown:
         raise ConfigError(f"{where}: [[trackers]] url: unknown tracker name {unknown[0]!r}; the model reads "
                           f"{', '.join(TRACKER_NAMES)}")
+
+
+def read_output(cfg, out, where):
+    """[output]: the pose stream, VMC and VRChat's addresses and modes, the BVH file."""
     cfg.pose_stream = out.get("pose_stream", "headset")
     if cfg.pose_stream not in ("headset", "") and not cfg.pose_stream.startswith("serial://"):
         raise ConfigError(f"{where}: [output] pose_stream must be \"headset\", a serial:// URL or \"\"")
@@ -177,6 +196,10 @@ def from_dict(raw, where="config"):
                               f"{', '.join(JOINT_NAMES)}; got {names!r}")
         cfg.vrchat_trackers = tuple(names)
     cfg.bvh = out.get("bvh", "")
+
+
+def read_runtime(cfg, rt, where):
+    """[runtime]: N, the look-ahead, the rate, the sources' timeouts, the leg guard, precision and files."""
     try:
         cfg.samples = int(rt.get("samples", cfg.samples))
         cfg.lookahead = int(rt.get("lookahead", cfg.lookahead))
@@ -201,8 +224,6 @@ def from_dict(raw, where="config"):
         raise ConfigError(f"{where}: [runtime] precision must be \"fp32\" or \"int8\", got {cfg.precision!r}")
     cfg.calibration = rt.get("calibration", "")
     cfg.models = rt.get("models", "")
-    cfg.refine = refine_section(raw.get("refine", {}), where)
-    return cfg
 
 
 def refine_section(ref, where):
