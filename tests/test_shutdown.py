@@ -22,6 +22,19 @@ def started(folder):
                             cwd=folder, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
 
 
+def sigterm_after(seconds, folder, *args):
+    """`edge ARGS...` in `folder`, sent SIGTERM after `seconds`: (the finished process, its stderr)."""
+    proc = subprocess.Popen(edge_cmd(*args), cwd=folder, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        time.sleep(seconds)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc, err
+
+
 def wait_until(condition, timeout, proc):
     end = time.monotonic() + timeout
     while time.monotonic() < end and proc.poll() is None:
@@ -62,15 +75,7 @@ def test_sigterm_during_a_recording_keeps_what_was_recorded(tmp_path):
     from edgetools.sim.session import Session
     with Devices() as devices:
         devices.config(tmp_path)
-        proc = subprocess.Popen(edge_cmd("record", "--config", "board.toml", "--seconds", 60, "--out", "take.npz"),
-                                cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        try:
-            time.sleep(4.0)
-            proc.send_signal(signal.SIGTERM)
-            _, err = proc.communicate(timeout=20)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
+        proc, err = sigterm_after(4.0, tmp_path, "record", "--config", "board.toml", "--seconds", 60, "--out", "take.npz")
     assert proc.returncode == 0 and "stopped by SIGTERM" in err, err
     session = Session.load(tmp_path / "take.npz")
     assert len(session.headset.frames) > 30 and len(session.hub.frames) > 30
@@ -83,15 +88,7 @@ def test_sigterm_during_calibration_leaves_the_previous_calibration(tmp_path):
     before = (tmp_path / "cal.json").read_bytes()
     with Devices() as devices:
         devices.config(tmp_path)
-        proc = subprocess.Popen(edge_cmd("calibrate", "--config", "board.toml", "--seconds", 30, "--out", "cal.json"),
-                                cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-        try:
-            time.sleep(4.0)
-            proc.send_signal(signal.SIGTERM)
-            _, err = proc.communicate(timeout=20)
-        finally:
-            if proc.poll() is None:
-                proc.kill()
+        proc, err = sigterm_after(4.0, tmp_path, "calibrate", "--config", "board.toml", "--seconds", 30, "--out", "cal.json")
     assert proc.returncode == 130 and "is as it was" in err, err
     assert (tmp_path / "cal.json").read_bytes() == before
 
