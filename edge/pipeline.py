@@ -221,7 +221,9 @@ class Pipeline:
 
     # ------------------------------------------------------------------ per frame
     def step(self, sig):
-        """Feed one frame of Signals (T=1). Returns the Pose for frame t - tau, or None while the buffer fills."""
+        """Feed one frame of Signals (T=1). Returns the Pose for frame t - tau, or None while the buffer fills.
+        The stages, in order, each stamped in stage_ns when timing: inputs, decode (and refine), poses,
+        judge, decide, emit."""
         timing, mark = self.timing, self.stage_ns
         if timing:
             mark[0] = time.thread_time_ns()
@@ -230,31 +232,53 @@ class Pipeline:
         s = t % b.slots
         b.frame[s] = t
         b.override[s] = False
-        dec = self.decoder
+        sig, live, blend = self._inputs(sig, s, N)
+        if timing:
+            mark[1] = time.thread_time_ns()
+        self.decoder.step()
+        if self.refiner is not None:
+            self._refine(s, N, sw.current)
+        if timing:
+            mark[2] = time.thread_time_ns()
+        fused, keep_world = self._poses(s, N, live, blend)
+        if timing:
+            mark[3] = time.thread_time_ns()
+        n, ask = self._judge_frame(sig, s, N, fused, keep_world)
+        if timing:
+            mark[4] = time.thread_time_ns()
+        self._decide(n, ask, t, s)
+        if timing:
+            mark[5] = time.thread_time_ns()
+        pose = self._emit(t - self.lookahead)
+        if timing:
+            mark[6] = time.thread_time_ns()
+        return pose
+
+    def _inputs(self, sig, s, N):
+        """The frame's signals into slot s and the decoder: (the Signals used, whether a move is live, its
+        blend). The extra IMUs' headings are corrected before anything reads them (edge.heading); during
+        a move the spare row carries it, both latents and GRU states eased (path.inputs does it)."""
+        sw = self.switcher
         self._load_frame_in(sig)
-        if self.heading is not None:    # the IMUs' headings corrected before anything reads them (edge.heading)
+        if self.heading is not None:
             sig = self.heading.correct_frame(self.bufs.inputs, sig)
-        # During a move the spare row carries it: both latents and GRU states eased (path.inputs does it).
-        live = sw.live(t)
-        blend = (sw.trans[0], sw.trans[1], sw.weight(t)) if live else None
+        live = sw.live(self.t)
+        blend = (sw.trans[0], sw.trans[1], sw.weight(self.t)) if live else None
         # Features and tracker matrices into slot s and the decoder, if the frame is sane: finite, and
         # inside POSITION_LIMIT_M of the origin (no play space is larger). One that a range check upstream
         # did not catch is replaced by the last good one.
         if not self.path.inputs(sig, s, N, blend):
             sig = self._held_frame()
             self.path.inputs(sig, s, N, blend)
-        if timing:
-            mark[1] = time.thread_time_ns()
-        dec.step()
-        if self.refiner is not None:
-            self._refine(s, N, sw.current)
-        if timing:
-            mark[2] = time.thread_time_ns()
+        return sig, live, blend
 
-        # Post-processing for every row at once; the transition row (row N) blends the two samples' foot
-        # goals (not lock positions, which are stale for a foot that is free) and, like the samples, runs
-        # the leg IK at weight 1: the goals already carry each lock's pull, so the row's first and last
-        # frames are the two samples' own poses.
+    def _poses(self, s, N, live, blend):
+        """Post-processing for every row at once: (whether the default criteria are judged in one C call,
+        whether a criterion needs every joint's world rotation). The transition row (row N) blends the two
+        samples' foot goals (not lock positions, which are stale for a foot that is free) and, like the
+        samples, runs the leg IK at weight 1: the goals already carry each lock's pull, so the row's first
+        and last frames are the two samples' own poses."""
+        dec, b, sw = self.decoder, self.buffer, self.switcher
         fused = self.criteria.criteria == self.path.fused_criteria     # the default criteria: judged in one C call
         keep_world = not fused and self.criteria.needs_world_rot  # every joint's world rotation, only if a criterion asks
         rows = N + 1 if live else N
@@ -274,31 +298,30 @@ class Pipeline:
             self._legs.arm(N if live else sw.current, self.feet.weight[sw.current])
         if self.heading is not None:    # each IMU against its reference (edge.heading), at the observer's rate
             self.heading.observe_frame(self.t, self.bufs.inputs, s, sw.current)
-        if timing:
-            mark[3] = time.thread_time_ns()
+        return fused, keep_world
 
-        # Judge frame t, the newest, and decide (3.2.4: detection at t + tau relative to the output). A new
-        # switch waits until the last transition has been sent, so transitions never overlap.
-        ask = (self._pending is None and self.ssi and N > 1 and sw.free(t)
-               and not (self.refiner is not None and self.refiner.holds(t)))     # refinement owns the shown sample
+    def _judge_frame(self, sig, s, N, fused, keep_world):
+        """Judge frame t, the newest (3.2.4: detection at t + tau relative to the output): (the sample to
+        move to, -1 for none; whether a move could start). A new switch waits until the last transition
+        has been sent, so transitions never overlap; refinement owns the shown sample while it holds."""
+        sw = self.switcher
+        ask = (self._pending is None and self.ssi and N > 1 and sw.free(self.t)
+               and not (self.refiner is not None and self.refiner.holds(self.t)))
         n = -1
         if N > 1:
             c = sw.current if ask else -1
             n = self.path.judge(s, N, c) if fused else self._judge(sig, s, N, c, keep_world)
-        if timing:
-            mark[4] = time.thread_time_ns()
+        return n, ask
+
+    def _decide(self, n, ask, t, s):
+        """Home to sample 0 when nothing better was found, apply a change of N, or start the move to n."""
+        sw = self.switcher
         if n < 0 and ask and self.home_after and sw.current != 0:
             n = self._homeward(s, sw.current)
         if self._pending is not None:
             self._apply_samples(t, s)
         elif n >= 0:
             self._start_transition(n, t)
-        if timing:
-            mark[5] = time.thread_time_ns()
-        pose = self._emit(t - self.lookahead)
-        if timing:
-            mark[6] = time.thread_time_ns()
-        return pose
 
     def _homeward(self, s, c):
         """0 when the shown sample c should move back to sample 0 (see home_after), else -1."""
