@@ -23,6 +23,32 @@ class CompiledFrame(FramePath):
     def __init__(self, pipe, bufs, lib):
         self.p, self.bufs, self.lib = pipe, bufs, lib
         p, N, b = pipe, pipe.max_samples, pipe.buffer
+        self._check_and_address(p, N, b, bufs)
+        a = self.addr
+        self._frame_offsets = np.concatenate([EYE_OFFSET[None], GRIP_OFFSET, (PELVIS_TO_HEAD * p.body_scale)[None]])
+        self._prev = np.zeros((4, 3))
+        a["frame_in"], a["frame_offsets"], a["prev"] = (native.addr(x) for x in (self.bufs.frame_in, self._frame_offsets,
+                                                                                     self._prev))
+        # The SSI decision reads ring-buffer slot s's costs: (base address, bytes per slot).
+        self._cost_addr = (native.addr(b.cost), b.cost.strides[0])
+        self._emit_world = np.zeros((NUM_JOINTS, 3, 3))
+        # The same call fills the plausibility scorer's autoencoder input when the default criterion is there.
+        ae = p.scorer.buffers() if any(isinstance(c, Plausibility) and c.scorer is p.scorer
+                                       for c in p.criteria.criteria) else None
+        self.ae_ready = p.scorer if ae else None
+        self._bind_fused_selection(p, N, b, ae)
+        self.core = ctypes.pointer(self._core_context(p, N, b, ae))
+        rc = p.recompute.rot6d
+        self._recompute_rot6d = (native.checked_addr(rc, np.float32, (None, None), "recompute rot6d"), rc.shape[1])
+        self.bind_decoder(p.decoder)
+        # forward_rows' arguments (the refiner's FK), filled per call.
+        self._fin, self._rows_out = native.ForwardInputs(), native.PoseRows()
+        self._ring_addr = {k: (native.addr(getattr(b, v)), getattr(b, v).strides[0]) for k, v in (   # (address, bytes a slot)
+            ("waist", "waist_m"), ("anchor", "anchor"), ("seg_m", "seg_m"), ("seg_flag", "seg_flag"))}
+
+    def _check_and_address(self, p, N, b, bufs):
+        """Every array the core reads or writes, checked once (dtype, layout, shape) and addressed: the
+        hot path then passes addresses only (self.addr)."""
         # Arrays the C calls read by address; held here so they live as long as the pipeline.
         self._c = {"parents": np.ascontiguousarray(PARENTS, np.int64), "offsets": OFFSETS,
                    "chains": np.ascontiguousarray(LIMB_CHAINS, np.int64), "poles": LIMB_POLES,
@@ -42,19 +68,11 @@ class CompiledFrame(FramePath):
         for arr in vars(b).values():                    # the look-ahead ring
             if isinstance(arr, np.ndarray):
                 chk(arr, arr.dtype, None, "ring buffer")
-        self._frame_offsets = np.concatenate([EYE_OFFSET[None], GRIP_OFFSET, (PELVIS_TO_HEAD * p.body_scale)[None]])
-        self._prev = np.zeros((4, 3))
-        a["frame_in"], a["frame_offsets"], a["prev"] = (native.addr(x) for x in (self.bufs.frame_in, self._frame_offsets,
-                                                                                     self._prev))
-        # The SSI decision reads ring-buffer slot s's costs: (base address, bytes per slot).
-        self._cost_addr = (native.addr(b.cost), b.cost.strides[0])
-        self._emit_world = np.zeros((NUM_JOINTS, 3, 3))
-        # The same call fills the plausibility scorer's autoencoder input when the default criterion is there.
-        ae = p.scorer.buffers() if any(isinstance(c, Plausibility) and c.scorer is p.scorer
-                                       for c in p.criteria.criteria) else None
-        self.ae_ready = p.scorer if ae else None
-        # The default criteria, judged in one call (judge): the plausibility score on the buffers filled
-        # above, and the physical criterion when the manifest's selection has one.
+
+    def _bind_fused_selection(self, p, N, b, ae):
+        """The default criteria, judged in one C call (judge), when they are the plausibility score on the
+        buffers the frame call fills (ae) and, where the manifest's selection has one, the physical one."""
+        a = self.addr
         crit = p.criteria.criteria
         if (ae and 1 <= len(crit) <= 2 and type(crit[0]) is Plausibility and crit[0].scorer is p.scorer
                 and (len(crit) == 1 or (type(crit[1]) is PhysicalPlausibility and crit[1].params is not None))):
@@ -67,6 +85,12 @@ class CompiledFrame(FramePath):
                 physical_cost=native.addr(self._physical_cost), pos=a["pos"], ring_cost=native.addr(b.cost),
                 cost_stride=b.cost.shape[1])
             self.fused_criteria = list(crit)
+
+    def _core_context(self, p, N, b, ae):
+        """native.CoreContext: every address the four C calls use, in one place (the skeleton, FootLock's
+        state, the FrameBuffers, the ring, the output pose, the frame's inputs, the latents, the targets,
+        the smoother and, with the default criterion, the autoencoder's input)."""
+        a, chk = self.addr, native.checked_addr
         f, out = p.feet, p.out
         ring = {f"ring_{k}": native.addr(getattr(b, v)) for k, v in (
             ("waist", "waist_m"), ("anchor", "anchor"), ("wrists", "wrists"), ("hand", "hand_m"), ("head", "head_m"),
@@ -78,7 +102,7 @@ class CompiledFrame(FramePath):
                                  since=a["since_release"], weight=a["weight"], locked=a["locked"], raw=a["raw"],
                                  min_gap=f.min_gap, leg_guard=f.leg_guard, leg_guard_max=LEG_GUARD_MAX_PUSH_M,
                                  leg_segs=a["leg_segs"])
-        ctx = native.CoreContext(
+        return native.CoreContext(
             sk=sk, locks=locks, foot_ik=int(p.foot_ik), arm_ik=int(p.arm_ik), goals=a["targets"], weights=a["weights"],
             ring_rows=N + 1, hidden=b.hidden_in.shape[2], **ring,
             out_local=native.addr(out.rotations), out_world=native.addr(self._emit_world),
@@ -94,14 +118,6 @@ class CompiledFrame(FramePath):
             keep_shown=int(p.lookahead == 0), shown_slot=-1, shown_row=-1,    # present-frame output: see ring_changed
             **self._smoother_fields(p.smoother),
             **(dict(zip(("ae_in", "ae_local", "ae_root_local"), ae, strict=True)) if ae else {}))
-        self.core = ctypes.pointer(ctx)
-        rc = p.recompute.rot6d
-        self._recompute_rot6d = (native.checked_addr(rc, np.float32, (None, None), "recompute rot6d"), rc.shape[1])
-        self.bind_decoder(p.decoder)
-        # forward_rows' arguments (the refiner's FK), filled per call.
-        self._fin, self._rows_out = native.ForwardInputs(), native.PoseRows()
-        self._ring_addr = {k: (native.addr(getattr(b, v)), getattr(b, v).strides[0]) for k, v in (   # (address, bytes a slot)
-            ("waist", "waist_m"), ("anchor", "anchor"), ("seg_m", "seg_m"), ("seg_flag", "seg_flag"))}
 
     def _smoother_fields(self, sm):
         """The core_context fields of edge.smooth.UpperBodySmoother (none when it is off)."""
