@@ -84,11 +84,11 @@ def variant_pipeline(variant):
             self.decoder.latent[:N] = self.latents
 
         def _choose_with_slide(self, weight):
-            def switch_to(s, c, margin):
-                cost = self.buffer.cost[s, :self.samples]
+            def switch_to(s, N, c, margin):
+                cost = self.buffer.cost[s, :N]
                 if not is_outlier(cost, c, margin):
                     return -1
-                total = cost + weight * foot_slide(self, self.bufs.pos[:self.samples])
+                total = cost + weight * foot_slide(self, self.bufs.pos[:N])
                 total[c] = np.inf
                 return int(np.argmin(total))
             return switch_to

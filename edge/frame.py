@@ -147,11 +147,12 @@ class FramePath:
 
       inputs(sig, s, N, blend) -> bool    features: body points, features and tracker matrices into
                                           slot s and the decoder's input (False: the frame is not sane)
-      poses(s, rows, N, blend, keep_world) -> bool
+      poses(s, rows, N, blend, keep_world, shown) -> bool
                                           pose: FK hung from the head, foot locks, leg and arm IK of
-                                          every decoder row (False: a row went non-finite)
-      judge(s, N, c) -> int               select: the default criteria in one call (fused_criteria)
-      switch_to(s, c, margin) -> int      select: SSI's test on slot s's costs
+                                          every decoder row (False: a row went non-finite); `shown`
+                                          is the sample shown when no move is live
+      judge(s, N, c, margin) -> int       select: the default criteria in one call (fused_criteria)
+      switch_to(s, N, c, margin) -> int   select: SSI's test on slot s's N costs
       emit(s, row, out)                   emit: the output pose of ring slot s, row `row`
       ring_changed()                      ring rows were rewritten after poses() (a move, a change of N)
       forward_rows(s, rot6d, rows, segments, out)
@@ -178,17 +179,17 @@ class FramePath:
     def inputs(self, sig, s, N, blend):
         raise NotImplementedError
 
-    def poses(self, s, rows, N, blend, keep_world):
+    def poses(self, s, rows, N, blend, keep_world, shown):
         raise NotImplementedError
 
-    def judge(self, s, N, c):
+    def judge(self, s, N, c, margin):
         raise NotImplementedError(f"{type(self).__name__} judges no criteria in one call (fused_criteria is None)")
 
     def smooth_recomputed(self, k, first):
         """The upper body's filter (edge.smooth) on row k of a move's recompute, with the state of row `first`."""
         raise NotImplementedError
 
-    def switch_to(self, s, c, margin):
+    def switch_to(self, s, N, c, margin):
         raise NotImplementedError
 
     def emit(self, s, row, out):

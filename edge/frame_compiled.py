@@ -162,13 +162,13 @@ class CompiledFrame(FramePath):
             self.first = False
         return ok == 1
 
-    def poses(self, s, rows, N, blend, keep_world):
+    def poses(self, s, rows, N, blend, keep_world, shown):
         """ep_frame_poses: FK, foot locks, the blend, IK and the ring copies of NumpyFrame.poses in one
         call, after its finite test of the decoder's rows (False: not finite, nothing done). At look-ahead
         0 the row this frame shows (the move's, or the shown sample's) goes to the output pose as well,
         so emit() has nothing to make again."""
         dec = self.p.decoder
-        c, n, a = blend if blend is not None else (self.p.switcher.current, 0, 0.0)
+        c, n, a = blend if blend is not None else (shown, 0, 0.0)
         return self.lib.ep_frame_poses(self.core, s, rows, N, c, n, a, self.addr["world"] if keep_world else None,
                                        self.addr["pos"], self._hidden_addr[dec.last_read],
                                        self._hidden_addr[dec.current], dec.rows) == 1
@@ -192,7 +192,7 @@ class CompiledFrame(FramePath):
         self._rows_out.local, self._rows_out.world, self._rows_out.pos = native.addr(loc), native.addr(W), native.addr(P)
         self.lib.ep_forward(ctypes.byref(self.core.contents.sk), rows, ctypes.byref(fin), ctypes.byref(self._rows_out))
 
-    def judge(self, s, N, c):
+    def judge(self, s, N, c, margin):
         """The default criteria (Plausibility, PhysicalPlausibility) on frame t's N samples into ring slot
         s, and the sample to move to from c (c < 0: not asked): the autoencoder, then ep_frame_costs,
         Pipeline._judge's Composite and switch_to in one C call."""
@@ -200,12 +200,12 @@ class CompiledFrame(FramePath):
         p.autoencoder.run()
         crit = self.fused_criteria
         w_phys = crit[1].weight if len(crit) > 1 else 0.0
-        return self.lib.ep_frame_costs(self.core, self._selection, s, N, crit[0].weight, w_phys, c, p.switch_margin)
+        return self.lib.ep_frame_costs(self.core, self._selection, s, N, crit[0].weight, w_phys, c, margin)
 
-    def switch_to(self, s, c, margin):
-        """ep_switch_to: edge.ssi.switch_to on ring slot s's costs."""
+    def switch_to(self, s, N, c, margin):
+        """ep_switch_to: edge.ssi.switch_to on ring slot s's N costs."""
         c0, cs = self._cost_addr
-        return self.lib.ep_switch_to(self.p.samples, c0 + s * cs, c, margin)
+        return self.lib.ep_switch_to(N, c0 + s * cs, c, margin)
 
     def emit(self, s, row, out):
         """ep_emit: the row's pose into the output Pose (the core knows its arrays): made again from the

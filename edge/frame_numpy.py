@@ -69,13 +69,13 @@ class NumpyFrame(FramePath):
             b.seg_flag[s, IMU_JOINTS] = sig.imu_flag[0]
             torso_segments(b.seg_m[s], b.seg_flag[s], m[0], m[3])
         dec.features[:] = feat
-        b.hidden_in[s, :p.samples] = dec.state[:p.samples]
+        b.hidden_in[s, :N] = dec.state[:N]
         return True
 
     def finite(self, dec):
         return bool(np.isfinite(dec.state[:dec.rows]).all() and np.isfinite(dec.rot6d[:dec.rows]).all())
 
-    def poses(self, s, rows, N, blend, keep_world):
+    def poses(self, s, rows, N, blend, keep_world, shown):
         """Every row's pose of frame s: FK, foot locks, the transition row's blended goals, IK; and
         what the ring keeps of them. False, doing nothing, when a decoder row is not finite."""
         p, b, dec = self.p, self.p.buffer, self.p.decoder
@@ -102,8 +102,8 @@ class NumpyFrame(FramePath):
         """The upper body's filter (edge.smooth) on row k of a move's recompute, with state row `first`."""
         self.p.smoother.apply_to(self._recompute_rows[k], 1, first)
 
-    def switch_to(self, s, c, margin):
-        return switch_to(self.p.buffer.cost[s, :self.p.samples], c, margin)
+    def switch_to(self, s, N, c, margin):
+        return switch_to(self.p.buffer.cost[s, :N], c, margin)
 
     def emit(self, s, row, out):
         self.row_pose(s, row, out.positions, out.rotations)

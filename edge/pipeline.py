@@ -288,9 +288,9 @@ class Pipeline:
                 sm.prime(dec.rot6d, dec.rows)
             if live:
                 sm.blend_into(blend[0], blend[1], blend[2], N)
-        if not self.path.poses(s, rows, N, blend, keep_world):   # a decoder row went non-finite: nothing was done
+        if not self.path.poses(s, rows, N, blend, keep_world, sw.current):   # a decoder row went non-finite
             self._heal(dec, s)
-            self.path.poses(s, rows, N, blend, keep_world)
+            self.path.poses(s, rows, N, blend, keep_world, sw.current)
         if live:
             b.override[s] = True
             b.trans_row[s] = N
@@ -310,7 +310,7 @@ class Pipeline:
         n = -1
         if N > 1:
             c = sw.current if ask else -1
-            n = self.path.judge(s, N, c) if fused else self._judge(sig, s, N, c, keep_world)
+            n = self.path.judge(s, N, c, self.switch_margin) if fused else self._judge(sig, s, N, c, keep_world)
         return n, ask
 
     def _decide(self, n, ask, t, s):
@@ -364,7 +364,7 @@ class Pipeline:
             ctx.imu = {int(IMU_JOINTS[k]): m[i] for i, k in enumerate(worn)}
             ctx.imu_weight = {int(IMU_JOINTS[k]): float(sig.imu_flag[0, k]) for k in worn}
         self.buffer.cost[s, :N] = self.criteria.cost(ctx)
-        return self.path.switch_to(s, c, self.switch_margin) if c >= 0 else -1
+        return self.path.switch_to(s, N, c, self.switch_margin) if c >= 0 else -1
 
     def _held_frame(self):
         """Stand the last good frame in for this one (counted in inputs_held); before any, a neutral
