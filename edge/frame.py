@@ -141,6 +141,40 @@ class FrameBuffers:
         self.target_weight = np.zeros(2)
 
 
+@dataclass(frozen=True)
+class FrameSpec:
+    """The settings the frame paths read, fixed when the pipeline is made."""
+    fps: float
+    body_scale: float               # the canonical body's size against the calibrated user's
+    foot_ik: bool
+    arm_ik: bool
+    elbow_from_hand: float          # how far the hand's direction turns the elbow (edge.ik.swivel_to_hands)
+    imus: int                       # extra IMU slots the decoder reads (0 or NUM_IMUS)
+    orientations: bool             # the decoder reads the headset's and controllers' orientations
+    segments: bool                  # worn IMUs set their segments' rotations
+    n_features: int
+    lookahead: int
+    max_samples: int                # N the buffers are allocated for
+
+
+@dataclass(frozen=True)
+class FrameState:
+    """The memory the frame paths work in, each part owned by the pipeline's component that keeps it:
+    the look-ahead ring (edge.ssi.LookaheadBuffer), the samples' latents, the foot locks (edge.ik.FootLock),
+    the upper body's filter (edge.smooth), a move's recompute decoder (edge.inference), the output pose,
+    the autoencoder and its plausibility scorer, and the selection criteria. The live decoder is not
+    here: a change of N makes a new one, which the pipeline binds to each path (bind_decoder)."""
+    buffer: object
+    latents: np.ndarray
+    feet: object
+    smoother: object
+    recompute: object
+    out: Pose
+    autoencoder: object
+    scorer: object
+    criteria: object
+
+
 class FramePath:
     """The stages of a frame around the two ONNX calls, as Pipeline.step calls them. Both paths work
     in the pipeline's FrameBuffers and look-ahead ring (edge.ssi.LookaheadBuffer), slot s a frame:
@@ -168,6 +202,7 @@ class FramePath:
 
     def bind_decoder(self, dec):
         """The decoder whose buffers the path reads (again after set_samples makes a new one)."""
+        self.decoder = dec
 
     def set_target_row(self, row):
         """The decoder row a live foot target pulls (-1: none)."""

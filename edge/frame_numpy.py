@@ -20,9 +20,11 @@ class NumpyFrame(FramePath):
     decoder and a foot target's row from the pipeline each frame (bind_decoder, set_target_row: the
     FramePath defaults)."""
 
-    def __init__(self, pipe, bufs):
-        self.p, self.bufs = pipe, bufs
-        self._recompute_rows = pipe.smoother.recompute_views(pipe.recompute.rot6d)     # smooth_recomputed's rows
+    def __init__(self, spec, state, bufs):
+        """spec: the settings it reads (edge.frame.FrameSpec); state: the memory it works in, owned by
+        the pipeline's parts (FrameState); bufs: the frame's scratch (FrameBuffers)."""
+        self.spec, self.state, self.bufs = spec, state, bufs
+        self._recompute_rows = self.state.smoother.recompute_views(self.state.recompute.rot6d)     # smooth_recomputed's rows
 
     def reset(self):
         self.prev_points = None     # the previous frame's body points (velocity features)
@@ -38,24 +40,24 @@ class NumpyFrame(FramePath):
         the spare row N's latent and GRU state eased between a live move's two samples (blend: from,
         to, weight; or None). False, doing nothing, when the frame is not sane (the pipeline's
         FrameBuffers.frame_in); a frame that is is kept in good_in."""
-        p, b, dec = self.p, self.p.buffer, self.p.decoder
+        b, dec = self.state.buffer, self.decoder
         if not self.sane():
             return False
         np.copyto(self.bufs.good_in, self.bufs.frame_in)
         if blend is not None:
             c, n, a = blend
             a = np.float64(a)       # eased in float64, rounded once to the decoder's float32 (as ep_frame_inputs)
-            dec.latent[N] = (1 - a) * p.latents[c] + a * p.latents[n]
+            dec.latent[N] = (1 - a) * self.state.latents[c] + a * self.state.latents[n]
             dec.state[N] = (1 - a) * dec.state[c] + a * dec.state[n]
-        points, waist_rot = body_points(sig, p.body_scale)
+        points, waist_rot = body_points(sig, self.spec.body_scale)
         points, waist_rot = points[0], waist_rot[0]
         prev = points if self.prev_points is None else self.prev_points
         self.prev_points = points
         yaw_q = heading(waist_rot)
-        feat = features(points, prev, yaw_q, p.fps)
-        if p.imus:
+        feat = features(points, prev, yaw_q, self.spec.fps)
+        if self.spec.imus:
             feat = np.concatenate([feat, imu_features(sig.imu_rot[0], sig.imu_flag[0], yaw_q)])
-        if p.orientations:
+        if self.spec.orientations:
             feat = np.concatenate([feat, orientation_features(sig.head_rot[0], sig.hand_rot[0], yaw_q)])
         q = self.bufs.quats                         # waist, hands, head: one to_matrix call
         q[0], q[1:3], q[3] = waist_rot, sig.hand_rot[0], sig.head_rot[0]
@@ -64,7 +66,7 @@ class NumpyFrame(FramePath):
         b.anchor[s] = points[0]
         b.wrists[s] = points[1:3]
         b.waist_m[s], b.hand_m[s], b.head_m[s] = m[0], m[1:3], m[3]
-        if p.segments:
+        if self.spec.segments:
             b.seg_m[s, IMU_JOINTS] = quat.to_matrix(sig.imu_rot[0])
             b.seg_flag[s, IMU_JOINTS] = sig.imu_flag[0]
             torso_segments(b.seg_m[s], b.seg_flag[s], m[0], m[3])
@@ -78,13 +80,13 @@ class NumpyFrame(FramePath):
     def poses(self, s, rows, N, blend, keep_world, shown):
         """Every row's pose of frame s: FK, foot locks, the transition row's blended goals, IK; and
         what the ring keeps of them. False, doing nothing, when a decoder row is not finite."""
-        p, b, dec = self.p, self.p.buffer, self.p.decoder
+        b, dec = self.state.buffer, self.decoder
         if not self.finite(dec):
             return False
-        p.smoother.remember(s, N)              # the upper body's one-euro filter (edge.smooth), in place
-        p.smoother.apply(dec.rot6d, rows)
+        self.state.smoother.remember(s, N)              # the upper body's one-euro filter (edge.smooth), in place
+        self.state.smoother.apply(dec.rot6d, rows)
         self.forward(dec.rot6d[:rows], b.waist_m[s], b.anchor[s], b.seg_m[s], b.seg_flag[s])
-        if p.foot_ik:
+        if self.spec.foot_ik:
             goal, w = self.foot_goals(N)
             if blend is not None:
                 c, n, a = blend
@@ -95,23 +97,23 @@ class NumpyFrame(FramePath):
         b.contacts[s, :rows] = dec.contacts[:rows]
         b.leg_goal[s, :rows] = self.bufs.targets[:rows]
         b.leg_weight[s, :rows] = self.bufs.weights[:rows]
-        b.lock_weight[s, :N] = p.feet.weight[:N]
+        b.lock_weight[s, :N] = self.state.feet.weight[:N]
         return True
 
     def smooth_recomputed(self, k, first):
         """The upper body's filter (edge.smooth) on row k of a move's recompute, with state row `first`."""
-        self.p.smoother.apply_to(self._recompute_rows[k], 1, first)
+        self.state.smoother.apply_to(self._recompute_rows[k], 1, first)
 
     def switch_to(self, s, N, c, margin):
-        return switch_to(self.p.buffer.cost[s, :N], c, margin)
+        return switch_to(self.state.buffer.cost[s, :N], c, margin)
 
     def emit(self, s, row, out):
         self.row_pose(s, row, out.positions, out.rotations)
-        out.contacts[:] = supported_contacts(self.p.buffer.contacts[s, row], out.positions)
+        out.contacts[:] = supported_contacts(self.state.buffer.contacts[s, row], out.positions)
 
     def row_pose(self, s, row, positions, rotations):
         """The pose of one row of ring slot s, made again from what the ring keeps."""
-        b = self.p.buffer
+        b = self.state.buffer
         self.forward(b.rot6d[s, row][None], b.waist_m[s], b.anchor[s], b.seg_m[s], b.seg_flag[s])
         self.bufs.targets[0], self.bufs.weights[0] = b.leg_goal[s, row], b.leg_weight[s, row]
         self.post(1, b.wrists[s], b.hand_m[s], b.head_m[s])
@@ -136,7 +138,7 @@ class NumpyFrame(FramePath):
 
     def forward_rows(self, s, rot6d, rows, segments, out):
         """forward() of decoder rows against ring slot s's inputs, into out = (local, world, pos)."""
-        b = self.p.buffer
+        b = self.state.buffer
         seg = (b.seg_m[s], b.seg_flag[s]) if segments else (None, None)
         self.forward(rot6d[:rows], b.waist_m[s], b.anchor[s], *seg, out=out)
 
@@ -144,17 +146,16 @@ class NumpyFrame(FramePath):
         """Update the N samples' foot-contact locks from the decoder's contacts and the FK ankles; each
         sample's foot goal (in _targets) is where its lock draws the ankle, so the leg IK runs at weight 1.
         Returns (goals [N,2,3], lock weights [N,2])."""
-        p = self.p
         goal, pos = self.bufs.targets[:N], self.bufs.pos
         toe_drop = (self.bufs.world[:N, ANKLES] @ self.bufs.toe_offsets)[..., 1, 0]   # for the locks' floor snap
-        lock, w = p.feet.update(p.decoder.contacts[:N], pos[:N, ANKLES], toe_drop)
+        lock, w = self.state.feet.update(self.decoder.contacts[:N], pos[:N, ANKLES], toe_drop)
         ankle = pos[:N, ANKLES]
         np.subtract(lock, ankle, out=goal)
         goal *= w[..., None]
         goal += ankle
         self.bufs.weights[:N] = 1.0
-        if p.feet.leg_guard > 0:
-            guard_legs(pos, goal, w, p.feet.leg_guard)
+        if self.state.feet.leg_guard > 0:
+            guard_legs(pos, goal, w, self.state.feet.leg_guard)
         r = self.bufs.target_row[0]
         if 0 <= r < N:              # a live target on a foot of the refined row pulls its leg goal (edge.refine)
             tw = self.bufs.target_weight
@@ -170,15 +171,14 @@ class NumpyFrame(FramePath):
         the foot on it, not under it. wrists [2,3], hand_m [2,3,3], head_m [3,3], or the same per row.
         Updates rotations and positions in place (the IK moves knees, ankles, toes, elbows and wrists).
         """
-        p = self.p
-        if not (p.foot_ik or p.arm_ik):
+        if not (self.spec.foot_ik or self.spec.arm_ik):
             return
         loc, W, P = self.bufs.local[:rows], self.bufs.world[:rows], self.bufs.pos[:rows]
         tgt, wts, ends = self.bufs.limb_targets[:rows], self.bufs.limb_weights[:rows], self.bufs.limb_ends[:rows]
         tgt[:, :2] = self.bufs.targets[:rows]
         tgt[:, 2:] = wrists
-        wts[:, :2] = self.bufs.weights[:rows] if p.foot_ik else 0.0
-        if p.foot_ik:               # the effective leg goals, lifted clear of the floor, at weight 1
+        wts[:, :2] = self.bufs.weights[:rows] if self.spec.foot_ik else 0.0
+        if self.spec.foot_ik:               # the effective leg goals, lifted clear of the floor, at weight 1
             ankle = P[:, ANKLES]
             tgt[:, :2] = ankle + wts[:, :2, None] * (tgt[:, :2] - ankle)
             lift = floor_lift(tgt[:, :2, 1], (W[:, ANKLES] @ self.bufs.toe_offsets)[..., 1, 0])
@@ -186,14 +186,14 @@ class NumpyFrame(FramePath):
             wts[:, :2] = 1.0
             self.bufs.floor_lift[:rows] = lift
         ends[:, :2] = W[:, ANKLES]
-        ends[:, 2:] = hand_m if p.arm_ik else W[:, LIMB_CHAINS[2:, 2]]
-        if p.arm_ik:
+        ends[:, 2:] = hand_m if self.spec.arm_ik else W[:, LIMB_CHAINS[2:, 2]]
+        if self.spec.arm_ik:
             shoulders_to_reach(loc, W, P, PARENTS, LIMB_CHAINS[2:], OFFSETS, wrists)
         apply_limb_ik(loc, W, P, PARENTS, LIMB_CHAINS, tgt, wts, LIMB_POLES, ends, OFFSETS)
         P[:, TOES] = P[:, ANKLES] + (W[:, ANKLES] @ self.bufs.toe_offsets)[..., 0]
-        if p.arm_ik and p.elbow_from_hand > 0:
-            swivel_to_hands(loc, W, P, PARENTS, LIMB_CHAINS[2:], OFFSETS, p.elbow_from_hand)
+        if self.spec.arm_ik and self.spec.elbow_from_hand > 0:
+            swivel_to_hands(loc, W, P, PARENTS, LIMB_CHAINS[2:], OFFSETS, self.spec.elbow_from_hand)
             shoulders_out_of_torso(loc, W, P, PARENTS, LIMB_CHAINS[2:])
-        if p.arm_ik:
+        if self.spec.arm_ik:
             W[:, HEAD] = head_m
             loc[:, HEAD] = np.swapaxes(W[:, NECK], -1, -2) @ head_m

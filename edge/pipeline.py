@@ -29,7 +29,7 @@ import numpy as np
 from edge import native, quat
 from edge.criteria import Composite, FrameContext, PhysicalPlausibility, Plausibility
 from edge.features import NUM_FEATURES, NUM_POINT_FEATURES
-from edge.frame import FrameBuffers, Pose, RowFk, ease, ring_runs
+from edge.frame import FrameBuffers, FrameSpec, FrameState, Pose, RowFk, ease, ring_runs
 from edge.frame_compiled import CompiledFrame
 from edge.frame_numpy import NumpyFrame
 from edge.imus import IMU_JOINTS, NUM_IMUS
@@ -151,8 +151,13 @@ class Pipeline:
         # The compiled core (edge/native) runs the whole frame around the two ONNX calls when a C
         # compiler is there; NumpyFrame is the reference and the fallback.
         self.native = native.load() if use_native else None
-        self.reference = NumpyFrame(self, self.bufs)
-        self.path = CompiledFrame(self, self.bufs, self.native) if self.native else self.reference
+        spec = FrameSpec(self.fps, self.body_scale, self.foot_ik, self.arm_ik, self.elbow_from_hand, self.imus,
+                         self.orientations, self.segments, self.n_features, self.lookahead, self.max_samples)
+        state = FrameState(self.buffer, self.latents, self.feet, self.smoother, self.recompute, self.out,
+                           self.autoencoder, self.scorer, self.criteria)
+        self.reference = NumpyFrame(spec, state, self.bufs)
+        self.path = CompiledFrame(spec, state, self.bufs, self.native) if self.native else self.reference
+        self.decoder = self._decoder                    # bound to both paths
         self.timing, self.stage_ns = False, np.zeros(len(STAGES) + 1, np.int64)
         # The extra IMUs' heading observer (edge.heading), on when IMUs are worn and options.heading is set.
         self.heading = (HeadingObserver(fps, o.heading, decoder_fk=RowFk(self.path, self.buffer.rot6d))
@@ -190,7 +195,9 @@ class Pipeline:
         compiled core then reads and writes the new one's buffers."""
         self._decoder = dec
         if getattr(self, "path", None) is not None:
-            self.path.bind_decoder(dec)
+            self.reference.bind_decoder(dec)
+            if self.path is not self.reference:
+                self.path.bind_decoder(dec)
 
     # SSI's state, as edge.ssi.Switcher keeps it.
     current = property(lambda self: self.switcher.current)

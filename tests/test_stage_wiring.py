@@ -13,7 +13,8 @@ def callbacks_into(source, class_name):
     pass to a call or assign to another object's attribute."""
     tree = ast.parse(source)
     cls = next(n for n in ast.walk(tree) if isinstance(n, ast.ClassDef) and n.name == class_name)
-    methods = {n.name for n in cls.body if isinstance(n, ast.FunctionDef)}
+    methods = {n.name for n in cls.body if isinstance(n, ast.FunctionDef)      # a property is a value
+               and not any(ast.unparse(d) == "property" for d in n.decorator_list)}
 
     def way_back(node):
         if isinstance(node, ast.Lambda):
@@ -51,3 +52,45 @@ def test_a_callback_handed_or_set_is_found():
             "    def _forward_rows(self): pass\n"
             "    def _row_fk(self): pass\n")
     assert sorted(line for line, _ in callbacks_into(code, "Pipeline")) == [3, 3, 4]
+
+
+# What the Pipeline may read of a frame path: the stages (edge.frame.FramePath) and the four things
+# docs/architecture.md names beside them.
+FRAME_PATH_INTERFACE = {"inputs", "poses", "judge", "switch_to", "emit", "ring_changed", "forward_rows",
+                        "set_target_row", "smooth_recomputed", "row_pose", "bind_decoder", "reset",
+                        "core", "fused_criteria", "ae_ready"}
+
+
+def pipeline_reads(source, holders=("self",), names=("p", "pipe")):
+    """[(line, expression)] of each attribute read through a pipeline handle: a name in `names`, or
+    self.p / self.pipe / self.pipeline."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if not isinstance(node, ast.Attribute):
+            continue
+        v = node.value
+        if (isinstance(v, ast.Name) and v.id in names) or (
+                isinstance(v, ast.Attribute) and isinstance(v.value, ast.Name) and v.value.id in holders
+                and v.attr in ("p", "pipe", "pipeline")):
+            found.append((node.lineno, ast.unparse(node)))
+    return found
+
+
+def test_the_frame_paths_read_nothing_of_the_pipeline():
+    for name in ("frame_numpy.py", "frame_compiled.py"):
+        assert pipeline_reads((ROOT / "edge" / name).read_text()) == [], name
+    tree = ast.parse((ROOT / "edge" / "pipeline.py").read_text())
+    made = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and ast.unparse(n.func) in ("NumpyFrame", "CompiledFrame")]
+    assert len(made) == 2 and not any(isinstance(a, ast.Name) and a.id == "self" for n in made for a in n.args)
+
+
+def test_the_pipeline_reads_only_the_frame_paths_interface():
+    tree = ast.parse((ROOT / "edge" / "pipeline.py").read_text())
+    read = {n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute) and isinstance(n.value, ast.Attribute)
+            and isinstance(n.value.value, ast.Name) and n.value.value.id == "self" and n.value.attr in ("path", "reference")}
+    assert read and read <= FRAME_PATH_INTERFACE, read - FRAME_PATH_INTERFACE
+
+
+def test_a_read_through_the_pipeline_is_found():
+    code = "class F:\n    def f(self):\n        p = self.p\n        return p.buffer, self.p.decoder, self.spec.fps\n"
+    assert sorted(expr for _, expr in pipeline_reads(code)) == ["p.buffer", "self.p.decoder"]
