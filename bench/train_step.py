@@ -1,7 +1,8 @@
 """Where a CPU training step's time goes, and training windows a minute for each recipe, in one run.
 
     python bench/train_step.py [--data ../shared/mocap] [--batch 128] [--best-of 16,8,4] [--threads 1,2]
-                               [--steps 6] [--json out/train_step.json]
+                               [--steps 6] [--precision fp32,bf16] [--winner both|only|off]
+                               [--json out/train_step.json]
 
 For each (K, threads) it times the stages of the recipe's step (a copy of models.train.recipe_losses
 with a clock between its parts) on the same batches: making the batch (motion.dataset.make_batch, one
@@ -12,6 +13,7 @@ its own beside the step, so a step costs its slower half).
 Numbers vary with what else runs on the machine: say so beside them.
 """
 import argparse
+import itertools
 import json
 import sys
 import time
@@ -82,6 +84,9 @@ def main():
     ap.add_argument("--best-of", default="16,8,4")
     ap.add_argument("--threads", default="1,2")
     ap.add_argument("--steps", type=int, default=6)
+    ap.add_argument("--precision", default="fp32", help="fp32, bf16 or both (fp32,bf16): --bf16's autocast")
+    ap.add_argument("--winner", default="both", choices=("both", "only", "off"),
+                    help="time the winner's-gradient step, the all-K one, or both")
     ap.add_argument("--json")
     a = ap.parse_args()
     cs = ds.build(a.data, "train")
@@ -99,13 +104,15 @@ def main():
     rows = []
     opt = torch.optim.Adam(model.parameters(), lr=1e-9)
 
-    def real_step(step, b):
-        loss, _ = step(b)
+    def real_step(step, b, bf16):
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+            loss, _ = step(b)
         opt.zero_grad()
         loss.backward()
         torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
         opt.step()
 
+    winners = {"both": (False, True), "only": (True,), "off": (False,)}[a.winner]
     for threads in map(int, a.threads.split(",")):
         torch.set_num_threads(threads)
         for K in map(int, a.best_of.split(",")):
@@ -115,18 +122,19 @@ def main():
                 for k, v in stage_times(model, b, K).items():
                     total[k] = total.get(k, 0.0) + v / len(batches)
             print(f"threads {threads} K={K:2d} stages: " + ", ".join(f"{k} {v:.2f} s" for k, v in total.items()))
-            for winner in (False, True):
+            for winner, precision in itertools.product(winners, a.precision.split(",")):
                 step = tr.RecipeStep(model, K, 0.02, winner_grad=winner)
-                real_step(step, batches[0])            # warm-up
+                bf16 = precision == "bf16"
+                real_step(step, batches[0], bf16)            # warm-up
                 t0 = time.perf_counter()
                 for b in batches:
-                    real_step(step, b)
+                    real_step(step, b, bf16)
                 took = (time.perf_counter() - t0) / len(batches)
                 wpm = a.batch / max(took, make_s) * 60
-                rows.append({"threads": threads, "best_of": K, "winner_grad": winner, "step_s": took,
-                             "stages_s": total, "windows_per_minute": wpm})
-                print(f"threads {threads} K={K:2d} {'winner-grad' if winner else 'all K grad '}: step {took:.2f} s "
-                      f"-> {wpm:,.0f} windows a minute", flush=True)
+                rows.append({"threads": threads, "best_of": K, "winner_grad": winner, "precision": precision,
+                             "step_s": took, "stages_s": total, "windows_per_minute": wpm})
+                print(f"threads {threads} K={K:2d} {'winner-grad' if winner else 'all K grad '} {precision}: "
+                      f"step {took:.2f} s -> {wpm:,.0f} windows a minute", flush=True)
     if a.json:
         Path(a.json).parent.mkdir(parents=True, exist_ok=True)
         Path(a.json).write_text(json.dumps({"batch": a.batch, "make_batch_s": make_s, "rows": rows}, indent=2))

@@ -77,10 +77,12 @@ def to_t(b, device="cpu"):
 
 
 def head_positions(rot6d, root_rot):
-    """Decoder 6D output -> joint positions relative to the head (the runtime hangs the body from it)."""
-    local = matrix_from_6d(rot6d.reshape(rot6d.shape[:-1] + (NUM_PREDICTED, 6)))
-    pos = fk_positions(root_rot, local)
-    return pos - pos[..., HEAD:HEAD + 1, :]
+    """Decoder 6D output -> joint positions relative to the head (the runtime hangs the body from it).
+    In fp32 under --bf16 too: bf16's 8-bit mantissa would put a foot a metre down the chain ~4 mm off."""
+    with torch.autocast(rot6d.device.type, enabled=False):
+        local = matrix_from_6d(rot6d.float().reshape(rot6d.shape[:-1] + (NUM_PREDICTED, 6)))
+        pos = fk_positions(root_rot.float(), local)
+        return pos - pos[..., HEAD:HEAD + 1, :]
 
 
 FOOT_JOINTS = np.concatenate([ANKLES, TOES])
@@ -357,6 +359,9 @@ def parse_args(argv=None):
     ap.add_argument("--reuse", type=int, default=1,
                     help="a batch may serve up to this many steps (each with fresh latents) when the next is not "
                          "ready yet: an accelerator need not wait for the CPUs")
+    ap.add_argument("--bf16", action="store_true",
+                    help="the forward pass under bfloat16 autocast (weights, Adam and the loss's sums stay fp32): "
+                         "for a CPU with AVX-512 BF16 or AMX, or a GPU; see bench/train_step.py --precision")
     ap.add_argument("--device", default="auto", choices=("auto", "cpu", "cuda"))
     ap.add_argument("--threads", type=int, default=0,
                     help="torch threads of the main process (0: 2 on an accelerator, else the cores per process)")
@@ -550,7 +555,8 @@ class Trainer:
             uses += 1
             self.waited += time.time() - t_wait
             model.train()
-            loss, t = self.step(b)
+            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=a.bf16):
+                loss, t = self.step(b)
             opt.zero_grad()
             loss.backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), 1.0)
@@ -596,7 +602,7 @@ class Trainer:
                 "licences": ds.source_licences(sources),
                 "loss": LOSS, "best_of": a.best_of, "winner_grad": a.winner_grad, "eps": a.eps, "vigorous": a.vigorous, "posterior_encoder": a.posterior,
                 "learned_prior": a.learned_prior, "init": a.init, "batch": a.batch, "window": a.window, "lr": a.lr,
-                "seed": a.seed, "windows_by": a.windows_by, "cap_minutes": a.cap_minutes, "mirror": a.mirror,
+                "seed": a.seed, "bf16": a.bf16, "windows_by": a.windows_by, "cap_minutes": a.cap_minutes, "mirror": a.mirror,
                 "tempo": a.tempo, "processes": self.world, "device": str(device), "train_clips": len(self.cs_train.names),
                 "train_minutes": len(self.cs_train.root) / 3600, "features": "4-point + 7 IMUs (edge.features)"}
         (self.ckpt / "meta.json").write_text(json.dumps(meta, indent=2))
