@@ -141,6 +141,36 @@ def _add_profile(sub):
     profile_mod.add_arguments(pf)
 
 
+def _add_soak(sub):
+    sk = sub.add_parser("soak", help="hours of one board on every transport, faults mixed in: memory, descriptors, "
+                                     "threads, late frames, recovery (issue #55)")
+    sk.add_argument("--minutes", type=float, required=True, help="how long (a play session: 120)")
+    sk.add_argument("--json", required=True, help="the summary (minutes, rss_growth_mb_per_h, fd_growth, ..., ok)")
+    sk.add_argument("--lines", help="the samples as JSON lines (default: beside --json, .jsonl)")
+    sk.add_argument("--plot", help="a PNG of the samples (needs the viz extra)")
+    sk.add_argument("--source", nargs="+", help="BVH clips or sample takes, played in turn (default: the bundled walk)")
+    sk.add_argument("--part-s", type=float, default=60.0, help="seconds of each part (one fault each)")
+    sk.add_argument("--sample-s", type=float, default=60.0, help="seconds between samples (a multiple of --part-s)")
+    sk.add_argument("--samples", default="16", help="SSI samples N, or auto (the governor, as the board runs)")
+    sk.add_argument("--precision", default=DEFAULT_PRECISION, choices=("int8", "fp32"))
+
+
+def _soak(args):
+    if args.plot:
+        from viz.canvas import require_plotting
+        require_plotting()                   # say what to install before soaking, not after
+    from edgetools.sim import soak
+    code = soak.main(args)
+    if args.plot and code in (0, 1):
+        import json
+        from viz.figures import soak_figure
+        summary = json.loads(Path(args.json).read_text())
+        rows = [json.loads(line) for line in Path(summary["lines"]).read_text().splitlines()]
+        soak_figure(rows, summary, args.plot)
+        print(f"wrote {args.plot}")
+    return code
+
+
 def _eval(args):
     from edgetools import eval as ev_mod
     if args.report:
@@ -220,7 +250,8 @@ def _ssi_study(args):
 
 COMMANDS = {"eval": (_add_eval, _eval), "report": (_add_report, _report), "ssi-study": (_add_ssi_study, _ssi_study),
             "run": (_add_run, _run), "calibrate": (_add_calibrate, _calibrate), "listen": (_add_listen, _listen),
-            "replay": (_add_replay, _replay), "record": (_add_record, _record), "profile": (_add_profile, _profile)}
+            "replay": (_add_replay, _replay), "record": (_add_record, _record), "profile": (_add_profile, _profile),
+            "soak": (_add_soak, _soak)}
 
 
 def main(argv=None):

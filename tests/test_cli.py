@@ -370,6 +370,16 @@ def test_every_subcommand_in_edge_help_has_a_subprocess_test_here(tmp_path):
     assert not untested, f"no subprocess test in tests/test_cli.py for: edge {', edge '.join(untested)}"
 
 
+def test_soak_refuses_what_it_cannot_run_and_says_how(tmp_path):
+    """`edge soak` with parts too short or a clip that is not there stops before it starts, saying what to
+    change (tests/test_soak.py runs a real minute of it)."""
+    run = edge("soak", "--minutes", 1, "--part-s", 3, "--json", "s.json", cwd=tmp_path)
+    assert run.returncode == 2 and "--part-s >= 5" in run.stderr, said(run)
+    run = edge("soak", "--minutes", 1, "--source", "nowhere.bvh", "--json", "s.json", cwd=tmp_path)
+    assert run.returncode == 2 and "nowhere.bvh: no such file" in run.stderr, said(run)
+    assert not (tmp_path / "s.json").exists()
+
+
 def test_replay_help_names_every_fault_profile(tmp_path):
     from edgetools.sim.session import FAULTS
     run = edge("replay", "--help", cwd=tmp_path, env={"COLUMNS": "1000"})

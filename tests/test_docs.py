@@ -75,6 +75,9 @@ RUN = {
 BOARD = "examples/board.toml names the board's UART (/dev/ttyAMA0), I2C bus 1 and can0"
 TRAIN = "trains for about 100 minutes and overwrites the shipped models/ (tests/test_train_ddp.py trains briefly)"
 NOT_RUNNABLE = {
+    ".venv/bin/edge soak --minutes 120 --source ../shared/mocap/cmu_fbx_daz/144/144_04.bvh "
+    "../shared/mocap/cmu_fbx_daz/55/55_27.bvh --json out/soak.json --plot docs/img/soak.png":
+        "two hours of real time; tests/test_soak.py runs a minute of it with the same checks",
     "/opt/edgepose/venv/bin/pip install edgepose[headset]": "the board's install under /opt; the test extra "
                                                              "pulls the [headset] extra in (./scripts/test)",
     ".venv/bin/pip install -e .[headset]": "the test extra already installs the [headset] extra (./scripts/test)",

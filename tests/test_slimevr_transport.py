@@ -92,6 +92,27 @@ def test_duplicates_old_packets_and_garbage_are_dropped_and_counted(source):
     assert source.stats["dropped_old"] == 2 and source.stats["corrupt"] == 1
 
 
+def test_one_packet_numbered_far_ahead_is_dropped_and_the_tracker_keeps_streaming(source):
+    """A datagram whose packet number was damaged (a bit flipped high: edge soak's bit errors found it)
+    must not make every later packet "old"; a jump the next packet follows on from is believed."""
+    from firmware_bridge.transports.slimevr import NUMBER_STEP_MAX
+    t = EmulatedTracker(source.address)
+    t.send(t.enc.handshake())
+    q = np.array([1.0, 0, 0, 0])
+    for _ in range(3):
+        t.send(t.enc.rotation(0, q))
+    damaged = bytearray(t.enc.rotation(0, q))
+    damaged[4] ^= 0x40                          # the u64 packet number's top byte
+    t.send(bytes(damaged))
+    for _ in range(3):
+        t.send(t.enc.rotation(0, q))
+    assert len(drain(source)) == 6 and source.stats["corrupt_number"] == 1
+    t.enc.number += 5 * NUMBER_STEP_MAX         # a real jump (the firmware's counter moved on): confirmed
+    t.send(t.enc.rotation(0, q))
+    t.send(t.enc.rotation(0, q))
+    assert len(drain(source)) == 1 and source.stats["corrupt_number"] == 2
+
+
 def test_a_restarted_tracker_handshakes_again_and_is_back_with_numbers_from_zero(source):
     t = EmulatedTracker(source.address)
     t.send(t.enc.handshake())

@@ -6,6 +6,7 @@
     ssi_timeline       SSI: every sample's cost, the outlier bound, switches and the sample shown
     health_timeline    lost and recovered trackers, corrupt packets, injected faults
     contention_timeline  edge profile under a CPU hog: every frame's time and the N running
+    soak_figure        edge soak: memory, descriptors, threads, the frame's tail and late ticks over hours
 
 Data checks that decide whether a picture can be drawn at all live in viz.report.
 """
@@ -393,4 +394,45 @@ def learning_curves(runs, path, title="Validation error against training steps")
     ax.set_title(title, fontsize=10.5, loc="left")
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
+    return canvas.save_png(fig, path)
+
+
+# --------------------------------------------------------------------------------------------------
+# Soak
+
+
+def soak_figure(rows, summary, path, title="edge soak"):
+    """Four panels over the soak's minutes, from its samples (edgetools.sim.soak's JSON lines): RSS;
+    descriptors and threads; the frame's p50 and p99 in each sample; late ticks by whose doing, summed.
+    The injected faults are marks along the bottom."""
+    t = np.array([r["t_min"] for r in rows], float)
+    fig = canvas.new_figure(8.0, 7.2)
+    axes = [fig.add_axes([0.1, 0.77 - 0.225 * i, 0.86, 0.17]) for i in range(4)]
+    rss, fds, threads = ([r[k] for r in rows] for k in ("rss_mb", "fds", "threads"))
+    axes[0].plot(t, rss, "-o", markersize=2.5, color="#5b7db1")
+    axes[0].set_ylabel("RSS (MB)")
+    axes[0].set_title(f"{title}: {summary['minutes']:g} min, RSS {summary['rss_growth_mb_per_h']:+.2f} MB/h after "
+                      f"warm-up, {summary['faults_recovered']}/{summary['faults_injected']} faults recovered, "
+                      + ("ok" if summary["ok"] else "FAILED"), fontsize=9.5, loc="left")
+    axes[1].step(t, fds, where="post", color="#2d7d46", label="open descriptors")
+    axes[1].step(t, threads, where="post", color="#a05a2c", label="threads")
+    axes[1].set_ylim(0, max(max(fds), max(threads)) * 1.3)
+    axes[1].legend(fontsize=7.5, loc="lower right")
+    for key, colour in (("frame_ms_p50", "#5b7db1"), ("frame_ms_p99", canvas.BUDGET)):
+        axes[2].plot(t, [r[key] if r[key] is not None else np.nan for r in rows], "-", color=colour,
+                     label=key.replace("frame_ms_", "frame ").replace("p", "p", 1))
+    axes[2].set_ylabel("ms")
+    axes[2].legend(fontsize=7.5, loc="upper right")
+    colours = {"own": canvas.BUDGET, "fault": "#d9a13b", "host": "#7a7a7a", "harness": "#5b7db1"}
+    for kind, colour in colours.items():
+        axes[3].step(t, np.cumsum([r["late"][kind] for r in rows]), where="post", color=colour,
+                     label=f"late, {kind}: {summary['late_frames'][kind]}")
+    axes[3].set_ylabel("late ticks (sum)")
+    axes[3].legend(fontsize=7, loc="upper left", ncol=2)
+    axes[3].set_xlabel("minutes")
+    marks = [e["at_s"] / 60 for e in summary.get("faults", [])]
+    for ax in axes:
+        ax.grid(color=canvas.GRID, linewidth=0.6)
+        ax.set_xlim(0, max(t.max() if len(t) else 1, summary["minutes"]))
+    axes[3].plot(marks, np.zeros(len(marks)), "|", color="black", markersize=8, label="faults")
     return canvas.save_png(fig, path)

@@ -251,19 +251,23 @@ def flip_bits(data, ber, rng):
 # ----------------------------------------------------------------------------- synthesis
 
 def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, seed=0, seconds=None,
-               trackers=None):
-    """Device traffic for a take. The headset always speaks serial; IMUs go where `placement` puts them.
-    The extra IMUs `trackers` carry IMU noise (edge.imus.ImuNoise), as `edge eval` and training have it.
-    One seeded generator draws everything, in a fixed order: the same arguments make the same bytes."""
+               trackers=None, *, place=None, start=0.0, clocks=None):
+    """Device traffic for a take. The headset always speaks serial; IMUs go where `placement` puts them
+    (or where `place`, a placement dict, says). The extra IMUs `trackers` carry IMU noise
+    (edge.imus.ImuNoise), as `edge eval` and training have it. One seeded generator draws everything, in
+    a fixed order: the same arguments make the same bytes.
+    A soak plays one session after another into one board: `start` (s) puts this one's traffic after
+    the last one's, on the same device clocks (`clocks`, a meta["clocks"] dict) with the frame counters
+    and SlimeVR packet numbers running on, as the devices' own would."""
     faults = faults or {}
     rng = np.random.default_rng(seed)
-    place = placement(transports, trackers)
+    place = place or placement(transports, trackers)
     trackers = tuple(n for n in place["hub"] + place["can"] + place["slimevr"] if n != "waist")
     missing = [n for n in trackers if n not in (take.imu or {})]
     if missing:
         raise ValueError(f"{take.name} carries no orientation for {', '.join(missing)} (an older sample file: "
                          f"replay the BVH clip, or rebuild the sample with python -m edgetools.make_sample)")
-    tx = _Traffic(take, place, faults, rng, _noisy_imus(take, trackers, seed), seconds)
+    tx = _Traffic(take, place, faults, rng, _noisy_imus(take, trackers, seed), seconds, start, clocks)
     tx.plan_faults(trackers)
     headset, hub = tx.headset_log(), tx.hub_log()
     can_t, can_id, can_data = tx.can_frames()
@@ -271,7 +275,7 @@ def synthesize(take: Take, transports=("serial", "i2c", "can"), faults=None, see
     i2c_t, i2c_q, i2c_a = tx.i2c_samples("i2c" in transports)
     duration = tx.duration
     gt = None if take.gt_pos is None else take.gt_pos[:int(round(duration * tx.fps))]
-    meta = {"faults": faults, "seed": seed, "placement": place, "trackers": ["waist", *trackers],
+    meta = {"faults": faults, "seed": seed, "placement": place, "start": start, "trackers": ["waist", *trackers],
             "clocks": {k: {"offset": c.offset, "drift": c.drift} for k, c in tx.clocks.items()},
             "source": take.name, "slimevr_trackers": {SLIMEVR_MACS[n]: n for n in place["slimevr"]}}
     return Session(take.name, tx.fps, duration, tuple(transports), headset, hub, np.array(can_t),
@@ -291,12 +295,15 @@ class _Traffic:
     """One take's traffic being made: the signals, the device clocks, the fault plan and the generator,
     shared by each device's log below (called in synthesize's order, which fixes the random draws)."""
 
-    def __init__(self, take, place, faults, rng, imus, seconds):
+    def __init__(self, take, place, faults, rng, imus, seconds, start=0.0, clocks=None):
         self.take, self.place, self.faults, self.rng, self.imus = take, place, faults, rng, imus
+        self.start = start          # session time of this traffic's t = 0 (a soak's later part)
         self.fps = fps = take.fps
         self.duration = take.frames / fps if seconds is None else min(seconds, take.frames / fps)
         self.sig = DeviceNoise().apply(take.signals, fps, rng) if faults.get("noise") else take.signals
         self.clocks = {name: DeviceClock(rng.uniform(-50, 50), rng.normal(0, 50e-6), 0.0005) for name in RATES}
+        for name, c in (clocks or {}).items():          # drawn above all the same: the same stream follows
+            self.clocks[name] = DeviceClock(c["offset"], c["drift"], 0.0005)
         if "clock_jump_at" in faults:
             self.clocks["headset"].jump = (faults["clock_jump_at"], faults["clock_jump_s"])
         self.frames60 = int(np.ceil(self.duration * fps)) + 1
@@ -321,7 +328,11 @@ class _Traffic:
     def device_time(self, name, t):
         c = self.clocks[name]
         jump = getattr(c, "jump", None)
-        return c.stamp(t) + (jump[1] if jump and t >= jump[0] else 0.0)
+        return c.stamp(self.start + t) + (jump[1] if jump and t >= jump[0] else 0.0)
+
+    def count(self, device, k):
+        """The k-th message's counter as the device's own, running on from the parts before."""
+        return k + int(round(self.start * RATES[device]))
 
     def emissions(self, device, clock=None):
         """(k, t, frame) of each message `device` sends at its rate, with its clock's jitter."""
@@ -337,9 +348,10 @@ class _Traffic:
         for k, t, f in self.emissions("headset"):
             hp, hr, cp, cr, _, _ = signal_at(self.sig, self.fps, t)
             valid = np.array([not self.hands_gone[0][f], not self.hands_gone[1][f]])
-            data = messages.encode_headset_pose(HeadsetSample(self.device_time("headset", t), hp, hr, cp, cr, valid), k & 0xFFFF)
+            data = messages.encode_headset_pose(HeadsetSample(self.device_time("headset", t), hp, hr, cp, cr, valid),
+                                                self.count("headset", k) & 0xFFFF)
             if rng.random() >= self.loss:
-                log.add(t, flip_bits(data, self.ber, rng))
+                log.add(self.start + t, flip_bits(data, self.ber, rng))
         return log
 
     def hub_log(self):
@@ -350,7 +362,8 @@ class _Traffic:
             samples = [TrackerSample(n, self.device_time("hub", t), imu_at(self.take, n, t, self.imus)) for n in names
                        if self.has(n) and not self.dropped[n][f]]
             if samples and rng.random() >= self.loss:
-                log.add(t, flip_bits(messages.encode_tracker_samples(samples, k & 0xFFFF, HUB_IDS), self.ber, rng))
+                log.add(self.start + t, flip_bits(messages.encode_tracker_samples(samples, self.count("hub", k) & 0xFFFF,
+                                                                                  HUB_IDS), self.ber, rng))
         return log
 
     def can_frames(self):
@@ -365,8 +378,9 @@ class _Traffic:
             for node, name in CAN_NODES.items():
                 if name not in self.place["can"] or not self.has(name) or self.dropped[name][f] or rng.random() < self.loss:
                     continue
-                for m in encode_node_frames(node, imu_at(self.take, name, t, self.imus), np.zeros(3), 0xFF, k & 0xFF):
-                    can_t.append(t)
+                for m in encode_node_frames(node, imu_at(self.take, name, t, self.imus), np.zeros(3), 0xFF,
+                                            self.count("can", k) & 0xFF):
+                    can_t.append(self.start + t)
                     can_id.append(m.arbitration_id)
                     can_data.append(np.frombuffer(flip_bits(bytes(m.data), self.ber, rng), np.uint8))
         return can_t, can_id, can_data
@@ -378,15 +392,18 @@ class _Traffic:
         out = {}
         for name in self.place["slimevr"]:
             log, enc = SerialLog(), TrackerEncoder(SLIMEVR_MACS[name])
-            log.add(0.0, enc.sensor_info(0))
+            if self.start == 0:
+                log.add(0.0, enc.sensor_info(0))
+            before = self.count("slimevr", 0)             # rotations sent before: each 100th came with a battery
+            enc.number = before + before // 100
             for k, t, f in self.emissions("slimevr", clock="hub"):
                 if self.dropped[name][f] or self.rng.random() < self.loss:
                     enc.number += 1                    # a lost datagram still used its number
                     continue
                 q = quat.mul(to_wire, imu_at(self.take, name, t, self.imus))
-                log.add(t, flip_bits(enc.rotation(0, q), self.ber, self.rng))
+                log.add(self.start + t, flip_bits(enc.rotation(0, q), self.ber, self.rng))
                 if k % 100 == 99:
-                    log.add(t, enc.battery(3.9, 0.8))
+                    log.add(self.start + t, enc.battery(3.9, 0.8))
             out[SLIMEVR_MACS[name]] = log
         return out
 
@@ -400,4 +417,4 @@ class _Traffic:
             i2c_q = quat.normalize(np.array([signal_at(sig, fps, t)[4] for t in i2c_t]))
             gone = self.dropped["waist"][np.minimum((i2c_t * fps).astype(int), self.frames60 - 1)]
             i2c_q[gone] = np.nan                                   # the puck stops answering (see replay)
-        return i2c_t, i2c_q, i2c_a
+        return self.start + i2c_t, i2c_q, i2c_a

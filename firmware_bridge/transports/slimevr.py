@@ -43,6 +43,7 @@ class Tracker:
     address: tuple
     firmware: str = ""
     last_number: int = 0
+    number_ahead: int = None         # a packet number far ahead of the last, waiting for the next to confirm it
     sensors: dict = field(default_factory=dict)      # sensor id -> status (0 off, 1 ok, 2 error)
     battery: float = None                             # 0..1
     packets: int = 0
@@ -75,6 +76,10 @@ def parse_tracker_map(text):
     return out
 
 
+# A packet number more than this ahead of the last (10 s of packets at 100 Hz) is believed only when the
+# next packet follows on from it: one datagram whose number was damaged must not make every later one
+# "old" (an edge soak with bit errors found the tracker dropped for good).
+NUMBER_STEP_MAX = 1000
 DATAGRAMS_PER_CALL = 1024     # one recv reads what is queued, but a flood cannot hold it
 
 
@@ -88,7 +93,7 @@ def tracker_names(parsed):
 class SlimeVRSource(Source):
     def __init__(self, host, port, mapping, accept_any=False, clock=time.monotonic):
         super().__init__(clock)
-        self.stats.update({"unknown": 0, "dropped_old": 0, "handshakes": 0, "ignored": 0})
+        self.stats.update({"unknown": 0, "dropped_old": 0, "corrupt_number": 0, "handshakes": 0, "ignored": 0})
         self.mapping, self.accept_any, self.clock = mapping, accept_any, clock
         self.known_macs = {mac for mac, _ in mapping}
         try:
@@ -157,6 +162,11 @@ class SlimeVRSource(Source):
         if packet.number != 0 and packet.number <= t.last_number:
             self.stats["dropped_old"] += 1             # a duplicate, or older than what came
             return
+        if packet.number > t.last_number + NUMBER_STEP_MAX and t.last_number and not self._confirms(t, packet.number):
+            self.stats["corrupt"] += 1
+            self.stats["corrupt_number"] += 1
+            return
+        t.number_ahead = None
         t.last_number, t.last_seen = packet.number, now
         t.packets += 1
         if packet.kind == wire.PING_PONG:
@@ -178,6 +188,15 @@ class SlimeVRSource(Source):
                 self.pending.append(TrackerSample(name, now, quat.normalize(quat.mul(AXES_OFFSET, item.quat)),
                                                   received=now))
 
+    @staticmethod
+    def _confirms(t, number):
+        """Whether a far-ahead number follows on from the one before it (then the tracker did jump);
+        if not, it is the one to confirm next."""
+        if t.number_ahead is not None and t.number_ahead < number <= t.number_ahead + NUMBER_STEP_MAX:
+            return True
+        t.number_ahead = number
+        return False
+
     def _handshake(self, h, addr, now):
         self.stats["handshakes"] += 1
         mac = h.mac or f"ip:{addr[0]}:{addr[1]}"
@@ -191,7 +210,7 @@ class SlimeVRSource(Source):
             t = self.by_mac[mac] = Tracker(mac, addr, h.firmware, first_seen=now)
         else:                                           # a restarted tracker, or one that moved
             self.by_address.pop(t.address, None)
-            t.address, t.firmware, t.last_number = addr, h.firmware, 0
+            t.address, t.firmware, t.last_number, t.number_ahead = addr, h.firmware, 0, None
         t.last_seen, t.handshakes = now, t.handshakes + 1
         self.by_address[addr] = t
         self._send(wire.HANDSHAKE_REPLY, addr)
