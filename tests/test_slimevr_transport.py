@@ -111,6 +111,15 @@ def test_one_packet_numbered_far_ahead_is_dropped_and_the_tracker_keeps_streamin
     t.send(t.enc.rotation(0, q))
     t.send(t.enc.rotation(0, q))
     assert len(drain(source)) == 1 and source.stats["corrupt_number"] == 2
+    # the first packet after a handshake has nothing to be checked against: a damaged one is believed,
+    # and the true numbers, far behind it, win the stream back from the second on
+    t.send(t.enc.handshake())
+    damaged = bytearray(t.enc.rotation(0, q))
+    damaged[5] ^= 0x01
+    t.send(bytes(damaged))
+    for _ in range(4):
+        t.send(t.enc.rotation(0, q))
+    assert len(drain(source)) == 1 + 3 and source.stats["corrupt_number"] == 3
 
 
 def test_a_restarted_tracker_handshakes_again_and_is_back_with_numbers_from_zero(source):

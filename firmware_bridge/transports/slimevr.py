@@ -43,7 +43,7 @@ class Tracker:
     address: tuple
     firmware: str = ""
     last_number: int = 0
-    number_ahead: int = None         # a packet number far ahead of the last, waiting for the next to confirm it
+    number_ahead: int = None         # a packet number far from the last, waiting for the next to confirm it
     sensors: dict = field(default_factory=dict)      # sensor id -> status (0 off, 1 ok, 2 error)
     battery: float = None                             # 0..1
     packets: int = 0
@@ -76,9 +76,10 @@ def parse_tracker_map(text):
     return out
 
 
-# A packet number more than this ahead of the last (10 s of packets at 100 Hz) is believed only when the
-# next packet follows on from it: one datagram whose number was damaged must not make every later one
-# "old" (an edge soak with bit errors found the tracker dropped for good).
+# A packet number more than this from the last (10 s of packets at 100 Hz), ahead or behind, is believed
+# only when the next packet follows on from it: one datagram whose number was damaged must not make
+# every later one "old" (an edge soak with bit errors found a tracker dropped for good), and if one was
+# believed (the first after a handshake has nothing to be checked against) the true ones win it back.
 NUMBER_STEP_MAX = 1000
 DATAGRAMS_PER_CALL = 1024     # one recv reads what is queued, but a flood cannot hold it
 
@@ -159,12 +160,13 @@ class SlimeVRSource(Source):
         if t is None:                                   # never said hello: the server ignores it too
             self.stats["unknown"] += 1
             return
-        if packet.number != 0 and packet.number <= t.last_number:
-            self.stats["dropped_old"] += 1             # a duplicate, or older than what came
-            return
-        if packet.number > t.last_number + NUMBER_STEP_MAX and t.last_number and not self._confirms(t, packet.number):
-            self.stats["corrupt"] += 1
+        far = packet.number != 0 and t.last_number and abs(packet.number - t.last_number) > NUMBER_STEP_MAX
+        if far and not self._confirms(t, packet.number):
+            self.stats["corrupt"] += 1                 # far from the last: believed when the next follows on
             self.stats["corrupt_number"] += 1
+            return
+        if not far and packet.number != 0 and packet.number <= t.last_number:
+            self.stats["dropped_old"] += 1             # a duplicate, or older than what came
             return
         t.number_ahead = None
         t.last_number, t.last_seen = packet.number, now
@@ -190,8 +192,8 @@ class SlimeVRSource(Source):
 
     @staticmethod
     def _confirms(t, number):
-        """Whether a far-ahead number follows on from the one before it (then the tracker did jump);
-        if not, it is the one to confirm next."""
+        """Whether a number far from the last follows on from the one before it (then the tracker's
+        numbers did jump); if not, it is the one to confirm next."""
         if t.number_ahead is not None and t.number_ahead < number <= t.number_ahead + NUMBER_STEP_MAX:
             return True
         t.number_ahead = number
