@@ -23,11 +23,14 @@ import numpy as np
 
 from edge import quat
 from edge.shutdown import replace_whole
-from edge.signals import EYE_OFFSET, Signals
+from edge.signals import EYE_OFFSET, GRIP_OFFSET, Signals
 from edge.skeleton import PELVIS_HEIGHT, PELVIS_TO_HEAD
 
 CANONICAL_EYE_HEIGHT = PELVIS_HEIGHT + PELVIS_TO_HEAD[1] + EYE_OFFSET[1]
-VERSION = 1
+EYE_TO_STATURE = 0.936              # eye height standing over stature (Winter 2009, fig. 4.1)
+# 2: the eye height measured is kept, and the height scale is the head joint's (what v1 files said is
+# converted on load: their scale was the eyes').
+VERSION = 2
 
 
 class CalibrationError(ValueError):
@@ -45,6 +48,7 @@ def mean_quat(q):
 class Calibration:
     height_scale: float = 1.0
     heading: float = 0.0                                  # headset yaw during calibration, radians
+    eye_height_m: float = None                            # the headset's height standing, as measured
     align: dict = field(default_factory=dict)             # tracker -> [4] yaw alignment A
     mount: dict = field(default_factory=dict)             # tracker -> [4] mounting rotation M
 
@@ -56,8 +60,21 @@ class Calibration:
 
     def to_json(self):
         return {"version": VERSION, "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
-                "height_scale": self.height_scale, "heading_deg": float(np.degrees(self.heading)),
+                "height_scale": self.height_scale,
+                "eye_height_m": self.eye_height_m or eye_height_for(self.height_scale),
+                "stature_m": self.stature_m(), "heading_deg": float(np.degrees(self.heading)),
                 "trackers": {k: {"align": self.align[k].tolist(), "mount": self.mount[k].tolist()} for k in self.mount}}
+
+    def stature_m(self):
+        """The user's height, from the headset's standing (eyes at EYE_TO_STATURE of it)."""
+        eye = self.eye_height_m if self.eye_height_m else eye_height_for(self.height_scale)
+        return eye / EYE_TO_STATURE
+
+    def with_stature(self, stature_m):
+        """This calibration for a user `stature_m` tall (a height written in the config wins over the
+        one measured)."""
+        eye = EYE_TO_STATURE * stature_m
+        return Calibration(height_scale_for(eye), self.heading, eye, self.align, self.mount)
 
     def save(self, path):
         """Write the calibration whole: a stop or a crash mid-write leaves the previous file (edge.shutdown)."""
@@ -68,12 +85,16 @@ class Calibration:
     def load(cls, path):
         try:
             d = json.loads(Path(path).read_text())
-            if d.get("version") != VERSION:
+            if d.get("version") not in (1, VERSION):
                 raise CalibrationError(f"{path}: calibration version {d.get('version')} is not {VERSION}; run edge calibrate again")
             scale = float(d["height_scale"])
             if not 0.5 < scale < 2.0:
                 raise CalibrationError(f"{path}: height scale {scale:.3f} is implausible; run edge calibrate again")
-            cal = cls(scale, np.radians(float(d.get("heading_deg", 0.0))))
+            # v1 kept the eyes' ratio only: the eye height it measured, and the head joint's ratio from it
+            eye = float(d["eye_height_m"]) if d.get("eye_height_m") else CANONICAL_EYE_HEIGHT / scale
+            if not 0.8 < eye < 2.3:
+                raise CalibrationError(f"{path}: eye height {eye:.2f} m is implausible; run edge calibrate again")
+            cal = cls(height_scale_for(eye), np.radians(float(d.get("heading_deg", 0.0))), eye)
             for name, t in d.get("trackers", {}).items():
                 a, m = np.array(t["align"], dtype=np.float64), np.array(t["mount"], dtype=np.float64)
                 if a.shape != (4,) or m.shape != (4,) or not (np.all(np.isfinite(a)) and np.all(np.isfinite(m))):
@@ -87,6 +108,30 @@ class Calibration:
             if isinstance(e, CalibrationError):
                 raise
             raise CalibrationError(f"{path}: not a valid calibration file ({e}); run edge calibrate again") from None
+
+
+def height_scale_for(eye_height_m):
+    """The canonical body's size over the user's, from the headset's height standing (LoBSTR 4.2:
+    positions scaled to the training body). The head joint's heights, not the eyes': the eyes sit a
+    headset's offset in front of and above the joint whatever the size of the person."""
+    return (CANONICAL_EYE_HEIGHT - EYE_OFFSET[1]) / (eye_height_m - EYE_OFFSET[1])
+
+
+def eye_height_for(height_scale):
+    """The headset's standing height a height scale was measured from (height_scale_for's inverse)."""
+    return (CANONICAL_EYE_HEIGHT - EYE_OFFSET[1]) / height_scale + EYE_OFFSET[1]
+
+
+def devices_on_canonical(head_pos, head_rot, hand_pos, hand_rot, scale):
+    """The headset's and controllers' positions [...,3] from the user's body onto the canonical one,
+    around the floor origin: (head_pos, hand_pos). The body is scaled, the devices are not: the head
+    and wrist joints move by `scale`, the eyes and grips keep their offsets from them (scaling the grip
+    with the body put a 1.55 m user's wrists 1.2 cm off the controllers)."""
+    if scale == 1.0:
+        return head_pos, hand_pos
+    keep = 1.0 - scale
+    return (head_pos * scale + keep * quat.rotate(head_rot, EYE_OFFSET),
+            hand_pos * scale + keep * quat.rotate(hand_rot, GRIP_OFFSET))
 
 
 class FrameCalibration:
@@ -109,7 +154,9 @@ class FrameCalibration:
         imu_rot = sig.imu_rot.copy()
         if len(k):
             imu_rot[0, k] = quat.mul(quat.mul(self.align, sig.imu_rot[0, k]), self.mount)
-        return Signals(sig.head_pos * s, cal.body_rotation("head", sig.head_rot), sig.hand_pos * s, sig.hand_rot,
+        head_rot = cal.body_rotation("head", sig.head_rot)
+        head_pos, hand_pos = devices_on_canonical(sig.head_pos, head_rot, sig.hand_pos, sig.hand_rot, s)
+        return Signals(head_pos, head_rot, hand_pos, sig.hand_rot,
                        cal.body_rotation("waist", sig.waist_rot), sig.waist_acc, imu_rot, sig.imu_flag)
 
 
@@ -121,7 +168,7 @@ def calibrate(head_pos, head_rot, trackers):
         raise CalibrationError(f"headset only {height:.2f} m above the floor: stand upright during calibration "
                                f"(and check the headset's floor level)")
     heading = float(quat.yaw(mean_quat(head_rot)))
-    cal = Calibration(CANONICAL_EYE_HEIGHT / height, heading)
+    cal = Calibration(height_scale_for(height), heading, height)
     face = quat.from_yaw(np.array(heading))
     # the headset is the heading reference (no A); its M levels it: head_rot * M is the face in the T-pose
     cal.align["head"] = np.array([1.0, 0.0, 0.0, 0.0])

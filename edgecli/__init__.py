@@ -31,6 +31,9 @@ def _add_eval(sub):
     ev.add_argument("--precision", choices=("fp32", "int8"), default=DEFAULT_PRECISION)
     ev.add_argument("--max-frames", type=int, default=None, help="evaluate at most this many frames per clip")
     ev.add_argument("--max-clips", type=int, default=None, help="an even spread of this many clips (a quick look)")
+    ev.add_argument("--bodies", help="also on other bodies: 'standard' (12: three statures by short, average and long "
+                                     "legs, long and short arms, the canonical) or a JSON list of {name, height_m, legs, "
+                                     "arms}; BVH clips only; adds `bodies` to the JSON")
     ev.add_argument("--json", required=True, help="write the metrics here")
     ev.add_argument("--dump", help="write one .npz per clip (gt_pos, pred_pos) into this folder")
     ev.add_argument("--models", help="model folder (default: the shipped models/)")

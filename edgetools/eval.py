@@ -27,11 +27,45 @@ def pipeline_options(args):
                            heading=not getattr(args, "no_heading", False))
 
 
+def body_entry(body, result):
+    """One body's line of `edge eval --bodies`: its errors in cm and as a share of its stature."""
+    from edge.skeleton import JOINT
+    per_joint = result["per_joint_mpjpe_cm"]
+    return {**body.to_json(), "scale_to_canonical": round(result["height_scale"], 4),
+            "clips": result["clips"], "frames": result["frames"], "mpjpe_cm": result["mpjpe_cm"],
+            "mpjpe_pct_height": result["mpjpe_cm"] / body.height_m, "knees_cm": result["knees_cm"],
+            "ankles_cm": result["ankles_cm"],
+            "wrists_cm": (per_joint[JOINT["l_wrist"]] + per_joint[JOINT["r_wrist"]]) / 2,
+            "penetration_rate": result["penetration_rate"], "foot_skate_cm_s": result["foot_skate_cm_s"]}
+
+
+def evaluate_bodies(args, bodies):
+    """The same clips on each body; the canonical body's full result, with "bodies" added."""
+    from motion.evaluate import on_canonical_scale
+    out, entries = None, []
+    for body in bodies:
+        print(f"edge eval: body {body.name} ({body.height_m:.2f} m, legs {body.legs:g}x, arms {body.arms:g}x)",
+              file=sys.stderr)
+        r = evaluate(args.data, pipeline_options(args), split=args.split, people=args.people, models=args.models,
+                     trackers=parse_set(args.trackers), faults=args.faults, max_frames=args.max_frames,
+                     max_clips=args.max_clips, body=body)
+        r["height_scale"] = on_canonical_scale(body)
+        entries.append(body_entry(body, r))
+        if body.name == "canonical":
+            out = r
+    out["bodies"] = entries
+    return out
+
+
 def main(args):
     try:
-        result = evaluate(args.data, pipeline_options(args), split=args.split, people=args.people, models=args.models,
-                          trackers=parse_set(args.trackers), faults=args.faults, max_frames=args.max_frames,
-                          max_clips=args.max_clips, dump=args.dump)
+        if getattr(args, "bodies", None):
+            from motion.bodies import load_bodies
+            result = evaluate_bodies(args, load_bodies(args.bodies))
+        else:
+            result = evaluate(args.data, pipeline_options(args), split=args.split, people=args.people,
+                              models=args.models, trackers=parse_set(args.trackers), faults=args.faults,
+                              max_frames=args.max_frames, max_clips=args.max_clips, dump=args.dump)
     except (FileNotFoundError, ValueError) as e:
         print(f"edge eval: {e}", file=sys.stderr)
         return 2
@@ -43,5 +77,9 @@ def main(args):
     for who, r in result.get("people", {}).items():      # choose on unseen people: they are the users
         print(f"  {who} people: clips={r['clips']}  frames={r['frames']}  mpjpe_cm={r['mpjpe_cm']:.4g}  "
               f"knees_cm={r['knees_cm']:.4g}  ankles_cm={r['ankles_cm']:.4g}  foot_skate_cm_s={r['foot_skate_cm_s']:.4g}")
+    for b in result.get("bodies", []):
+        print(f"  body {b['name']:<22} {b['height_m']:.2f} m  mpjpe {b['mpjpe_cm']:.2f} cm = {b['mpjpe_pct_height']:.2f} % "
+              f"of height  knees {b['knees_cm']:.2f}  ankles {b['ankles_cm']:.2f}  wrists {b['wrists_cm']:.2f} cm  "
+              f"under the floor {100 * b['penetration_rate']:.2f} %")
     print(f"wrote {args.json}")
     return 0

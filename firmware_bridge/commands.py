@@ -91,6 +91,7 @@ def calibrate(args):
         print(f"edge calibrate: {e}", file=sys.stderr)
         return 2
     cal.save(args.out)
-    print(f"wrote {args.out}: height scale {cal.height_scale:.3f}, trackers {', '.join(cal.mount) or '-'}",
-          file=sys.stderr)
+    print(f"wrote {args.out}: headset {cal.eye_height_m:.2f} m above the floor standing, so a body about "
+          f"{cal.stature_m():.2f} m tall (height scale {cal.height_scale:.3f}; a [body] height_m in the config "
+          f"overrides it), trackers {', '.join(cal.mount) or '-'}", file=sys.stderr)
     return 0

@@ -57,6 +57,7 @@ SECTIONS = {
     "runtime": {"samples", "adaptive", "precision", "lookahead", "hz", "lost_after_ms", "sync_latency_ms",
                 "calibration", "models", "leg_guard_cm"},
     "refine": {"enabled", "steps", "terms"},
+    "body": {"height_m"},
 }
 REFINE_TERMS = ("targets", "keep", "floor", "legs", "imus", "imus-tilt")
 
@@ -84,6 +85,7 @@ class Config:
     path: str = ""
     tracker_names: list = field(default_factory=list)
     refine: dict = None             # [refine] as RefineSettings' fields (None: off)
+    height_m: float = None          # [body] height_m: the user's stature, over the calibration's measured one
 
     def pipeline_options(self):
         """The board's Pipeline, as edge.options.PipelineOptions: [runtime]'s N, look-ahead, rate,
@@ -136,7 +138,19 @@ def from_dict(raw, where="config"):
     read_output(cfg, raw.get("output", {}), where)
     read_runtime(cfg, raw.get("runtime", {}), where)
     cfg.refine = refine_section(raw.get("refine", {}), where)
+    cfg.height_m = read_body(raw.get("body", {}), where)
     return cfg
+
+
+def read_body(body, where):
+    """[body] height_m: the user's stature written by hand, which wins over the one the standing
+    calibration measured (a headset worn high, a calibration done sitting)."""
+    if "height_m" not in body:
+        return None
+    h = body["height_m"]
+    if isinstance(h, bool) or not isinstance(h, (int, float)) or not 1.0 <= h <= 2.3:
+        raise ConfigError(f"{where}: [body] height_m is the user's height in metres, 1.0 to 2.3; got {h!r}")
+    return float(h)
 
 
 def check_sections(raw, where):

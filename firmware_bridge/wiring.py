@@ -30,3 +30,11 @@ def status_printer(status):
     if status is None:
         return lambda text: None
     return lambda text: print(f"edge run: {text}", file=status)
+
+
+def load_calibration(cfg):
+    """The standing calibration the config names (none: the canonical body), with a [body] height_m
+    written in the config winning over the height it measured."""
+    from edge.calibration import Calibration
+    cal = Calibration.load(cfg.calibration) if cfg.calibration else Calibration()
+    return cal.with_stature(cfg.height_m) if cfg.height_m else cal

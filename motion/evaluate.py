@@ -1,6 +1,6 @@
 """Reconstruction quality on BVH clips or sample files, through the real per-frame pipeline: the library
 behind `edge eval` (edgetools.eval), the benchmarks and the int8 report."""
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 import time
 from pathlib import Path
 
@@ -8,6 +8,7 @@ import numpy as np
 
 from motion.bvh import BvhError
 from motion.contacts import contact_labels
+from edge.calibration import devices_on_canonical, height_scale_for
 from edge.imus import ImuNoise, dragposer_drops, mask
 from edge.features import head_joint, wrist_joints
 from edge.options import PipelineOptions
@@ -80,14 +81,17 @@ def take_signals(take, trackers, faults=None, seed=0, index=0, imu_noise=None, h
 
 
 def evaluate(paths, options=None, *, split=None, people=None, models=None, trackers=(), faults=None, imu_noise=None,
-             hand_bend=None, max_frames=None, max_clips=None, dump=None, log=print, conventions=True):
+             hand_bend=None, max_frames=None, max_clips=None, dump=None, log=print, conventions=True, body=None):
     """Every clip of `paths` (BVH files, folders, sample .npz; a folder filtered by its MANIFEST.tsv's
     `split`, and with `people` to the performers the model never saw or those it saw) through a
     Pipeline(options, models), wearing the extra IMUs `trackers` (with `faults`: DragPoser's disconnect
     protocol; `imu_noise`: edge.imus.ImuNoise by default), scored after a WARMUP_S warm-up. Returns the
     JSON `edge eval` writes, with the same metrics for unseen and seen people apart under "people";
     `dump` also writes one .npz per clip. conventions=False scores BVH clips against their retargeting
-    with the sources' skeleton conventions left in (the ruler before motion.neutrals)."""
+    with the sources' skeleton conventions left in (the ruler before motion.neutrals). body
+    (motion.bodies.Body): each BVH clip posed on that body, its devices synthesised from it and brought
+    onto the canonical body as the standing calibration does, the poses taken back to the body's size
+    and scored against its FK."""
     options = PipelineOptions() if options is None else options
     files = _clips(paths, split, max_clips, people)
     who = people_of_files(paths, files)
@@ -104,20 +108,45 @@ def evaluate(paths, options=None, *, split=None, people=None, models=None, track
     with Progress(len(files), "eval") as bar:
         for index, f in enumerate(files):
             try:
-                take = load_take(f) if conventions else load_take(f, conventions=False)
+                take = (load_take(f) if conventions else load_take(f, conventions=False)) if body is None \
+                    else body_take(f, body)
             except BvhError as e:
                 tally.skipped.append(str(e))
                 log(f"skipped: {e}")
                 bar.update()
                 continue
             fed = take_signals(take, trackers, faults, options.seed, index, imu_noise, hand_bend)
+            scale = 1.0 if body is None else on_canonical_scale(body)
+            if scale != 1.0:
+                fed = replace(fed, **dict(zip(("head_pos", "hand_pos"), devices_on_canonical(
+                    fed.head_pos, fed.head_rot, fed.hand_pos, fed.hand_rot, scale), strict=True)))
             run = run_take(pipe, take, max_frames, keep_samples=pipe.samples > 1, signals=fed)
+            if scale != 1.0:                        # the poses back in the user's size, as the outputs send them
+                run.pred /= scale
+                if run.samples is not None:
+                    run.samples /= scale
             tally.add(f, take, run, pipe, dump, who.get(f), fed.hand_rot)
             bar.update(postfix=f"mpjpe {metrics.summarize(tally.parts)['mpjpe_cm']:.2f} cm" if tally.parts else None)
     if not tally.parts:
         raise SystemExit("edge eval: no clip could be evaluated: " + "; ".join(tally.skipped))
     return {**_run_settings(pipe, options, split, people, trackers, faults), **tally.summary(),
             "seconds": round(time.time() - t0, 1), "joint_names": list(JOINT_NAMES)}
+
+
+def body_take(path, body):
+    """A BVH clip on `body` (motion.bodies.take_on)."""
+    from motion.bodies import take_on
+    from motion.retarget import load_motion
+    from motion.takes import FPS
+    if not str(path).lower().endswith(".bvh"):
+        raise BvhError(f"{path}: a body other than the canonical one needs a BVH clip (its rotations), not a sample")
+    return take_on(load_motion(path, FPS), body, FPS, str(path))
+
+
+def on_canonical_scale(body):
+    """The height scale the standing calibration measures on `body` (its headset's height standing)."""
+    from motion.bodies import eye_height
+    return height_scale_for(eye_height(body.offsets()))
 
 
 def _clips(paths, split, max_clips, people=None):

@@ -40,10 +40,46 @@ def test_calibrated_headset_reads_the_head_whatever_way_it_sits_on_the_face():
         assert np.degrees(quat.angle(quat.mul(quat.inv(head), sig.head_rot[0]))) > 9.0
 
 
-def test_height_scale_maps_the_user_onto_the_canonical_body():
+def test_height_scale_maps_the_users_head_joint_onto_the_canonical_one_and_keeps_the_devices_offsets():
+    """A user whose headset stands 1.50 m high: their head joint (the eyes are a headset's offset in front
+    of and above it, whatever the person's size) lands on the canonical body's, and the eyes and the
+    controllers' grips keep their offsets from the head and wrists (issue #54: scaling the grip with the
+    body put a short user's wrists 1.2 cm off the controllers)."""
+    from edge.calibration import FrameCalibration
+    from edge.signals import EYE_OFFSET, GRIP_OFFSET, Signals
     K = 10
     cal = calibrate(np.tile([0, 1.50, 0], (K, 1)), np.tile([1.0, 0, 0, 0], (K, 1)), {})
-    assert cal.height_scale == pytest.approx(CANONICAL_EYE_HEIGHT / 1.50)
+    assert cal.height_scale == pytest.approx((CANONICAL_EYE_HEIGHT - EYE_OFFSET[1]) / (1.50 - EYE_OFFSET[1]))
+    assert cal.eye_height_m == pytest.approx(1.50) and cal.stature_m() == pytest.approx(1.50 / 0.936)
+    head_rot, hand_rot = rot([0, 1, 0], 30), np.stack([rot([1, 0, 0], 50), rot([0, 0, 1], -40)])
+    wrists = np.array([[0.3, 1.0, 0.2], [-0.3, 0.9, 0.1]])
+    head_joint = np.array([0.05, 1.40, 0.02])
+    sig = Signals((head_joint + quat.rotate(head_rot, EYE_OFFSET))[None], head_rot[None],
+                  (wrists + quat.rotate(hand_rot, GRIP_OFFSET))[None], hand_rot[None], np.array([[1.0, 0, 0, 0]]),
+                  np.zeros((1, 3)))
+    cal.mount.clear()                                  # levelling aside: the positions only
+    out = FrameCalibration(cal)(sig)
+    s = cal.height_scale
+    np.testing.assert_allclose(out.head_pos[0] - quat.rotate(head_rot, EYE_OFFSET), head_joint * s, atol=1e-12)
+    np.testing.assert_allclose(out.hand_pos[0] - quat.rotate(hand_rot, GRIP_OFFSET), wrists * s, atol=1e-12)
+
+
+def test_a_calibration_file_from_before_loads_with_its_eye_height_kept(tmp_path):
+    """Version 1 files kept the eyes' ratio only: they load, the eye height they measured recovered and
+    the head joint's ratio made from it; a stature in the config wins over the measured one."""
+    import json
+    from edge.signals import EYE_OFFSET
+    old = tmp_path / "v1.json"
+    old.write_text(json.dumps({"version": 1, "height_scale": CANONICAL_EYE_HEIGHT / 1.55, "heading_deg": 10.0,
+                               "trackers": {}}))
+    cal = Calibration.load(old)
+    assert cal.eye_height_m == pytest.approx(1.55)
+    assert cal.height_scale == pytest.approx((CANONICAL_EYE_HEIGHT - EYE_OFFSET[1]) / (1.55 - EYE_OFFSET[1]))
+    cal.save(tmp_path / "v2.json")
+    assert json.loads((tmp_path / "v2.json").read_text())["version"] == 2
+    assert Calibration.load(tmp_path / "v2.json").height_scale == pytest.approx(cal.height_scale)
+    tall = cal.with_stature(1.92)
+    assert tall.stature_m() == pytest.approx(1.92) and tall.height_scale < 1.0 < cal.height_scale
 
 
 def test_sitting_calibration_is_refused():
@@ -66,3 +102,15 @@ def test_round_trip_and_clear_errors_for_bad_files(tmp_path):
     (tmp_path / "tall.json").write_text('{"version": 1, "height_scale": 7}')
     with pytest.raises(CalibrationError, match="implausible"):
         Calibration.load(tmp_path / "tall.json")
+
+
+def test_a_height_in_the_config_is_read_and_a_wrong_one_refused_with_the_fix():
+    from firmware_bridge import config as config_mod
+    raw = {"headset": {"url": "serial:///dev/ttyAMA0?role=headset"}, "body": {"height_m": 1.62}}
+    from firmware_bridge.wiring import load_calibration
+    cfg = config_mod.from_dict(raw)
+    assert cfg.height_m == 1.62 and load_calibration(cfg).stature_m() == pytest.approx(1.62)     # what the board uses
+    assert config_mod.from_dict({"headset": raw["headset"]}).height_m is None
+    for bad in (162, "tall", True):
+        with pytest.raises(config_mod.ConfigError, match=r"\[body\] height_m is the user's height in metres"):
+            config_mod.from_dict({**raw, "body": {"height_m": bad}})

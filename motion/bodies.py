@@ -1,0 +1,115 @@
+"""Bodies that are not the canonical one (issue #54): a stature and leg and arm lengths for it, the
+skeleton they make, and a recording posed on it with its devices synthesised from that body.
+
+A body is the canonical skeleton with its legs (hips to toes) and arms (upper arm and forearm) made
+longer or shorter by a factor, then scaled whole to the stature asked for, so "long legs" means long
+for the person's height, as anthropometry states it. Proportions, as shares of stature, follow
+Winter, "Biomechanics and Motor Control of Human Movement" (4th ed., 2009, fig. 4.1, after Drillis
+and Contini 1966): eye height 0.936 H. Adult legs and arms vary about 4 % either way at one standard
+deviation for their height (the spread the issue cites); the standard set goes to two (8 %).
+"""
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from edge import quat
+from edge.signals import EYE_OFFSET
+from edge.skeleton import HEAD, JOINT, OFFSETS, TOE_HEIGHT, fk, rest_positions
+from edge.imus import IMU_LOCATIONS
+from motion.synth import synthesize_from_pose
+from motion.takes import Take
+
+EYE_TO_STATURE = 0.936          # Winter (2009) fig. 4.1
+LEG_BONES = np.array([JOINT[f"{s}_{j}"] for s in "lr" for j in ("hip", "knee", "ankle", "toe")])
+ARM_BONES = np.array([JOINT[f"{s}_{j}"] for s in "lr" for j in ("elbow", "wrist")])
+TRUNK_BONES = np.array([JOINT[j] for j in ("spine", "chest", "neck", "head")])
+
+
+def eye_height(offsets):
+    """The eyes' height above the floor standing in the rest pose, on the skeleton `offsets`."""
+    rest = rest_positions(offsets)
+    return TOE_HEIGHT - rest[JOINT["l_toe"], 1] + rest[HEAD, 1] + EYE_OFFSET[1]
+
+
+CANONICAL_STATURE = eye_height(OFFSETS) / EYE_TO_STATURE
+
+
+@dataclass(frozen=True)
+class Body:
+    name: str
+    height_m: float                 # stature
+    legs: float = 1.0               # leg length against the canonical body's, for the same stature
+    arms: float = 1.0
+
+    def size(self):
+        """The factor the canonical skeleton is scaled by to this stature (average proportions)."""
+        rest = rest_positions(OFFSETS)
+        span = rest[HEAD, 1] - rest[JOINT["l_toe"], 1]       # toe to head joint; the eyes' offset is the headset's
+        return (EYE_TO_STATURE * self.height_m - TOE_HEIGHT - EYE_OFFSET[1]) / span
+
+    def offsets(self):
+        """The body's skeleton: each joint's offset from its parent (m), as edge.skeleton.OFFSETS. Legs
+        long for the stature leave the trunk (pelvis to head) shorter, so the eyes stay where the
+        stature puts them; arms hang off it and change nothing else."""
+        s = self.size()
+        off = OFFSETS * s
+        off[LEG_BONES] *= self.legs
+        off[ARM_BONES] *= self.arms
+        rest = rest_positions(OFFSETS)
+        legs_span = -rest[JOINT["l_toe"], 1] * s * self.legs                # pelvis down to the toes
+        trunk = EYE_TO_STATURE * self.height_m - TOE_HEIGHT - EYE_OFFSET[1] - legs_span
+        off[TRUNK_BONES] *= trunk / (rest[HEAD, 1] * s)
+        return off
+
+    def leg_scale(self):
+        """How much longer than the canonical body's the legs are (hips to toes, the same for each bone)."""
+        return self.legs * self.size()
+
+    def to_json(self):
+        return {"name": self.name, "height_m": self.height_m, "legs": self.legs, "arms": self.arms}
+
+
+CANONICAL = Body("canonical", float(CANONICAL_STATURE))
+
+
+def standard_bodies():
+    """The canonical body, three statures by three leg lengths (short, average, long for the height: two
+    standard deviations), and long and short arms at the middle stature."""
+    out = [CANONICAL]
+    for h in (1.55, 1.75, 1.95):
+        for legs, say in ((0.92, "short legs"), (1.0, ""), (1.08, "long legs")):
+            out.append(Body(f"{h:.2f} m" + (f", {say}" if say else ""), h, legs))
+    out += [Body("1.75 m, short arms", 1.75, arms=0.92), Body("1.75 m, long arms", 1.75, arms=1.08)]
+    return out
+
+
+def load_bodies(spec):
+    """'standard', or a JSON file: a list of {name, height_m, legs?, arms?}. ValueError says what is wrong."""
+    if spec == "standard":
+        return standard_bodies()
+    try:
+        rows = json.loads(Path(spec).read_text())
+        bodies = [Body(str(r["name"]), float(r["height_m"]), float(r.get("legs", 1.0)), float(r.get("arms", 1.0)))
+                  for r in rows]
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        raise ValueError(f"--bodies {spec}: not 'standard' or a JSON list of {{name, height_m, legs, arms}} ({e})") from None
+    for b in bodies:
+        if not (1.0 <= b.height_m <= 2.3 and 0.7 <= b.legs <= 1.3 and 0.7 <= b.arms <= 1.3):
+            raise ValueError(f"--bodies {spec}: {b.name!r} is outside 1.0-2.3 m or limbs 0.7-1.3x")
+    if not any(b.name == "canonical" for b in bodies):
+        bodies.insert(0, CANONICAL)             # the figures are read against it
+    return bodies
+
+
+def take_on(motion, body, fps, name):
+    """A canonical Motion (local rotations, root) posed on `body`: the same joint angles, the root's
+    path scaled with the pelvis' height (the feet stay on the floor, steps as long as the legs), the
+    devices synthesised from that body. Its truth is the body's FK. Everything from the pelvis down
+    is the canonical body's times leg_scale, so a foot on the floor there is on the floor here."""
+    offsets = body.offsets()
+    root = motion.root * body.leg_scale()
+    world_rot_m, pos = fk(quat.to_matrix(motion.rotations), root, offsets=offsets)
+    sig = synthesize_from_pose(world_rot_m, pos, fps)
+    return Take(name, sig, pos, fps, {n: sig.imu_rot[:, k] for k, n in enumerate(IMU_LOCATIONS)})
