@@ -205,7 +205,7 @@ class SoakBench(ReplayBench):
         scheme.BENCH[f"{self.name}-waist"] = scheme.BenchDevice(chip, self.clock, self.clock.sleep)
         self.playing, self.upcoming = first, parts.take()
         self.index = 0
-        self.ticks = int(round(minutes * 60 * 60))      # at 60 Hz; set again from the config in run()
+        self.end_s = minutes * 60
         self.sample_s = sample_s
         self.flood_stop = None
         self.live = None            # (fault, start, end) of the live fault playing
@@ -242,7 +242,8 @@ class SoakBench(ReplayBench):
     def _live_faults(self, now):
         """Start the playing part's fault at FAULT_AT, end a live one when its time is up."""
         fault, start = self.fault_of(self.index), self.index * self.part_s + FAULT_AT * self.part_s
-        if fault.name != "none" and now >= start and (not self.events or self.events[-1]["part"] != self.index):
+        judged = start + fault.seconds + RECOVER_S <= self.end_s        # a fault the soak can see the end of
+        if fault.name != "none" and judged and now >= start and (not self.events or self.events[-1]["part"] != self.index):
             self.events.append({"part": self.index, "fault": fault.name, "at_s": round(start, 3),
                                 "ends_s": round(start + fault.seconds, 3), "counter": fault.moves,
                                 "before": self.counter(fault.moves), "counted": False, "recovered_s": None})
