@@ -117,6 +117,8 @@ NOT_RUNNABLE = {
         "continues a 45-minute run from the one above",
     "python bench/train_step.py --best-of 16,8,4 --threads 1,2": "reads all of train (3 min of retargeting on a "
                                                                   "fresh machine), then a minute a recipe",
+    "python bench/train_step.py --best-of 8 --threads 1,2 --precision fp32,bf16 --winner only":
+        "reads all of train, then a minute a setting; bf16 needs a CPU with AVX-512 BF16 or AMX to be fast",
     "python -m motion.conventions": "reads all of train (3 min of retargeting on a fresh machine); "
                                     "tests/test_conventions.py checks the measurement",
     "scripts/eval-checkpoint .cache/runs/v06 .cache/models/v06": "needs the run above's checkpoint; exports, "
