@@ -331,7 +331,8 @@ class Soak:
         ticks = int(round(self.minutes * 60 * hz))
         self.hz, self.frame_ms = hz, np.full(ticks + 1, np.nan)
         self.cpu_ms = np.full(ticks + 1, np.nan)
-        self.late = np.zeros(ticks + 1, np.int8)            # 0 on time, else 1 + LATE_KINDS index
+        self.late = np.full(ticks + 1, 0, np.int8)          # 0 on time, else 1 + LATE_KINDS index (np.full:
+        # every page touched now, not a few KB a minute as the ticks reach them, which reads as growth)
         b.metrics = StreamMetrics(ticks, hz, None, service.pipeline.lookahead)
         b._ticks_by_us = {}
         b.clock.t0 = time.monotonic()

@@ -13,7 +13,7 @@ class StreamMetrics:
 
     def __init__(self, ticks, hz, gt_pos, lookahead):
         self.hz, self.gt, self.lookahead = hz, gt_pos, lookahead
-        self.seen = np.zeros(ticks + 2, bool)
+        self.seen = np.full(ticks + 2, False)           # np.full: its pages touched now, not over the hours
         self.latency = np.full(ticks + 2, np.nan)
         self.error = np.full(ticks + 2, np.nan)
         self.t = np.full(ticks + 2, np.nan)
