@@ -24,13 +24,16 @@ import numpy as np
 from edge import quat
 from edge.shutdown import replace_whole
 from edge.signals import EYE_OFFSET, GRIP_OFFSET, Signals
-from edge.skeleton import PELVIS_HEIGHT, PELVIS_TO_HEAD
+from edge.skeleton import JOINT, OFFSETS, PELVIS_HEIGHT, PELVIS_TO_HEAD
 
 CANONICAL_EYE_HEIGHT = PELVIS_HEIGHT + PELVIS_TO_HEAD[1] + EYE_OFFSET[1]
 EYE_TO_STATURE = 0.936              # eye height standing over stature (Winter 2009, fig. 4.1)
 # 2: the eye height measured is kept, and the height scale is the head joint's (what v1 files said is
 # converted on load: their scale was the eyes').
 VERSION = 2
+# The canonical shoulders' span (shoulder joint to shoulder joint) and arm (shoulder joint to wrist).
+SHOULDER_SPAN = 2 * (OFFSETS[JOINT["l_collar"], 0] + OFFSETS[JOINT["l_shoulder"], 0])
+CANONICAL_ARM = float(np.linalg.norm(OFFSETS[JOINT["l_elbow"]]) + np.linalg.norm(OFFSETS[JOINT["l_wrist"]]))
 
 
 class CalibrationError(ValueError):
@@ -49,6 +52,7 @@ class Calibration:
     height_scale: float = 1.0
     heading: float = 0.0                                  # headset yaw during calibration, radians
     eye_height_m: float = None                            # the headset's height standing, as measured
+    arm_length_m: float = None                            # shoulder to wrist, from the T-pose's controllers
     align: dict = field(default_factory=dict)             # tracker -> [4] yaw alignment A
     mount: dict = field(default_factory=dict)             # tracker -> [4] mounting rotation M
 
@@ -62,6 +66,7 @@ class Calibration:
         return {"version": VERSION, "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
                 "height_scale": self.height_scale,
                 "eye_height_m": self.eye_height_m or eye_height_for(self.height_scale),
+                "arm_length_m": self.arm_length_m,
                 "stature_m": self.stature_m(), "heading_deg": float(np.degrees(self.heading)),
                 "trackers": {k: {"align": self.align[k].tolist(), "mount": self.mount[k].tolist()} for k in self.mount}}
 
@@ -74,7 +79,7 @@ class Calibration:
         """This calibration for a user `stature_m` tall (a height written in the config wins over the
         one measured)."""
         eye = EYE_TO_STATURE * stature_m
-        return Calibration(height_scale_for(eye), self.heading, eye, self.align, self.mount)
+        return Calibration(height_scale_for(eye), self.heading, eye, self.arm_length_m, self.align, self.mount)
 
     def save(self, path):
         """Write the calibration whole: a stop or a crash mid-write leaves the previous file (edge.shutdown)."""
@@ -95,6 +100,10 @@ class Calibration:
             if not 0.8 < eye < 2.3:
                 raise CalibrationError(f"{path}: eye height {eye:.2f} m is implausible; run edge calibrate again")
             cal = cls(height_scale_for(eye), np.radians(float(d.get("heading_deg", 0.0))), eye)
+            if d.get("arm_length_m") is not None:
+                cal.arm_length_m = float(d["arm_length_m"])
+                if not 0.3 < cal.arm_length_m < 0.9:
+                    raise CalibrationError(f"{path}: arm length {cal.arm_length_m:.2f} m is implausible; run edge calibrate again")
             for name, t in d.get("trackers", {}).items():
                 a, m = np.array(t["align"], dtype=np.float64), np.array(t["mount"], dtype=np.float64)
                 if a.shape != (4,) or m.shape != (4,) or not (np.all(np.isfinite(a)) and np.all(np.isfinite(m))):
@@ -179,3 +188,20 @@ def calibrate(head_pos, head_rot, trackers):
         cal.align[name] = a
         cal.mount[name] = quat.normalize(quat.mul(quat.inv(quat.mul(a, s)), face))
     return cal
+
+
+def arm_length_from_tpose(hand_pos, hand_rot, hand_valid, height_scale):
+    """The user's arm (shoulder joint to wrist, m) from the controllers held out in the T-pose
+    [K,2,3], [K,2,4], [K,2]: half the wrists' span less the shoulders' (the canonical span at the user's
+    size). CalibrationError says what to do when it cannot be made (#54 item 2)."""
+    tracked = np.asarray(hand_valid, bool).all(axis=1)
+    if tracked.mean() < 0.8:
+        raise CalibrationError("a controller was not tracked for most of the T-pose: keep both in view")
+    wrists = hand_pos[tracked] - quat.rotate(hand_rot[tracked], GRIP_OFFSET)
+    span = float(np.median(np.linalg.norm(wrists[:, 0] - wrists[:, 1], axis=-1)))
+    level = float(np.median(np.abs(wrists[:, 0, 1] - wrists[:, 1, 1])))
+    arm = (span - SHOULDER_SPAN / height_scale) / 2
+    if level > 0.10 or not 0.75 < arm * height_scale / CANONICAL_ARM < 1.3:
+        raise CalibrationError(f"the arms were not straight out to the sides (wrists {span:.2f} m apart, "
+                               f"{100 * level:.0f} cm apart in height): stand in a T-pose, arms level")
+    return arm

@@ -60,22 +60,8 @@ def calibrate(args):
         print(f"edge calibrate: {absent[0].start_error}", file=sys.stderr)
         return 2
     print("Stand upright, arms out to the sides (T-pose), facing forward. Hold still...", file=sys.stderr)
-    heads, rots, trackers = [], [], {name: [] for name in cfg.tracker_names}
-    start = time.monotonic()
-    with StopSignals() as stop, Progress(int(args.seconds * 10), "calibrate") as bar:
-        while time.monotonic() - start < args.seconds and not stop.requested():
-            for link in links:
-                for s in link.drain(time.monotonic):
-                    if isinstance(s, HeadsetSample):
-                        heads.append(s.head_pos)
-                        rots.append(s.head_rot)
-                    elif s.tracker in trackers:
-                        trackers[s.tracker].append(s.quat)
-            time.sleep(0.005)
-            bar.n = int((time.monotonic() - start) * 10) - 1
-            bar.update()
-    for link in links:
-        link.close()
+    with StopSignals() as stop:
+        heads, rots, hands, trackers = _collect(links, cfg.tracker_names, args.seconds, stop)
     if stop.requested():
         print(f"edge calibrate: stopped by {stop.signal_name} before the T-pose was measured; "
               f"{args.out} is as it was", file=sys.stderr)
@@ -90,8 +76,49 @@ def calibrate(args):
     except CalibrationError as e:
         print(f"edge calibrate: {e}", file=sys.stderr)
         return 2
+    arms = _measure_arms(hands, cal, args.out)
     cal.save(args.out)
     print(f"wrote {args.out}: headset {cal.eye_height_m:.2f} m above the floor standing, so a body about "
           f"{cal.stature_m():.2f} m tall (height scale {cal.height_scale:.3f}; a [body] height_m in the config "
-          f"overrides it), trackers {', '.join(cal.mount) or '-'}", file=sys.stderr)
+          f"overrides it), {arms}, trackers {', '.join(cal.mount) or '-'}", file=sys.stderr)
     return 0
+
+
+def _collect(links, tracker_names, seconds, stop):
+    """The T-pose's samples for `seconds` (or until a stop): the headset's positions and rotations, the
+    controllers' (positions, rotations, tracked), each tracker's orientations. The links are closed after."""
+    heads, rots, hands, trackers = [], [], [], {name: [] for name in tracker_names}
+    start = time.monotonic()
+    with Progress(int(seconds * 10), "calibrate") as bar:
+        while time.monotonic() - start < seconds and not stop.requested():
+            for link in links:
+                for s in link.drain(time.monotonic):
+                    if isinstance(s, HeadsetSample):
+                        heads.append(s.head_pos)
+                        rots.append(s.head_rot)
+                        hands.append((s.hand_pos, s.hand_rot, s.hand_valid))
+                    elif s.tracker in trackers:
+                        trackers[s.tracker].append(s.quat)
+            time.sleep(0.005)
+            bar.n = int((time.monotonic() - start) * 10) - 1
+            bar.update()
+    for link in links:
+        link.close()
+    return heads, rots, hands, trackers
+
+
+def _measure_arms(hands, cal, previous_path):
+    """The arm length from the controllers in the T-pose, into `cal`; when it cannot be measured, the one
+    the previous calibration file measured is kept (the last good body). -> what to say of it."""
+    from edge.calibration import Calibration, arm_length_from_tpose
+    try:
+        pos, rot, valid = (np.array([h[k] for h in hands]) for k in range(3))
+        cal.arm_length_m = arm_length_from_tpose(pos, rot, valid, cal.height_scale)
+        return f"arms {cal.arm_length_m:.2f} m shoulder to wrist"
+    except (CalibrationError, ValueError, IndexError) as e:
+        try:
+            cal.arm_length_m = Calibration.load(previous_path).arm_length_m
+        except CalibrationError:
+            cal.arm_length_m = None
+        kept = f"kept {cal.arm_length_m:.2f} m from before" if cal.arm_length_m else "not measured"
+        return f"arms {kept} ({e})"

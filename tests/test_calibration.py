@@ -114,3 +114,34 @@ def test_a_height_in_the_config_is_read_and_a_wrong_one_refused_with_the_fix():
     for bad in (162, "tall", True):
         with pytest.raises(config_mod.ConfigError, match=r"\[body\] height_m is the user's height in metres"):
             config_mod.from_dict({**raw, "body": {"height_m": bad}})
+
+
+def test_the_arms_length_is_measured_from_the_controllers_held_out_and_refused_with_arms_down():
+    """#54 item 2, the T-pose's part: on bodies with arms 8 % short or long for their height, three
+    statures, the controllers held out at the sides give the arm (shoulder to wrist) within 2 cm; arms
+    hanging down, or a controller lost, say what to do."""
+    from edge.calibration import arm_length_from_tpose, height_scale_for
+    from edge.signals import GRIP_OFFSET
+    from edge.skeleton import JOINT, TOE_HEIGHT, rest_positions
+    from motion.bodies import Body, eye_height
+    K = 40
+    rng = np.random.default_rng(0)
+    for body in (Body("a", 1.55, arms=0.92), Body("b", 1.75, arms=1.08), Body("c", 1.95, legs=1.08, arms=1.0)):
+        off = body.offsets()
+        rest = rest_positions(off)
+        rest[:, 1] += TOE_HEIGHT - rest[JOINT["l_toe"], 1]            # standing on the floor
+        wrists = rest[[JOINT["l_wrist"], JOINT["r_wrist"]]]
+        hand_rot = np.tile([1.0, 0, 0, 0], (K, 2, 1))
+        hand_pos = wrists + GRIP_OFFSET + rng.normal(0, 0.003, (K, 2, 3))        # a person holds still, nearly
+        truth = np.linalg.norm(off[JOINT["l_elbow"]]) + np.linalg.norm(off[JOINT["l_wrist"]])
+        scale = height_scale_for(eye_height(off))
+        arm = arm_length_from_tpose(hand_pos, hand_rot, np.ones((K, 2), bool), scale)
+        assert arm == pytest.approx(truth, abs=0.02), body
+    down = hand_pos.copy()
+    down[:, 0, 1] -= 0.6
+    with pytest.raises(CalibrationError, match="straight out"):
+        arm_length_from_tpose(down, hand_rot, np.ones((K, 2), bool), scale)
+    lost = np.ones((K, 2), bool)
+    lost[: K // 2, 1] = False
+    with pytest.raises(CalibrationError, match="not tracked"):
+        arm_length_from_tpose(hand_pos, hand_rot, lost, scale)

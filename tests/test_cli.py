@@ -254,6 +254,8 @@ def test_calibrate_stores_the_body_size_and_tracker_mounting(tmp_path):
     assert run.returncode == 0, said(run)
     cal = json.loads((tmp_path / "cal.json").read_text())
     assert "waist" in json.dumps(cal) and "height scale" in run.stderr, cal
+    # the session walks, arms down: the body's height is measured, the arms are said not to be
+    assert "a body about" in run.stderr and "arms not measured (the arms were not straight out" in run.stderr, said(run)
     replay = edge("replay", SESSION, "--speed", "max", "--seconds", 1, "--samples", 1, "--calibration", "cal.json",
                   cwd=tmp_path)
     assert replay.returncode == 0, said(replay)
