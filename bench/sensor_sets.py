@@ -1,7 +1,7 @@
 """What each extra IMU set is worth, on the validation split, in one run (the variable-sensor-set issue).
 
     python bench/sensor_sets.py --data ../shared/mocap [--models DIR] [--baseline DIR] [--out out/sensor_sets]
-        [--people unseen|seen] [--no-heading | --heading-settings JSON] [--perfect-heading]
+        [--people unseen|seen] [--no-heading | --heading-settings JSON] [--perfect-heading] [--body NAME]
 
 Runs edge eval at N=1 (int8 by default) with no extra IMUs, both feet, both shins, thighs and shins, and all seven,
 each steady and with DragPoser's faulty-sensor protocol (--faults disconnect), two evals at a time; with
@@ -63,6 +63,8 @@ def main():
     ap.add_argument("--conventions", choices=("out", "in"), default="out",
                     help="score against val retargeted with the sources' skeleton conventions taken out (today's "
                          "ruler, motion.neutrals) or left in (the ruler before it, v0.5.1's published figures)")
+    ap.add_argument("--body", help="the sets on one of `edge eval --bodies standard`'s bodies (its name, e.g. "
+                                   "'1.55 m, long legs') instead of the canonical one (#54)")
     a = ap.parse_args()
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -73,6 +75,12 @@ def main():
         options = replace(options, leg_guard=a.leg_guard)
     common = {"data": a.data, "options": options, "max_clips": a.max_clips, "people": a.people,
               "conventions": a.conventions == "out"}
+    if a.body:
+        from motion.bodies import standard_bodies
+        named = {b.name: b for b in standard_bodies()}
+        if a.body not in named:
+            ap.error(f"--body {a.body!r}: one of {', '.join(repr(n) for n in named)}")
+        common["body"] = named[a.body]
     if a.perfect_heading:
         common["imu_noise"] = ImuNoise(yaw_offset_std_deg=0.0, yaw_drift_deg_s=0.0)
     jobs = []
