@@ -15,13 +15,13 @@ from pathlib import Path
 import numpy as np
 
 from edge import quat
+from edge.calibration import EYE_TO_STATURE          # Winter (2009) fig. 4.1
 from edge.signals import EYE_OFFSET
 from edge.skeleton import HEAD, JOINT, OFFSETS, TOE_HEIGHT, fk, rest_positions
 from edge.imus import IMU_LOCATIONS
 from motion.synth import synthesize_from_pose
 from motion.takes import Take
 
-EYE_TO_STATURE = 0.936          # Winter (2009) fig. 4.1
 LEG_BONES = np.array([JOINT[f"{s}_{j}"] for s in "lr" for j in ("hip", "knee", "ankle", "toe")])
 ARM_BONES = np.array([JOINT[f"{s}_{j}"] for s in "lr" for j in ("elbow", "wrist")])
 TRUNK_BONES = np.array([JOINT[j] for j in ("spine", "chest", "neck", "head")])
