@@ -221,6 +221,13 @@ class HeadingObserver:
         gain = ph * (ok / s)[:, None]                       # 0 for the IMUs not measured
         x += gain * innovation[:, None]
         P -= gain[:, :, None] * ph[:, None, :]
+        # The offset is an angle: kept within +-2 pi however many turns it makes over hours (a 90-minute
+        # soak left it at 2,969 deg). 4 pi is its half-angle quaternion's period: the correction never
+        # flips sign.
+        offset = x[:, 0]
+        offset += 2.0 * np.pi
+        np.remainder(offset, 4.0 * np.pi, out=offset)
+        offset -= 2.0 * np.pi
         self.updates += ok
         self.apply_estimate()
         return True
