@@ -143,30 +143,91 @@ def devices_on_canonical(head_pos, head_rot, hand_pos, hand_rot, scale):
             hand_pos * scale + keep * quat.rotate(hand_rot, GRIP_OFFSET))
 
 
+def product_matrix(a, m):
+    """The 4x4 matrix T with T q = a * q * m for every quaternion q [4] (the product is linear in q)."""
+    return np.stack([quat.mul(quat.mul(a, e), m) for e in np.eye(4)], axis=-1)
+
+
+def rotation_forms(v):
+    """Q [...,3,4,4] with rotate(q, v)_i = q . Q[..., i] q for every unit quaternion q: the rotation of
+    fixed vectors v [...,3] as three quadratic forms each, from R(q) v = (w^2 - u.u) v + 2 (u.v) u +
+    2 w (u x v), which is homogeneous of degree two (polarised on the basis)."""
+    v = np.asarray(v, float)
+
+    def rotated(q):
+        w, u = q[0], q[1:]
+        return (w * w - u @ u) * v + 2.0 * (v @ u)[..., None] * u + 2.0 * w * np.cross(u, v)
+
+    e = np.eye(4)
+    Q = np.zeros(v.shape[:-1] + (3, 4, 4))
+    for j in range(4):
+        for k in range(4):
+            Q[..., j, k] = rotated(e[j]) if j == k else 0.5 * (rotated(e[j] + e[k]) - rotated(e[j]) - rotated(e[k]))
+    return Q
+
+
 class FrameCalibration:
     """A Calibration applied to each frame of Signals on the way in: the user scaled onto the canonical
     body (around the floor origin), the headset levelled (q M), the waist and each worn extra IMU turned
-    from its sensor frame onto its body segment (A q M). The extra IMUs' A and M are stacked once, so a frame costs one pair of
-    quaternion products for all of them."""
+    from its sensor frame onto its body segment (A q M).
+
+    Per frame it makes no arrays: A q M is a fixed 4x4 matrix on q (product_matrix), the eye and grip
+    offsets turned by a device's orientation are fixed quadratic forms (rotation_forms), and the result
+    is written into one Signals (T=1) kept for the next frame, so a caller uses it before the next call."""
 
     def __init__(self, calibration, imus=()):
         """imus: (tracker name, slot in Signals.imu_rot) of each worn extra IMU."""
+        from edge.imus import NUM_IMUS
+        cal = self.calibration = calibration
         identity = np.array([1.0, 0.0, 0.0, 0.0])
-        self.calibration = calibration
-        self.slots = np.array([k for _, k in imus], int)
-        self.align = np.array([calibration.align.get(n, identity) for n, _ in imus]).reshape(-1, 4)
-        self.mount = np.array([calibration.mount.get(n, identity) for n, _ in imus]).reshape(-1, 4)
+        self.scale, self.keep = float(cal.height_scale), 1.0 - float(cal.height_scale)
+
+        def turn(tracker):          # q -> A q M, as q @ T' (identity where the tracker is not calibrated)
+            if tracker not in cal.mount:
+                return np.eye(4)
+            return product_matrix(cal.align.get(tracker, identity), cal.mount[tracker]).T
+
+        self.head_turn, self.waist_turn = turn("head"), turn("waist")
+        # The extra IMUs' [7,4] as one [28] row: a block-diagonal [28,28] (identity where none is worn).
+        self.imu_turn = np.eye(4 * NUM_IMUS)
+        for name, k in imus:
+            self.imu_turn[4 * k:4 * k + 4, 4 * k:4 * k + 4] = turn(name)
+        self.eye_forms = rotation_forms(EYE_OFFSET).reshape(12, 4)               # [3*4, 4]
+        self.grip_forms = rotation_forms(GRIP_OFFSET).reshape(2, 12, 4)          # per controller
+        self.out = Signals(np.zeros((1, 3)), np.zeros((1, 4)), np.zeros((1, 2, 3)), np.zeros((1, 2, 4)),
+                           np.zeros((1, 4)), np.zeros((1, 3)), np.zeros((1, NUM_IMUS, 4)), np.zeros((1, NUM_IMUS)))
+        self._imu_in = np.zeros(4 * NUM_IMUS)
+        self._imu_out = self.out.imu_rot.reshape(-1)                    # a view: written in place
+        self._eye_q, self._eye_off = np.zeros((3, 4)), np.zeros(3)
+        self._grip_q, self._grip_off = np.zeros((2, 3, 4)), np.zeros((2, 3))
 
     def __call__(self, sig):
-        cal, k = self.calibration, self.slots
-        s = cal.height_scale
-        imu_rot = sig.imu_rot.copy()
-        if len(k):
-            imu_rot[0, k] = quat.mul(quat.mul(self.align, sig.imu_rot[0, k]), self.mount)
-        head_rot = cal.body_rotation("head", sig.head_rot)
-        head_pos, hand_pos = devices_on_canonical(sig.head_pos, head_rot, sig.hand_pos, sig.hand_rot, s)
-        return Signals(head_pos, head_rot, hand_pos, sig.hand_rot,
-                       cal.body_rotation("waist", sig.waist_rot), sig.waist_acc, imu_rot, sig.imu_flag)
+        """The calibrated frame of sig (Signals, T=1), in self.out. np.dot with out= throughout: it makes
+        no temporaries (np.matmul and einsum do, a few hundred bytes to a few KB a call)."""
+        o, keep = self.out, self.keep
+        np.dot(sig.head_rot, self.head_turn, out=o.head_rot)
+        np.dot(sig.waist_rot, self.waist_turn, out=o.waist_rot)
+        np.copyto(self._imu_in, sig.imu_rot.reshape(-1))
+        np.dot(self._imu_in, self.imu_turn, out=self._imu_out)
+        np.copyto(o.hand_rot, sig.hand_rot)
+        np.copyto(o.waist_acc, sig.waist_acc)
+        np.copyto(o.imu_flag, sig.imu_flag)
+        # devices_on_canonical: the head and wrists scaled, the eyes' and grips' offsets from them kept
+        np.multiply(sig.head_pos, self.scale, out=o.head_pos)
+        np.multiply(sig.hand_pos, self.scale, out=o.hand_pos)
+        if keep != 0.0:
+            head_q = o.head_rot[0]
+            np.dot(self.eye_forms, head_q, out=self._eye_q.reshape(12))
+            np.dot(self._eye_q, head_q, out=self._eye_off)
+            self._eye_off *= keep
+            o.head_pos[0] += self._eye_off
+            for h in (0, 1):                    # the two controllers
+                hand_q = sig.hand_rot[0, h]
+                np.dot(self.grip_forms[h], hand_q, out=self._grip_q[h].reshape(12))
+                np.dot(self._grip_q[h], hand_q, out=self._grip_off[h])
+            self._grip_off *= keep
+            o.hand_pos[0] += self._grip_off
+        return o
 
 
 def calibrate(head_pos, head_rot, trackers):
