@@ -52,6 +52,13 @@ CPU time alone where it is not) was late because the host did not run it: it is 
 it. Skipped frames take the cause of the frame that made them late. N is chosen on the frames' own
 cost: the p99 of the frames that were not stalled, and their own misses.
 
+Neighbours on the core. What the thread's CPU clock says is the frame's own only if nothing else
+works on its core: where the kernel charges interrupt work to the running task (no IRQ time
+accounting, as on the VMs this was built on), another process's memory traffic shows up as the
+frame's CPU time (a neighbour allocating and freeing 512 MB in a loop at nice 19 made frames of
+22-26 ms out of 1.2, with none of the frame's own page faults). `core_neighbours` in the JSON is the
+share of the core other tasks used during the run, and over 2 % it is warned of: profile on a quiet core.
+
 Stage timings, every measured frame, from the live code itself: `sync`, `pipeline_step` and
 `output_encoding` are the board service's own tick (Service.tick_marks, wall time), fed through
 sim:// sources by its own links; the stages inside Pipeline.step (features, decoder, poses,
@@ -210,6 +217,52 @@ def steal_seconds():
         return int(fields[8]) / os.sysconf("SC_CLK_TCK") if len(fields) > 8 else 0.0
     except (OSError, ValueError):
         return 0.0
+
+
+def core_busy_seconds(core):
+    """CPU time spent on `core` so far by every task on it, interrupts included (/proc/stat's cpuN line:
+    user, nice, system, irq, softirq), in seconds; None where the kernel has no such line."""
+    try:
+        with open("/proc/stat") as f:
+            for line in f:
+                if line.startswith(f"cpu{core} "):
+                    v = [int(x) for x in line.split()[1:8]]
+                    return (v[0] + v[1] + v[2] + v[5] + v[6]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+class CoreNeighbours:
+    """How much of the profiled core other tasks used while the worker ran: the core's busy time less
+    the worker's own (its process and the children it waited for). On a VM whose kernel charges
+    interrupt work to the running task (no IRQ time accounting, as here), another process's memory
+    traffic on the core shows up as the frame's own CPU time: a neighbour allocating and freeing
+    512 MB in a loop, at nice 19, made frames of 22-26 ms of CPU out of 1.2 (#55). A profile to deploy
+    from is made on a quiet core."""
+
+    WARN_SHARE = 0.02
+
+    def __init__(self, core):
+        self.core = core
+
+    def __enter__(self):
+        self.busy0, self.wall0 = core_busy_seconds(self.core), time.monotonic()
+        r = resource.getrusage(resource.RUSAGE_CHILDREN)
+        self.own0 = r.ru_utime + r.ru_stime
+        return self
+
+    def __exit__(self, *exc):
+        busy, r = core_busy_seconds(self.core), resource.getrusage(resource.RUSAGE_CHILDREN)
+        self.wall = time.monotonic() - self.wall0
+        self.other_s = None if busy is None or self.busy0 is None else max(
+            0.0, (busy - self.busy0) - (r.ru_utime + r.ru_stime - self.own0))
+        return False
+
+    def report(self):
+        share = None if self.other_s is None else self.other_s / max(self.wall, 1e-9)
+        return {"core": self.core, "other_cpu_s": None if self.other_s is None else round(self.other_s, 2),
+                "share": None if share is None else round(share, 4)}
 
 
 def board_service(cfg, samples, feeder, steps):
@@ -620,8 +673,9 @@ def _profile(args, quota):
             cfg_path, out_path = Path(tmp) / "cfg.json", Path(tmp) / "out.json"
             cfg_path.write_text(json.dumps(cfg))
             before = limit.stats()
-            proc = subprocess.run([sys.executable, "-m", "edgetools.profile", "--worker", str(cfg_path), str(out_path)],
-                                  env=env, preexec_fn=limit.join if limit.enforced else None)
+            with CoreNeighbours(min(os.sched_getaffinity(0))) as neighbours:     # the core the worker pins to
+                proc = subprocess.run([sys.executable, "-m", "edgetools.profile", "--worker", str(cfg_path),
+                                       str(out_path)], env=env, preexec_fn=limit.join if limit.enforced else None)
             after = limit.stats()
             if proc.returncode != 0 or not out_path.exists():
                 print(f"edge profile: the worker failed (exit {proc.returncode})", file=sys.stderr)
@@ -646,6 +700,7 @@ def _profile(args, quota):
               "probes": res["probes"], "runs": res["runs"], "ssi_switches": res["ssi_switches"],
               "refined_frames": res["refined_frames"],
               "pinned_core": res["core"], "compiled_core": res["compiled_core"],
+              "core_neighbours": neighbours.report(),
               # what ran: int8 falls back to fp32 where its start-up self-check fails (edge.int8check)
               "precision_in_use": res["precision_in_use"], "precision_note": res["precision_note"],
               "int8_check": res["int8_check"],
@@ -667,6 +722,11 @@ def _profile(args, quota):
         print(f"  {name:>6}: {ph['frames']} frames, deadline misses {ph['deadline_misses']} ({100 * ph['miss_rate']:.2f} %), "
               f"N mean {ph['samples_mean']:g} (min {ph['samples_min']}, last {ph['samples_last']}), "
               f"frame p99 {ph['frame_ms']['p99']:.2f} ms")
+    near = result["core_neighbours"]
+    if near["share"] is not None and near["share"] > CoreNeighbours.WARN_SHARE:
+        print(f"edge profile: other tasks used {100 * near['share']:.0f} % of core {near['core']} during the run; "
+              "their memory traffic can be charged to the frame's own CPU time (a page-churning neighbour at "
+              "nice 19 made 26 ms frames of 1.2): profile on a quiet core before deploying its N", file=sys.stderr)
     print(f"wrote {args.json}")
     return 0
 

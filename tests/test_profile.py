@@ -255,3 +255,22 @@ def test_a_scripted_stall_is_reported_apart_and_costs_no_rung(monkeypatch):
     st = scripted({100: (0.020, 0.015), 200: (0.020, 0.015)})
     assert st["own_misses"] >= 2 and st["host_stalls"] == st["deadline_misses"] - st["own_misses"]
     assert not profile.probe_fits(st, budget)
+
+
+def test_a_busy_neighbour_on_the_profiled_core_is_measured_and_warned_of(tmp_path, capsys):
+    """Other tasks on the worker's core are measured (the core's busy time less the worker's own) and a
+    share over 2 % is warned of: on a VM their memory traffic is charged to the frame's CPU time."""
+    import subprocess
+    import sys
+    core = min(os.sched_getaffinity(0))
+    spin = subprocess.Popen([sys.executable, "-c", f"import os; os.sched_setaffinity(0, {{{core}}})\nwhile True: pass"])
+    try:
+        time.sleep(0.3)
+        r = run(tmp_path, "--samples", "1", "--frames", "120", "--refine-steps", "0", "--no-cgroup")
+    finally:
+        spin.kill()
+        spin.wait()
+    near = r["core_neighbours"]
+    assert near["core"] == core and r["pinned_core"] == [core]
+    assert near["share"] > 0.2, near            # the spinner had about half the core
+    assert "other tasks used" in capsys.readouterr().err
