@@ -34,6 +34,9 @@ def _add_eval(sub):
     ev.add_argument("--bodies", help="also on other bodies: 'standard' (12: three statures by short, average and long "
                                      "legs, long and short arms, the canonical) or a JSON list of {name, height_m, legs, "
                                      "arms}; BVH clips only; adds `bodies` to the JSON")
+    ev.add_argument("--body-known", action="store_true",
+                    help="with --bodies: the runtime is told each body's legs, as a [body] leg_length_m in the "
+                         "board's config tells it, and sends its poses on them (edge.proportions)")
     ev.add_argument("--json", required=True, help="write the metrics here")
     ev.add_argument("--dump", help="write one .npz per clip (gt_pos, pred_pos) into this folder")
     ev.add_argument("--models", help="model folder (default: the shipped models/)")

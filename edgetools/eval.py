@@ -48,7 +48,7 @@ def evaluate_bodies(args, bodies):
               file=sys.stderr)
         r = evaluate(args.data, pipeline_options(args), split=args.split, people=args.people, models=args.models,
                      trackers=parse_set(args.trackers), faults=args.faults, max_frames=args.max_frames,
-                     max_clips=args.max_clips, body=body)
+                     max_clips=args.max_clips, body=body, body_known=getattr(args, "body_known", False))
         r["height_scale"] = on_canonical_scale(body)
         entries.append(body_entry(body, r))
         if body.name == "canonical":

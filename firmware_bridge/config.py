@@ -57,7 +57,7 @@ SECTIONS = {
     "runtime": {"samples", "adaptive", "precision", "lookahead", "hz", "lost_after_ms", "sync_latency_ms",
                 "calibration", "models", "leg_guard_cm"},
     "refine": {"enabled", "steps", "terms"},
-    "body": {"height_m"},
+    "body": {"height_m", "leg_length_m"},
 }
 REFINE_TERMS = ("targets", "keep", "floor", "legs", "imus", "imus-tilt")
 
@@ -86,6 +86,7 @@ class Config:
     tracker_names: list = field(default_factory=list)
     refine: dict = None             # [refine] as RefineSettings' fields (None: off)
     height_m: float = None          # [body] height_m: the user's stature, over the calibration's measured one
+    leg_length_m: float = None      # [body] leg_length_m: floor to hip joint standing (edge.proportions)
 
     def pipeline_options(self):
         """The board's Pipeline, as edge.options.PipelineOptions: [runtime]'s N, look-ahead, rate,
@@ -138,19 +139,23 @@ def from_dict(raw, where="config"):
     read_output(cfg, raw.get("output", {}), where)
     read_runtime(cfg, raw.get("runtime", {}), where)
     cfg.refine = refine_section(raw.get("refine", {}), where)
-    cfg.height_m = read_body(raw.get("body", {}), where)
+    cfg.height_m, cfg.leg_length_m = read_body(raw.get("body", {}), where)
     return cfg
 
 
 def read_body(body, where):
     """[body] height_m: the user's stature written by hand, which wins over the one the standing
-    calibration measured (a headset worn high, a calibration done sitting)."""
-    if "height_m" not in body:
-        return None
-    h = body["height_m"]
-    if isinstance(h, bool) or not isinstance(h, (int, float)) or not 1.0 <= h <= 2.3:
-        raise ConfigError(f"{where}: [body] height_m is the user's height in metres, 1.0 to 2.3; got {h!r}")
-    return float(h)
+    calibration measured (a headset worn high, a calibration done sitting); leg_length_m: from the
+    floor to the hip joint, standing (the bony point at the side of the hip), for legs long or short for
+    the height (edge.proportions). -> (height_m, leg_length_m), None where not given."""
+    out = []
+    for key, low, high, what in (("height_m", 1.0, 2.3, "the user's height in metres"),
+                                 ("leg_length_m", 0.6, 1.3, "floor to hip joint standing, in metres")):
+        v = body.get(key)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not low <= v <= high):
+            raise ConfigError(f"{where}: [body] {key} is {what}, {low:g} to {high:g}; got {v!r}")
+        out.append(None if v is None else float(v))
+    return tuple(out)
 
 
 def check_sections(raw, where):

@@ -1,6 +1,7 @@
 """The parts of `edge run` made from its config, each start-up problem said once and the service
 carried on: a device that is not there is waited for, a setting that changes nothing is named."""
 from edge.governor import SampleGovernor
+from firmware_bridge.config import ConfigError
 from firmware_bridge.links import REOPEN_AFTER_S, Link
 
 
@@ -30,6 +31,21 @@ def status_printer(status):
     if status is None:
         return lambda text: None
     return lambda text: print(f"edge run: {text}", file=status)
+
+
+def user_body(cfg, calibration):
+    """The user's legs (edge.proportions.UserBody) from a [body] leg_length_m, at the calibration's
+    size; the canonical legs without one. A length the skeleton cannot take fails with the fix."""
+    from edge.proportions import UserBody, legs_for
+    if not cfg.leg_length_m:
+        return UserBody(1.0)
+    legs = legs_for(cfg.leg_length_m, calibration.height_scale)
+    try:
+        return UserBody(legs)
+    except ValueError as e:
+        raise ConfigError(f"{cfg.path or 'config'}: [body] leg_length_m {cfg.leg_length_m:g} m on a body "
+                          f"{calibration.stature_m():.2f} m tall is {e}: measure from the floor to the bony "
+                          f"point at the side of the hip, standing") from None
 
 
 def load_calibration(cfg):

@@ -12,19 +12,15 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 
 from edge import quat
 from edge.calibration import EYE_TO_STATURE          # Winter (2009) fig. 4.1
 from edge.signals import EYE_OFFSET
-from edge.skeleton import HEAD, JOINT, OFFSETS, TOE_HEIGHT, fk, rest_positions
 from edge.imus import IMU_LOCATIONS
+from edge.proportions import ARM_BONES, LEG_BONES, TRUNK_BONES, proportioned_offsets  # noqa: F401  (bench reads them here)
+from edge.skeleton import HEAD, JOINT, OFFSETS, TOE_HEIGHT, fk, rest_positions
 from motion.synth import synthesize_from_pose
 from motion.takes import Take
-
-LEG_BONES = np.array([JOINT[f"{s}_{j}"] for s in "lr" for j in ("hip", "knee", "ankle", "toe")])
-ARM_BONES = np.array([JOINT[f"{s}_{j}"] for s in "lr" for j in ("elbow", "wrist")])
-TRUNK_BONES = np.array([JOINT[j] for j in ("spine", "chest", "neck", "head")])
 
 
 def eye_height(offsets):
@@ -53,15 +49,7 @@ class Body:
         """The body's skeleton: each joint's offset from its parent (m), as edge.skeleton.OFFSETS. Legs
         long for the stature leave the trunk (pelvis to head) shorter, so the eyes stay where the
         stature puts them; arms hang off it and change nothing else."""
-        s = self.size()
-        off = OFFSETS * s
-        off[LEG_BONES] *= self.legs
-        off[ARM_BONES] *= self.arms
-        rest = rest_positions(OFFSETS)
-        legs_span = -rest[JOINT["l_toe"], 1] * s * self.legs                # pelvis down to the toes
-        trunk = EYE_TO_STATURE * self.height_m - TOE_HEIGHT - EYE_OFFSET[1] - legs_span
-        off[TRUNK_BONES] *= trunk / (rest[HEAD, 1] * s)
-        return off
+        return proportioned_offsets(self.legs, self.arms, self.size())
 
     def leg_scale(self):
         """How much longer than the canonical body's the legs are (hips to toes, the same for each bone)."""

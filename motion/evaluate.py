@@ -15,6 +15,7 @@ from edge.options import PipelineOptions
 from edge.pipeline import Pipeline
 from edge.plausibility import PlausibilityScorer
 from edge.progress import Progress
+from edge.proportions import UserBody
 from motion.synth import bend_hands, wear
 from edge.skeleton import FEET, JOINT_NAMES, PARENTS
 from motion.takes import PEOPLE, find_clips, load_take, people_of_files
@@ -35,9 +36,10 @@ class TakeRun:
     samples: np.ndarray = None  # [T,N,J,3] every sample's pose of the frame (N>1, with keep_samples)
 
 
-def run_take(pipe, take, max_frames=None, keep_samples=False, signals=None):
+def run_take(pipe, take, max_frames=None, keep_samples=False, signals=None, user_body=None):
     """Feed a take (or these signals of it) frame by frame through the pipeline. Output frame o arrives
-    tau frames after input o."""
+    tau frames after input o. user_body (edge.proportions.UserBody): the poses put on the user's legs,
+    as the board sends them when told the user's leg length."""
     signals = take.signals if signals is None else signals
     T = take.frames if max_frames is None else min(take.frames, max_frames)
     N = pipe.samples
@@ -46,6 +48,8 @@ def run_take(pipe, take, max_frames=None, keep_samples=False, signals=None):
                   np.zeros((T, N, len(JOINT_NAMES), 3), np.float32) if keep_samples and N > 1 else None)
 
     def keep(pose):
+        if user_body is not None:
+            pose = user_body.on_user(pose)
         f = pose.frame
         run.pred[f], run.pelvis[f], run.contacts[f] = pose.positions, pose.rotations[0], pose.contacts
         run.sample[f], run.transition[f] = pose.sample, pose.transition
@@ -81,7 +85,8 @@ def take_signals(take, trackers, faults=None, seed=0, index=0, imu_noise=None, h
 
 
 def evaluate(paths, options=None, *, split=None, people=None, models=None, trackers=(), faults=None, imu_noise=None,
-             hand_bend=None, max_frames=None, max_clips=None, dump=None, log=print, conventions=True, body=None):
+             hand_bend=None, max_frames=None, max_clips=None, dump=None, log=print, conventions=True, body=None,
+             body_known=False):
     """Every clip of `paths` (BVH files, folders, sample .npz; a folder filtered by its MANIFEST.tsv's
     `split`, and with `people` to the performers the model never saw or those it saw) through a
     Pipeline(options, models), wearing the extra IMUs `trackers` (with `faults`: DragPoser's disconnect
@@ -91,8 +96,10 @@ def evaluate(paths, options=None, *, split=None, people=None, models=None, track
     with the sources' skeleton conventions left in (the ruler before motion.neutrals). body
     (motion.bodies.Body): each BVH clip posed on that body, its devices synthesised from it and brought
     onto the canonical body as the standing calibration does, the poses taken back to the body's size
-    and scored against its FK."""
+    and scored against its FK; body_known: the runtime is told the body's legs (a [body] leg_length_m
+    in the board's config) and sends its poses on them (edge.proportions.UserBody)."""
     options = PipelineOptions() if options is None else options
+    user_body = UserBody(body.legs) if body_known and body is not None else None
     files = _clips(paths, split, max_clips, people)
     who = people_of_files(paths, files)
     if faults not in (None, "disconnect"):
@@ -120,7 +127,7 @@ def evaluate(paths, options=None, *, split=None, people=None, models=None, track
             if scale != 1.0:
                 fed = replace(fed, **dict(zip(("head_pos", "hand_pos"), devices_on_canonical(
                     fed.head_pos, fed.head_rot, fed.hand_pos, fed.hand_rot, scale), strict=True)))
-            run = run_take(pipe, take, max_frames, keep_samples=pipe.samples > 1, signals=fed)
+            run = run_take(pipe, take, max_frames, keep_samples=pipe.samples > 1, signals=fed, user_body=user_body)
             if scale != 1.0:                        # the poses back in the user's size, as the outputs send them
                 run.pred /= scale
                 if run.samples is not None:

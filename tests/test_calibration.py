@@ -208,3 +208,24 @@ def test_the_calibrated_frame_makes_no_arrays():
     finally:
         tracemalloc.stop()
     assert peak < 800, peak
+
+
+def test_a_leg_length_in_the_config_gives_the_board_the_users_legs_or_fails_with_the_fix():
+    """[body] leg_length_m (floor to hip joint, standing): legs long for the height are sent that long;
+    a length no adult skeleton has at that height fails at start-up saying how to measure."""
+    from edge.proportions import CANONICAL_HIP_HEIGHT
+    from firmware_bridge import config as config_mod
+    from firmware_bridge.wiring import load_calibration, user_body
+    raw = {"headset": {"url": "serial:///dev/ttyAMA0?role=headset"}, "body": {"height_m": 1.75}}
+    cfg = config_mod.from_dict(raw)
+    assert cfg.leg_length_m is None and user_body(cfg, load_calibration(cfg)).canonical
+    cal = load_calibration(cfg)
+    canonical_legs_here = CANONICAL_HIP_HEIGHT / cal.height_scale           # the canonical legs at 1.75 m
+    cfg = config_mod.from_dict({**raw, "body": {"height_m": 1.75, "leg_length_m": round(canonical_legs_here * 1.06, 3)}})
+    body = user_body(cfg, load_calibration(cfg))
+    assert 1.05 < body.legs < 1.08 and not body.canonical
+    with pytest.raises(config_mod.ConfigError, match="bony point at the side of the hip"):
+        user_body(config_mod.from_dict({**raw, "body": {"height_m": 1.75, "leg_length_m": 1.25}}), cal)
+    for bad in ("long", True, 2.0):
+        with pytest.raises(config_mod.ConfigError, match=r"\[body\] leg_length_m is floor to hip joint"):
+            config_mod.from_dict({**raw, "body": {"leg_length_m": bad}})

@@ -115,8 +115,10 @@ def frame_values(local_rot, root_pos, order, out=None):
 class BvhWriter(PoseSink):
     """Streams Poses into a BVH file; the frame count is right once flush() or close() has run."""
 
-    def __init__(self, path, fps=60.0, scale=1.0):
-        """scale sizes the body: the calibrated user's (1 / height_scale) instead of the canonical one."""
+    def __init__(self, path, fps=60.0, scale=1.0, offsets=None):
+        """scale sizes the body: the calibrated user's (1 / height_scale) instead of the canonical one;
+        offsets: the skeleton in the canonical body's units (the user's legs, edge.proportions; None:
+        the canonical skeleton)."""
         if not fps > 0:
             raise ValueError(f"fps must be positive, got {fps}")
         self.path = str(path)
@@ -127,7 +129,8 @@ class BvhWriter(PoseSink):
         self._row_format = " ".join([VALUE_FORMAT] * len(self._row)) + "\n"
         self._file = open(self.path, "wb")
         self.scale = float(scale)
-        self._file.write((hierarchy_text(offsets=OFFSETS * self.scale) + "MOTION\n").encode("ascii"))
+        skeleton = OFFSETS if offsets is None else np.asarray(offsets, float)
+        self._file.write((hierarchy_text(offsets=skeleton * self.scale) + "MOTION\n").encode("ascii"))
         self._count_at = self._file.tell()
         self._file.write(frame_count_line(0).encode("ascii"))
         self._file.write(f"Frame Time: {1.0 / self.fps:.8f}\n".encode("ascii"))

@@ -16,14 +16,17 @@ from firmware_bridge.wire import messages
 TICK_MEMORY = 256            # input tick times kept by pipeline frame index (>= the look-ahead)
 
 
-def open_sinks(cfg, size):
+def open_sinks(cfg, size, offsets=None):
     """VMC, VRChat and BVH as the config names them, each sized `size` (1 / the calibration's height scale:
-    the pipeline's body is the canonical one)."""
+    the pipeline's body is the canonical one); the skeleton VMC's bones and the BVH are sent on,
+    `offsets` (the user's legs, edge.proportions; the canonical skeleton when None). VRChat's trackers
+    are positions: the pose's, already on the user's legs."""
     outs = []
     if cfg.vmc:
         from firmware_bridge.outputs.vmc import VmcSender
         host, _, port = cfg.vmc.rpartition(":")
-        outs.append(VmcSender(host, int(port), mode=cfg.vmc_mode, scale=size))
+        outs.append(VmcSender(host, int(port), mode=cfg.vmc_mode, scale=size,
+                              **({} if offsets is None else {"offsets": offsets})))
     if cfg.vrchat:
         from firmware_bridge.outputs.vrchat import VrchatSender
         host, _, port = cfg.vrchat.rpartition(":")
@@ -31,7 +34,7 @@ def open_sinks(cfg, size):
     if cfg.bvh:
         from firmware_bridge.outputs.bvh_writer import BvhWriter
         Path(cfg.bvh).parent.mkdir(parents=True, exist_ok=True)
-        outs.append(BvhWriter(cfg.bvh, fps=cfg.hz, scale=size))
+        outs.append(BvhWriter(cfg.bvh, fps=cfg.hz, scale=size, offsets=offsets))
     return outs
 
 
@@ -40,10 +43,15 @@ class PoseOutputs:
     that comes out later, after the look-ahead, is stamped with its own tick's time); `send` encodes
     and sends one pose and returns how long it was held."""
 
-    def __init__(self, cfg, height_scale, rotations, headset, clock, health_order, opener=open_source, status=None):
-        """rotations: the pipeline's output rotation buffer (bound once); headset: the headset's Link
-        (the pose stream's default way back); health_order: the sources in POSE_FRAME's lost bits' order."""
+    def __init__(self, cfg, calibration, rotations, headset, clock, health_order, opener=open_source, status=None):
+        """calibration: the user's size (edge.calibration.Calibration); with a [body] leg_length_m in
+        `cfg`, every pose is sent on the user's legs (edge.proportions.UserBody). rotations: the
+        pipeline's output rotation buffer (bound once); headset: the headset's Link (the pose stream's
+        default way back); health_order: the sources in POSE_FRAME's lost bits' order."""
+        from firmware_bridge.wiring import user_body
+        height_scale = calibration.height_scale
         self.hz, self.clock, self.height_scale = cfg.hz, clock, height_scale
+        self.body = user_body(cfg, calibration)
         self.health_order = health_order
         self.errors = 0
         self.port = None            # the pose stream's port of its own, when the config names one
@@ -52,7 +60,7 @@ class PoseOutputs:
             if self.port.start_error and status is not None:
                 print(f"edge run: pose stream {cfg.pose_stream}: {self.port.start_error}; waiting for it", file=status)
         self.stream = headset if cfg.pose_stream == "headset" else self.port
-        self.sinks = open_sinks(cfg, 1.0 / height_scale)
+        self.sinks = open_sinks(cfg, 1.0 / height_scale, None if self.body.canonical else self.body.offsets)
         self._rotations = rotations
         self._tick_times = np.zeros(TICK_MEMORY)             # input tick time by pipeline frame index
         self._root = np.zeros(3)                             # the pose's root in the user's size
@@ -66,6 +74,7 @@ class PoseOutputs:
     def send(self, pose, health, newest_index, samples):
         """Encode `pose` (edge.frame.Pose) with the sources' health and N, send it everywhere; returns
         the seconds its frame was held for look-ahead (newest_index: the pipeline's newest frame)."""
+        pose = self.body.on_user(pose)
         p = self.frame
         p.t = self._tick_times[pose.frame % TICK_MEMORY]      # the time the pose is of (its input tick)
         p.held_s = (newest_index - pose.frame) / self.hz      # held for look-ahead: 0 at tau = 0

@@ -1,0 +1,96 @@
+"""A user's proportions (#54 item 3): legs long or short for their height, and the pose sent on them.
+
+The model draws the canonical body; the standing calibration brings a user of any height onto it by one
+number (edge.calibration). Legs long or short for the height are a second number: `legs`, the leg
+bones (hips to toes) against the canonical body's for the same stature, the trunk (pelvis to head)
+taking up the difference so the head joint stands where the stature puts it. Adults' legs vary about
+4 % either way at one standard deviation for their height (Winter 2009, fig. 4.1).
+
+UserBody puts a pose's joint angles on the user's skeleton, hung from the tracked head as the runtime
+hangs the canonical one, in the canonical body's units (the outputs scale to the user's size as
+before). A trunk shorter or longer moves the shoulders, so each arm is solved again (two-bone IK) to
+put its wrist where the pose had it, on the controller, the hand turned as it was. The arms keep the
+canonical lengths.
+"""
+import numpy as np
+
+from edge.frame import LIMB_CHAINS, LIMB_POLES
+from edge.ik import apply_limb_ik
+from edge.physics import FLOOR_ANKLE, FLOOR_TOE
+from edge.skeleton import ANKLES, HEAD, JOINT, OFFSETS, PARENTS, TOE_HEIGHT, TOES, fk, rest_positions
+
+LEG_BONES = np.array([JOINT[f"{s}_{j}"] for s in "lr" for j in ("hip", "knee", "ankle", "toe")])
+ARM_BONES = np.array([JOINT[f"{s}_{j}"] for s in "lr" for j in ("elbow", "wrist")])
+TRUNK_BONES = np.array([JOINT[j] for j in ("spine", "chest", "neck", "head")])
+LEGS_RANGE = (0.8, 1.2)         # five standard deviations either way: anything outside is a typing error
+
+
+def proportioned_offsets(legs=1.0, arms=1.0, size=1.0):
+    """The canonical skeleton scaled by `size`, its leg bones by `legs` and arm bones by `arms`, the trunk
+    bones made shorter or longer so the head joint stands as high as at `size` with canonical legs."""
+    rest = rest_positions(OFFSETS)
+    off = OFFSETS * size
+    off[LEG_BONES] *= legs
+    off[ARM_BONES] *= arms
+    toe_to_head = (rest[HEAD, 1] - rest[JOINT["l_toe"], 1]) * size
+    legs_span = -rest[JOINT["l_toe"], 1] * size * legs               # pelvis down to the toes
+    off[TRUNK_BONES] *= (toe_to_head - legs_span) / (rest[HEAD, 1] * size)
+    return off
+
+
+CANONICAL_HIP_HEIGHT = TOE_HEIGHT + float(rest_positions(OFFSETS)[JOINT["l_hip"], 1] - rest_positions(OFFSETS)[JOINT["l_toe"], 1])
+
+
+def legs_for(leg_length_m, height_scale):
+    """`legs` from a leg length measured on the user (floor to the hip joint, standing, m) and the
+    calibration's height scale (user -> canonical units)."""
+    rest = rest_positions(OFFSETS)
+    return (leg_length_m * height_scale - TOE_HEIGHT) / float(rest[JOINT["l_hip"], 1] - rest[JOINT["l_toe"], 1])
+
+
+class UserBody:
+    """A pose's joint angles on the user's skeleton (`legs`; arms canonical), hung from the head joint.
+    on_user(pose) -> a Pose of its own (kept, written each frame) with the same rotations and the
+    positions on the user's skeleton; the canonical body (legs == 1) hands the pose back untouched."""
+
+    def __init__(self, legs=1.0):
+        if not LEGS_RANGE[0] <= legs <= LEGS_RANGE[1]:
+            raise ValueError(f"legs {legs:g} times the canonical body's for the height: expected "
+                             f"{LEGS_RANGE[0]:g} to {LEGS_RANGE[1]:g}")
+        from edge.frame import Pose
+        self.legs = float(legs)
+        self.canonical = self.legs == 1.0
+        self.offsets = proportioned_offsets(legs)
+        self.pose = Pose()
+        self._world = np.zeros((1, len(OFFSETS), 3, 3))
+        self._root = np.zeros((1, 3))
+        self._local = np.zeros((1, len(OFFSETS), 3, 3))
+        self._ones = np.ones((1, 2))
+        self._legs, self._arms = LIMB_CHAINS[:2], LIMB_CHAINS[2:]     # (hip, knee, ankle), (shoulder, elbow, wrist)
+        self._leg_poles, self._arm_poles = LIMB_POLES[:2], LIMB_POLES[2:]
+
+    def on_user(self, pose):
+        if self.canonical:
+            return pose
+        out, local, world = self.pose, self._local, self._world
+        np.copyto(local[0], pose.rotations)
+        pos = out.positions[None]
+        fk(local, self._root, offsets=self.offsets, out=(world, pos))
+        pos += pose.positions[HEAD] - pos[0, HEAD]
+        wrists = self._arms[:, 2]
+        hands = world[:, wrists].copy()                 # the hands keep their world orientation
+        apply_limb_ik(local, world, pos, PARENTS, self._arms, pose.positions[None, wrists], self._ones,
+                      self._arm_poles, end_world_rot=hands, offsets=self.offsets)
+        # Longer legs under a shorter trunk reach lower when bent: a foot under the floor (its ankle
+        # or toe below the foot IK's floor) is lifted onto it by its leg, as the foot IK would.
+        ankles, toes = pos[0, ANKLES], pos[0, TOES]
+        lift = np.maximum(np.maximum(FLOOR_ANKLE - ankles[:, 1], FLOOR_TOE - toes[:, 1]), 0.0)
+        if lift.any():
+            goal = ankles.copy()
+            goal[:, 1] += lift
+            apply_limb_ik(local, world, pos, PARENTS, self._legs, goal[None], (lift > 0)[None].astype(float),
+                          self._leg_poles, offsets=self.offsets)
+        fk(local, pos[:, 0], offsets=self.offsets, out=(world, pos))     # every joint below the chains follows
+        out.rotations, out.contacts = local[0], pose.contacts
+        out.frame, out.sample, out.transition = pose.frame, pose.sample, pose.transition
+        return out

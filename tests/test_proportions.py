@@ -1,0 +1,130 @@
+"""A user's legs (#54 item 3): the pose sent on the user's skeleton, hung from the head, the wrists still
+on the controllers and no foot under the floor."""
+import numpy as np
+import pytest
+
+from edge.options import PipelineOptions
+from edge.physics import FLOOR_ANKLE, FLOOR_TOE
+from edge.pipeline import Pipeline
+from edge.proportions import LEG_BONES, UserBody, legs_for, proportioned_offsets
+from edge.skeleton import ANKLES, HEAD, JOINT, OFFSETS, PARENTS, TOES, fk
+from motion.takes import from_sample
+from tests.conftest import SAMPLE
+
+WRISTS = [JOINT["l_wrist"], JOINT["r_wrist"]]
+
+
+@pytest.fixture(scope="module")
+def poses():
+    """Copies of the runtime's poses over a walk and its crouches (the bundled sample), N = 1."""
+    sig = from_sample(SAMPLE).signals
+    pipe = Pipeline(PipelineOptions(samples=1))
+    out = []
+    for t in range(0, 240):
+        p = pipe.step(sig.slice(t, t + 1))
+        out.append((p.positions.copy(), p.rotations.copy(), p.contacts.copy(), p.frame))
+    return out
+
+
+def as_pose(row):
+    from edge.frame import Pose
+    pos, rot, contacts, frame = row
+    return Pose(frame, pos.copy(), rot.copy(), contacts.copy())
+
+
+def bone_lengths(pos):
+    return np.linalg.norm(pos[1:] - pos[PARENTS[1:]], axis=-1)
+
+
+def test_the_canonical_body_sends_the_pose_untouched(poses):
+    pose = as_pose(poses[100])
+    assert UserBody(1.0).on_user(pose) is pose
+
+
+@pytest.mark.parametrize("legs", [0.92, 1.08])
+def test_legs_long_or_short_are_sent_that_long_from_the_head_with_the_wrists_on_the_controllers(poses, legs):
+    body = UserBody(legs)
+    want = bone_lengths(np.asarray(fk(np.eye(3)[None].repeat(len(OFFSETS), 0), np.zeros(3),
+                                      offsets=proportioned_offsets(legs))[1]))
+    for row in poses[60::30]:
+        pose = as_pose(row)
+        out = body.on_user(pose)
+        got = out.positions
+        np.testing.assert_allclose(bone_lengths(got), want, atol=1e-6)          # every bone the user's
+        np.testing.assert_allclose(got[HEAD], pose.positions[HEAD], atol=1e-9)  # hung from the tracked head
+        np.testing.assert_allclose(got[WRISTS], pose.positions[WRISTS], atol=2e-3)      # on the controllers
+        assert (got[ANKLES, 1] >= FLOOR_ANKLE - 1e-6).all() and (got[TOES, 1] >= FLOOR_TOE - 1e-6).all()
+        # the hands as the controllers turned them: their world orientation unchanged
+        world = fk(out.rotations, got[0], offsets=body.offsets)[0]
+        canon = fk(pose.rotations, pose.positions[0])[0]
+        np.testing.assert_allclose(world[WRISTS], canon[WRISTS], atol=1e-5)
+    thigh_shin = lambda off: sum(np.linalg.norm(off[j]) for j in LEG_BONES[1:3])   # noqa: E731
+    assert thigh_shin(body.offsets) == pytest.approx(legs * thigh_shin(OFFSETS))
+
+
+def test_a_leg_length_outside_five_deviations_is_refused():
+    with pytest.raises(ValueError, match="0.8 to 1.2"):
+        UserBody(1.3)
+
+
+def test_a_measured_leg_length_gives_the_legs_it_came_from():
+    """legs_for inverts the skeleton: the hip joint's height standing on a body with those legs, at the
+    user's size, reads back as those legs."""
+    from edge.skeleton import rest_positions, TOE_HEIGHT
+    for legs, scale in ((0.92, 1.2), (1.0, 1.0), (1.08, 0.9)):
+        rest = rest_positions(proportioned_offsets(legs))
+        hip_height_canonical = TOE_HEIGHT + rest[JOINT["l_hip"], 1] - rest[JOINT["l_toe"], 1]
+        assert legs_for(hip_height_canonical / scale, scale) == pytest.approx(legs, abs=1e-9)
+
+
+def test_long_legs_under_a_trunk_bent_over_are_lifted_onto_the_floor():
+    """Bent over at the spine with the legs straight, the shorter trunk no longer lifts the pelvis by
+    what the longer legs add: the feet would go under the floor, and are lifted onto it."""
+    from edge import quat
+    from edge.frame import Pose
+    from edge.skeleton import TOE_HEIGHT
+    local = np.tile(np.eye(3), (len(OFFSETS), 1, 1))
+    local[JOINT["spine"]] = quat.to_matrix(quat.from_axis_angle(np.array([1.0, 0, 0]), np.radians(80)))
+    _, pos = fk(local, np.zeros(3))
+    pos[:, 1] += TOE_HEIGHT - pos[TOES, 1].min()            # standing on the floor
+    pose = Pose(0, pos, local, np.ones(2))
+    body = UserBody(1.08)
+    straight = fk(local, np.zeros(3), offsets=body.offsets)[1]
+    straight += pos[HEAD] - straight[HEAD]
+    assert straight[TOES, 1].min() < FLOOR_TOE - 0.03        # hung from the head alone: under the floor
+    out = body.on_user(pose).positions
+    assert (out[ANKLES, 1] >= FLOOR_ANKLE - 1e-6).all() and (out[TOES, 1] >= FLOOR_TOE - 1e-6).all()
+    np.testing.assert_allclose(out[HEAD], pos[HEAD], atol=1e-9)
+
+
+def test_a_board_told_the_users_legs_records_its_bvh_on_them(tmp_path):
+    """[body] leg_length_m in the board's config: the BVH's skeleton has the user's legs at the user's
+    size, and its frames are the poses on them (the head where the canonical pose put it)."""
+    from edge.proportions import CANONICAL_HIP_HEIGHT
+    from edgetools.profile import Feeder
+    from firmware_bridge import config as config_mod
+    from firmware_bridge.service import Service
+    from motion import bvh as bvh_file
+    feeder = Feeder(60.0, f"legs-{id(tmp_path)}")
+    headset, waist = feeder.urls()
+    path = tmp_path / "legs.bvh"
+    raw = {"headset": {"url": headset}, "trackers": [{"url": waist}], "output": {"pose_stream": "headset", "bvh": str(path)},
+           "runtime": {"samples": 1, "precision": "int8"}, "refine": {"enabled": False}, "body": {"height_m": 1.75}}
+    probe = Service(config_mod.from_dict(raw, "legs"), clock=lambda: feeder.now, status=None, threaded=False)
+    scale = probe.calibration.height_scale
+    probe.close()
+    raw["body"]["leg_length_m"] = round(1.07 * CANONICAL_HIP_HEIGHT / scale, 4)
+    svc = Service(config_mod.from_dict(raw, "legs"), clock=lambda: feeder.now, status=None, threaded=False)
+    try:
+        assert 1.06 < svc.outputs.body.legs < 1.09
+        for k in range(90):
+            svc.step(feeder.frame(k))
+    finally:
+        svc.close()
+        feeder.close()
+    clip = bvh_file.load(path)
+    named = {n: clip.offsets[i] / 100.0 for i, n in enumerate(clip.names) if n in JOINT}
+    for joint in ("l_knee", "l_ankle", "spine", "r_elbow"):
+        np.testing.assert_allclose(named[joint], svc.outputs.body.offsets[JOINT[joint]] / scale, atol=1e-4)
+    assert clip.positions.shape[0] > 60
+    np.testing.assert_allclose(clip.positions[-1, 0] / 100.0, svc.outputs.body.pose.positions[0] / scale, atol=1e-4)
