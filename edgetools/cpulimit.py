@@ -124,3 +124,19 @@ class Hog:
         self.stop()
         for p in self.procs:
             p.wait()
+
+
+def busy_seconds(core=None):
+    """CPU time spent so far by every task, interrupts included (/proc/stat: user, nice, system, irq,
+    softirq; not idle, iowait or steal), on one core or, with None, the whole machine, in seconds;
+    None where the kernel has no such line."""
+    key = "cpu " if core is None else f"cpu{core} "
+    try:
+        with open("/proc/stat") as f:
+            for line in f:
+                if line.startswith(key):
+                    v = [int(x) for x in line.split()[1:8]]
+                    return (v[0] + v[1] + v[2] + v[5] + v[6]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError):
+        pass
+    return None

@@ -80,7 +80,7 @@ from edge.governor import rungs
 from edge.inference import DEFAULT_PRECISION
 
 SAMPLE = Path(__file__).resolve().parent.parent / "samples" / "cmu_09_12_walk.npz"
-from edgetools.cpulimit import CGROUP_V1, CGROUP_V2, CpuLimit, Hog  # noqa: F401  (CGROUP_*: tests read them)
+from edgetools.cpulimit import CGROUP_V1, CGROUP_V2, CpuLimit, Hog, busy_seconds  # noqa: F401  (CGROUP_*: tests read them)
 
 
 def add_arguments(p):
@@ -219,20 +219,6 @@ def steal_seconds():
         return 0.0
 
 
-def core_busy_seconds(core):
-    """CPU time spent on `core` so far by every task on it, interrupts included (/proc/stat's cpuN line:
-    user, nice, system, irq, softirq), in seconds; None where the kernel has no such line."""
-    try:
-        with open("/proc/stat") as f:
-            for line in f:
-                if line.startswith(f"cpu{core} "):
-                    v = [int(x) for x in line.split()[1:8]]
-                    return (v[0] + v[1] + v[2] + v[5] + v[6]) / os.sysconf("SC_CLK_TCK")
-    except (OSError, ValueError):
-        pass
-    return None
-
-
 class CoreNeighbours:
     """How much of the profiled core other tasks used while the worker ran: the core's busy time less
     the worker's own (its process and the children it waited for). On a VM whose kernel charges
@@ -247,13 +233,13 @@ class CoreNeighbours:
         self.core = core
 
     def __enter__(self):
-        self.busy0, self.wall0 = core_busy_seconds(self.core), time.monotonic()
+        self.busy0, self.wall0 = busy_seconds(self.core), time.monotonic()
         r = resource.getrusage(resource.RUSAGE_CHILDREN)
         self.own0 = r.ru_utime + r.ru_stime
         return self
 
     def __exit__(self, *exc):
-        busy, r = core_busy_seconds(self.core), resource.getrusage(resource.RUSAGE_CHILDREN)
+        busy, r = busy_seconds(self.core), resource.getrusage(resource.RUSAGE_CHILDREN)
         self.wall = time.monotonic() - self.wall0
         self.other_s = None if busy is None or self.busy0 is None else max(
             0.0, (busy - self.busy0) - (r.ru_utime + r.ru_stime - self.own0))

@@ -114,4 +114,8 @@ def test_a_minute_on_every_transport_counts_and_recovers_from_each_fault(tmp_pat
     assert s["frames_out"] >= 0.98 * 3600 and s["host_poses"] >= 0.95 * 3600
     rows = [json.loads(x) for x in Path(s["lines"]).read_text().splitlines()]
     assert len(rows) == 7 and all(r["rss_mb"] > 0 and r["fds"] > 0 for r in rows)
+    # the machine's load beside the board's: the soak's process is part of the machine's busy time
+    assert all(0 < r["load"]["soak_process_cores"] <= r["load"]["machine_cores"] + 0.05 for r in rows), rows
+    assert s["own_late_at"] == [{"t_min": r["t_min"], "own": r["late"]["own"], "load": r["load"]}
+                                for r in rows if r["late"]["own"]]
     assert not plot or (tmp_path / "soak.png").stat().st_size > 10_000

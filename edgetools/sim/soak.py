@@ -30,6 +30,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from edgetools.cpulimit import busy_seconds
 from edgetools.sim import scheme
 from edgetools.sim.bno055_fake import ChipBehaviour, FakeBNO055
 from edgetools.sim.replay import ReplayBench
@@ -322,6 +323,24 @@ class Soak:
     def __init__(self, bench, minutes, sample_s, lines, status):
         self.bench, self.minutes, self.sample_s, self.lines, self.status = bench, minutes, sample_s, lines, status
         self.samples = []
+        self._cpu_mark = self._cpu_now()
+
+    @staticmethod
+    def _cpu_now():
+        """(the machine's busy CPU seconds, this process's, the monotonic clock) for the load each sample reports."""
+        t = os.times()
+        return busy_seconds(), t.user + t.system, time.monotonic()
+
+    def _load(self):
+        """Cores busy since the last sample: the machine's and this process's (the board and the simulated
+        devices). The rest is the parts' worker and everything else on the machine: on a VM another
+        process's memory traffic is charged to the tick's CPU (edgetools.profile, CoreNeighbours), so a
+        late tick of the board's own is read beside it."""
+        (busy0, own0, t0), now = self._cpu_mark, self._cpu_now()
+        self._cpu_mark = now
+        wall = max(now[2] - t0, 1e-9)
+        return {"machine_cores": None if busy0 is None or now[0] is None else round((now[0] - busy0) / wall, 3),
+                "soak_process_cores": round((now[1] - own0) / wall, 3)}
 
     def run(self):
         b = self.bench
@@ -402,7 +421,8 @@ class Soak:
                "late": late, "lag_ms_p99": s.get("motion_to_pose_lag_ms_last_10s", {}).get("p99"),
                "heading_correction_deg": (round(float(np.degrees(np.abs(heading.offset).max())), 3)
                                           if heading is not None else None),
-               "samples": s["samples"], "faults": len(b.events), "recovered": sum(e["recovered_s"] is not None for e in b.events)}
+               "samples": s["samples"], "faults": len(b.events), "recovered": sum(e["recovered_s"] is not None for e in b.events),
+               "load": self._load()}
         self.samples.append(row)
         if self.lines is not None:
             self.lines.write(json.dumps(row) + "\n")
@@ -446,7 +466,10 @@ class Soak:
                "frames_out": b.service.stats["frames_out"], "host_poses": int(b.metrics.decoded),
                "frame_ms": {"p50": float(np.nanpercentile(self.frame_ms[1:k + 1], 50)),
                             "p99": float(np.nanpercentile(self.frame_ms[1:k + 1], 99))} if k else {},
-               "frame_ms_p99_by_10_minutes": p99, "errors": b.errors[:20], "faults": events, "samples": len(rows)}
+               "frame_ms_p99_by_10_minutes": p99, "errors": b.errors[:20], "faults": events, "samples": len(rows),
+               # where the board's own late ticks fell, beside what the machine was doing then
+               "own_late_at": [{"t_min": r["t_min"], "own": r["late"]["own"], "load": r.get("load")}
+                               for r in rows if r["late"].get("own")]}
         # growth judged over the span after warm-up: 1 MB an hour. A run of minutes cannot tell that from the
         # allocator's warm-up (a minute grows 1-3 MB, then it is flat: docs/benchmarks.md, "Soaks"), so it
         # is allowed 5 MB: it catches a leak of megabytes a minute, the hours catch the rest.
