@@ -8,12 +8,14 @@ taking up the difference so the head joint stands where the stature puts it. Adu
 
 UserBody puts a pose's joint angles on the user's skeleton, hung from the tracked head as the runtime
 hangs the canonical one, in the canonical body's units (the outputs scale to the user's size as
-before). A trunk shorter or longer moves the shoulders, so each arm is solved again (two-bone IK) to
-put its wrist where the pose had it, on the controller, the hand turned as it was. The arms keep the
-canonical lengths.
+before). A trunk shorter or longer moves the shoulders, and arms longer or shorter (`arms`, the upper
+arm and forearm against the canonical body's for the height: the standing calibration measures them
+from the controllers held out) reach farther, so each arm is solved again (two-bone IK) to put its
+wrist where the pose had it, on the controller, the hand turned as it was.
 """
 import numpy as np
 
+from edge.calibration import CANONICAL_ARM
 from edge.frame import LIMB_CHAINS, LIMB_POLES
 from edge.ik import apply_limb_ik
 from edge.physics import FLOOR_ANKLE, FLOOR_TOE
@@ -22,7 +24,7 @@ from edge.skeleton import ANKLES, HEAD, JOINT, OFFSETS, PARENTS, TOE_HEIGHT, TOE
 LEG_BONES = np.array([JOINT[f"{s}_{j}"] for s in "lr" for j in ("hip", "knee", "ankle", "toe")])
 ARM_BONES = np.array([JOINT[f"{s}_{j}"] for s in "lr" for j in ("elbow", "wrist")])
 TRUNK_BONES = np.array([JOINT[j] for j in ("spine", "chest", "neck", "head")])
-LEGS_RANGE = (0.8, 1.2)         # five standard deviations either way: anything outside is a typing error
+LIMBS_RANGE = (0.8, 1.2)        # five standard deviations either way: anything outside is a measuring error
 
 
 def proportioned_offsets(legs=1.0, arms=1.0, size=1.0):
@@ -48,19 +50,26 @@ def legs_for(leg_length_m, height_scale):
     return (leg_length_m * height_scale - TOE_HEIGHT) / float(rest[JOINT["l_hip"], 1] - rest[JOINT["l_toe"], 1])
 
 
-class UserBody:
-    """A pose's joint angles on the user's skeleton (`legs`; arms canonical), hung from the head joint.
-    on_user(pose) -> a Pose of its own (kept, written each frame) with the same rotations and the
-    positions on the user's skeleton; the canonical body (legs == 1) hands the pose back untouched."""
+def arms_for(arm_length_m, height_scale):
+    """`arms` from an arm measured on the user (shoulder joint to wrist, m; edge.calibration's
+    arm_length_from_tpose) and the calibration's height scale."""
+    return arm_length_m * height_scale / CANONICAL_ARM
 
-    def __init__(self, legs=1.0):
-        if not LEGS_RANGE[0] <= legs <= LEGS_RANGE[1]:
-            raise ValueError(f"legs {legs:g} times the canonical body's for the height: expected "
-                             f"{LEGS_RANGE[0]:g} to {LEGS_RANGE[1]:g}")
+
+class UserBody:
+    """A pose's joint angles on the user's skeleton (`legs`, `arms`), hung from the head joint.
+    on_user(pose) -> a Pose of its own (kept, written each frame) with the arms' rotations solved again
+    and the positions on the user's skeleton; the canonical body hands the pose back untouched."""
+
+    def __init__(self, legs=1.0, arms=1.0):
+        for name, v in (("legs", legs), ("arms", arms)):
+            if not LIMBS_RANGE[0] <= v <= LIMBS_RANGE[1]:
+                raise ValueError(f"{name} {v:g} times the canonical body's for the height: expected "
+                                 f"{LIMBS_RANGE[0]:g} to {LIMBS_RANGE[1]:g}")
         from edge.frame import Pose
-        self.legs = float(legs)
-        self.canonical = self.legs == 1.0
-        self.offsets = proportioned_offsets(legs)
+        self.legs, self.arms = float(legs), float(arms)
+        self.canonical = self.legs == 1.0 and self.arms == 1.0
+        self.offsets = proportioned_offsets(legs, arms)
         self.pose = Pose()
         self._world = np.zeros((1, len(OFFSETS), 3, 3))
         self._root = np.zeros((1, 3))

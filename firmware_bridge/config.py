@@ -57,7 +57,7 @@ SECTIONS = {
     "runtime": {"samples", "adaptive", "precision", "lookahead", "hz", "lost_after_ms", "sync_latency_ms",
                 "calibration", "models", "leg_guard_cm"},
     "refine": {"enabled", "steps", "terms"},
-    "body": {"height_m", "leg_length_m"},
+    "body": {"height_m", "leg_length_m", "arm_length_m"},
 }
 REFINE_TERMS = ("targets", "keep", "floor", "legs", "imus", "imus-tilt")
 
@@ -87,6 +87,7 @@ class Config:
     refine: dict = None             # [refine] as RefineSettings' fields (None: off)
     height_m: float = None          # [body] height_m: the user's stature, over the calibration's measured one
     leg_length_m: float = None      # [body] leg_length_m: floor to hip joint standing (edge.proportions)
+    arm_length_m: float = None      # [body] arm_length_m: shoulder joint to wrist, over the calibration's
 
     def pipeline_options(self):
         """The board's Pipeline, as edge.options.PipelineOptions: [runtime]'s N, look-ahead, rate,
@@ -139,7 +140,7 @@ def from_dict(raw, where="config"):
     read_output(cfg, raw.get("output", {}), where)
     read_runtime(cfg, raw.get("runtime", {}), where)
     cfg.refine = refine_section(raw.get("refine", {}), where)
-    cfg.height_m, cfg.leg_length_m = read_body(raw.get("body", {}), where)
+    cfg.height_m, cfg.leg_length_m, cfg.arm_length_m = read_body(raw.get("body", {}), where)
     return cfg
 
 
@@ -147,10 +148,12 @@ def read_body(body, where):
     """[body] height_m: the user's stature written by hand, which wins over the one the standing
     calibration measured (a headset worn high, a calibration done sitting); leg_length_m: from the
     floor to the hip joint, standing (the bony point at the side of the hip), for legs long or short for
-    the height (edge.proportions). -> (height_m, leg_length_m), None where not given."""
+    the height (edge.proportions); arm_length_m: shoulder joint to wrist, over what the T-pose measured.
+    -> (height_m, leg_length_m, arm_length_m), None where not given."""
     out = []
     for key, low, high, what in (("height_m", 1.0, 2.3, "the user's height in metres"),
-                                 ("leg_length_m", 0.6, 1.3, "floor to hip joint standing, in metres")):
+                                 ("leg_length_m", 0.6, 1.3, "floor to hip joint standing, in metres"),
+                                 ("arm_length_m", 0.3, 0.9, "shoulder joint to wrist, in metres")):
         v = body.get(key)
         if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not low <= v <= high):
             raise ConfigError(f"{where}: [body] {key} is {what}, {low:g} to {high:g}; got {v!r}")

@@ -34,18 +34,20 @@ def status_printer(status):
 
 
 def user_body(cfg, calibration):
-    """The user's legs (edge.proportions.UserBody) from a [body] leg_length_m, at the calibration's
-    size; the canonical legs without one. A length the skeleton cannot take fails with the fix."""
-    from edge.proportions import UserBody, legs_for
-    if not cfg.leg_length_m:
-        return UserBody(1.0)
-    legs = legs_for(cfg.leg_length_m, calibration.height_scale)
+    """The user's limbs (edge.proportions.UserBody) at the calibration's size: the legs from a [body]
+    leg_length_m, the arms from the standing calibration's T-pose (or a [body] arm_length_m); the
+    canonical ones where neither says. A length no skeleton has fails with how to measure it."""
+    from edge.proportions import UserBody, arms_for, legs_for
+    scale = calibration.height_scale
+    legs = legs_for(cfg.leg_length_m, scale) if cfg.leg_length_m else 1.0
+    arm = cfg.arm_length_m or calibration.arm_length_m
+    arms = arms_for(arm, scale) if arm else 1.0
     try:
-        return UserBody(legs)
+        return UserBody(legs, arms)
     except ValueError as e:
-        raise ConfigError(f"{cfg.path or 'config'}: [body] leg_length_m {cfg.leg_length_m:g} m on a body "
-                          f"{calibration.stature_m():.2f} m tall is {e}: measure from the floor to the bony "
-                          f"point at the side of the hip, standing") from None
+        raise ConfigError(f"{cfg.path or 'config'}: on a body {calibration.stature_m():.2f} m tall, {e}: measure "
+                          "the legs from the floor to the bony point at the side of the hip, standing, and the "
+                          "arm from the shoulder joint to the wrist (or run edge calibrate again)") from None
 
 
 def load_calibration(cfg):

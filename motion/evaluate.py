@@ -96,10 +96,11 @@ def evaluate(paths, options=None, *, split=None, people=None, models=None, track
     with the sources' skeleton conventions left in (the ruler before motion.neutrals). body
     (motion.bodies.Body): each BVH clip posed on that body, its devices synthesised from it and brought
     onto the canonical body as the standing calibration does, the poses taken back to the body's size
-    and scored against its FK; body_known: the runtime is told the body's legs (a [body] leg_length_m
-    in the board's config) and sends its poses on them (edge.proportions.UserBody)."""
+    and scored against its FK; body_known: the runtime is told the body's limbs (a [body] leg_length_m
+    in the board's config, the arms the T-pose measures) and sends its poses on them
+    (edge.proportions.UserBody)."""
     options = PipelineOptions() if options is None else options
-    user_body = UserBody(body.legs) if body_known and body is not None else None
+    user_body = UserBody(body.legs, body.arms) if body_known and body is not None else None
     files = _clips(paths, split, max_clips, people)
     who = people_of_files(paths, files)
     if faults not in (None, "disconnect"):

@@ -229,3 +229,9 @@ def test_a_leg_length_in_the_config_gives_the_board_the_users_legs_or_fails_with
     for bad in ("long", True, 2.0):
         with pytest.raises(config_mod.ConfigError, match=r"\[body\] leg_length_m is floor to hip joint"):
             config_mod.from_dict({**raw, "body": {"leg_length_m": bad}})
+    # the arms: the T-pose's measurement, and a [body] arm_length_m over it
+    from edge.calibration import CANONICAL_ARM
+    cal.arm_length_m = 1.06 * CANONICAL_ARM / cal.height_scale
+    assert user_body(config_mod.from_dict(raw), cal).arms == pytest.approx(1.06)
+    written = config_mod.from_dict({**raw, "body": {"height_m": 1.75, "arm_length_m": round(0.95 * CANONICAL_ARM / cal.height_scale, 4)}})
+    assert user_body(written, cal).arms == pytest.approx(0.95, abs=1e-3)

@@ -6,7 +6,7 @@ import pytest
 from edge.options import PipelineOptions
 from edge.physics import FLOOR_ANKLE, FLOOR_TOE
 from edge.pipeline import Pipeline
-from edge.proportions import LEG_BONES, UserBody, legs_for, proportioned_offsets
+from edge.proportions import ARM_BONES, LEG_BONES, UserBody, arms_for, legs_for, proportioned_offsets
 from edge.skeleton import ANKLES, HEAD, JOINT, OFFSETS, PARENTS, TOES, fk
 from motion.takes import from_sample
 from tests.conftest import SAMPLE
@@ -41,11 +41,11 @@ def test_the_canonical_body_sends_the_pose_untouched(poses):
     assert UserBody(1.0).on_user(pose) is pose
 
 
-@pytest.mark.parametrize("legs", [0.92, 1.08])
-def test_legs_long_or_short_are_sent_that_long_from_the_head_with_the_wrists_on_the_controllers(poses, legs):
-    body = UserBody(legs)
+@pytest.mark.parametrize("legs,arms", [(0.92, 1.0), (1.08, 1.0), (1.0, 0.92), (1.05, 1.08)])
+def test_limbs_long_or_short_are_sent_that_long_from_the_head_with_the_wrists_on_the_controllers(poses, legs, arms):
+    body = UserBody(legs, arms)
     want = bone_lengths(np.asarray(fk(np.eye(3)[None].repeat(len(OFFSETS), 0), np.zeros(3),
-                                      offsets=proportioned_offsets(legs))[1]))
+                                      offsets=proportioned_offsets(legs, arms))[1]))
     for row in poses[60::30]:
         pose = as_pose(row)
         out = body.on_user(pose)
@@ -60,11 +60,20 @@ def test_legs_long_or_short_are_sent_that_long_from_the_head_with_the_wrists_on_
         np.testing.assert_allclose(world[WRISTS], canon[WRISTS], atol=1e-5)
     thigh_shin = lambda off: sum(np.linalg.norm(off[j]) for j in LEG_BONES[1:3])   # noqa: E731
     assert thigh_shin(body.offsets) == pytest.approx(legs * thigh_shin(OFFSETS))
+    upper_fore = lambda off: sum(np.linalg.norm(off[j]) for j in ARM_BONES[:2])     # noqa: E731
+    assert upper_fore(body.offsets) == pytest.approx(arms * upper_fore(OFFSETS))
 
 
-def test_a_leg_length_outside_five_deviations_is_refused():
-    with pytest.raises(ValueError, match="0.8 to 1.2"):
+def test_a_limb_length_outside_five_deviations_is_refused():
+    with pytest.raises(ValueError, match="legs 1.3 .* 0.8 to 1.2"):
         UserBody(1.3)
+    with pytest.raises(ValueError, match="arms 0.7 .* 0.8 to 1.2"):
+        UserBody(1.0, 0.7)
+
+
+def test_an_arm_measured_in_the_t_pose_gives_the_arms_it_came_from():
+    from edge.calibration import CANONICAL_ARM
+    assert arms_for(CANONICAL_ARM * 1.08 / 0.9, 0.9) == pytest.approx(1.08)
 
 
 def test_a_measured_leg_length_gives_the_legs_it_came_from():
