@@ -53,6 +53,7 @@ class Calibration:
     heading: float = 0.0                                  # headset yaw during calibration, radians
     eye_height_m: float = None                            # the headset's height standing, as measured
     arm_length_m: float = None                            # shoulder to wrist, from the T-pose's controllers
+    leg_length_m: float = None                            # floor to hip joint, a controller held at the hip
     align: dict = field(default_factory=dict)             # tracker -> [4] yaw alignment A
     mount: dict = field(default_factory=dict)             # tracker -> [4] mounting rotation M
 
@@ -66,7 +67,7 @@ class Calibration:
         return {"version": VERSION, "created": time.strftime("%Y-%m-%dT%H:%M:%S"),
                 "height_scale": self.height_scale,
                 "eye_height_m": self.eye_height_m or eye_height_for(self.height_scale),
-                "arm_length_m": self.arm_length_m,
+                "arm_length_m": self.arm_length_m, "leg_length_m": self.leg_length_m,
                 "stature_m": self.stature_m(), "heading_deg": float(np.degrees(self.heading)),
                 "trackers": {k: {"align": self.align[k].tolist(), "mount": self.mount[k].tolist()} for k in self.mount}}
 
@@ -79,7 +80,8 @@ class Calibration:
         """This calibration for a user `stature_m` tall (a height written in the config wins over the
         one measured)."""
         eye = EYE_TO_STATURE * stature_m
-        return Calibration(height_scale_for(eye), self.heading, eye, self.arm_length_m, self.align, self.mount)
+        return Calibration(height_scale_for(eye), self.heading, eye, self.arm_length_m, self.leg_length_m, self.align,
+                           self.mount)
 
     def save(self, path):
         """Write the calibration whole: a stop or a crash mid-write leaves the previous file (edge.shutdown)."""
@@ -104,6 +106,10 @@ class Calibration:
                 cal.arm_length_m = float(d["arm_length_m"])
                 if not 0.3 < cal.arm_length_m < 0.9:
                     raise CalibrationError(f"{path}: arm length {cal.arm_length_m:.2f} m is implausible; run edge calibrate again")
+            if d.get("leg_length_m") is not None:
+                cal.leg_length_m = float(d["leg_length_m"])
+                if not 0.5 < cal.leg_length_m < 1.4:
+                    raise CalibrationError(f"{path}: leg length {cal.leg_length_m:.2f} m is implausible; run edge calibrate again")
             for name, t in d.get("trackers", {}).items():
                 a, m = np.array(t["align"], dtype=np.float64), np.array(t["mount"], dtype=np.float64)
                 if a.shape != (4,) or m.shape != (4,) or not (np.all(np.isfinite(a)) and np.all(np.isfinite(m))):
@@ -249,6 +255,29 @@ def calibrate(head_pos, head_rot, trackers):
         cal.align[name] = a
         cal.mount[name] = quat.normalize(quat.mul(quat.inv(quat.mul(a, s)), face))
     return cal
+
+
+def leg_length_from_hip(hand_pos, hand_valid, eye_height_m):
+    """The user's leg (floor to the hip joint, m) from the left controller held against the bony point at
+    the side of the left hip (the greater trochanter, at the hip joint's height), standing: its median
+    height over the hold, [K,2,3] and [K,2]. (The left one, named: a hanging hand is lower than the
+    hip, so "the lower controller" would pick the wrong one.) As good as the hold: the error is how far
+    the hand sits above or below the bony point. CalibrationError says what to do when it cannot be made
+    (#54 item 2)."""
+    hand_pos, valid = np.asarray(hand_pos, float), np.asarray(hand_valid, bool)
+    held = valid[:, 0]
+    if held.mean() < 0.8:
+        raise CalibrationError("the left controller was not tracked for most of the hold: keep it in view")
+    y = hand_pos[held, 0, 1]
+    spread = float(np.percentile(y, 90) - np.percentile(y, 10))
+    leg = float(np.median(y))
+    if spread > 0.03:
+        raise CalibrationError(f"the left controller moved {100 * spread:.0f} cm up and down: hold it still "
+                               "against the bony point at the side of the left hip")
+    if not 0.40 < leg / eye_height_m < 0.65:
+        raise CalibrationError(f"the left controller was {leg:.2f} m up with the eyes at {eye_height_m:.2f} m: hold "
+                               "it against the bony point at the side of the left hip, standing upright")
+    return leg
 
 
 def arm_length_from_tpose(hand_pos, hand_rot, hand_valid, height_scale):

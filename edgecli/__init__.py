@@ -92,6 +92,9 @@ def _add_calibrate(sub):
     cal.add_argument("--config", required=True)
     cal.add_argument("--seconds", type=float, default=3.0)
     cal.add_argument("--out", default="calibration.json")
+    cal.add_argument("--legs", action="store_true",
+                     help="after the T-pose, hold the left controller against the bony point at the side of the left hip: "
+                          "the legs' length (floor to hip joint), for legs long or short for your height")
 
 
 def _add_listen(sub):

@@ -60,8 +60,17 @@ def calibrate(args):
         print(f"edge calibrate: {absent[0].start_error}", file=sys.stderr)
         return 2
     print("Stand upright, arms out to the sides (T-pose), facing forward. Hold still...", file=sys.stderr)
-    with StopSignals() as stop:
-        heads, rots, hands, trackers = _collect(links, cfg.tracker_names, args.seconds, stop)
+    try:
+        with StopSignals() as stop:
+            return _calibrate_poses(links, cfg, args, stop)
+    finally:
+        for link in links:
+            link.close()
+
+
+def _calibrate_poses(links, cfg, args, stop):
+    """The T-pose (and with --legs the hand at the hip) measured and written to args.out."""
+    heads, rots, hands, trackers = _collect(links, cfg.tracker_names, args.seconds, stop)
     if stop.requested():
         print(f"edge calibrate: stopped by {stop.signal_name} before the T-pose was measured; "
               f"{args.out} is as it was", file=sys.stderr)
@@ -77,16 +86,46 @@ def calibrate(args):
         print(f"edge calibrate: {e}", file=sys.stderr)
         return 2
     arms = _measure_arms(hands, cal, args.out)
+    legs = (_measure_legs(links, args, cal, stop) if getattr(args, "legs", False)
+            else _kept_legs(cal, args.out) + (" (--legs measures them)" if not cal.leg_length_m else ""))
+    if stop.requested():
+        print(f"edge calibrate: stopped by {stop.signal_name}; {args.out} is as it was", file=sys.stderr)
+        return 130
     cal.save(args.out)
     print(f"wrote {args.out}: headset {cal.eye_height_m:.2f} m above the floor standing, so a body about "
           f"{cal.stature_m():.2f} m tall (height scale {cal.height_scale:.3f}; a [body] height_m in the config "
-          f"overrides it), {arms}, trackers {', '.join(cal.mount) or '-'}", file=sys.stderr)
+          f"overrides it), {arms}, {legs}, trackers {', '.join(cal.mount) or '-'}", file=sys.stderr)
     return 0
 
 
+def _measure_legs(links, args, cal, stop):
+    """--legs: the left controller held at the side of the hip for `seconds` gives the leg (floor to hip joint);
+    when it cannot be measured, the previous file's is kept. -> what to say of it."""
+    from edge.calibration import leg_length_from_hip
+    print("Now hold the left controller against the bony point at the side of your left hip, standing. "
+          "Hold still...", file=sys.stderr)
+    _, _, hands, _ = _collect(links, (), args.seconds, stop)
+    try:
+        pos, valid = np.array([h[0] for h in hands]), np.array([h[2] for h in hands])
+        cal.leg_length_m = leg_length_from_hip(pos, valid, cal.eye_height_m)
+        return f"legs {cal.leg_length_m:.2f} m floor to hip"
+    except (CalibrationError, ValueError, IndexError) as e:
+        return f"{_kept_legs(cal, args.out)} ({e})"
+
+
+def _kept_legs(cal, previous_path):
+    """The leg the previous calibration file measured, kept (the last good body). -> what to say of it."""
+    from edge.calibration import Calibration
+    try:
+        cal.leg_length_m = Calibration.load(previous_path).leg_length_m
+    except CalibrationError:
+        cal.leg_length_m = None
+    return f"legs kept {cal.leg_length_m:.2f} m from before" if cal.leg_length_m else "legs not measured"
+
+
 def _collect(links, tracker_names, seconds, stop):
-    """The T-pose's samples for `seconds` (or until a stop): the headset's positions and rotations, the
-    controllers' (positions, rotations, tracked), each tracker's orientations. The links are closed after."""
+    """A pose's samples for `seconds` (or until a stop): the headset's positions and rotations, the
+    controllers' (positions, rotations, tracked), each tracker's orientations."""
     heads, rots, hands, trackers = [], [], [], {name: [] for name in tracker_names}
     start = time.monotonic()
     with Progress(int(seconds * 10), "calibrate") as bar:
@@ -102,8 +141,6 @@ def _collect(links, tracker_names, seconds, stop):
             time.sleep(0.005)
             bar.n = int((time.monotonic() - start) * 10) - 1
             bar.update()
-    for link in links:
-        link.close()
     return heads, rots, hands, trackers
 
 

@@ -34,12 +34,14 @@ def status_printer(status):
 
 
 def user_body(cfg, calibration):
-    """The user's limbs (edge.proportions.UserBody) at the calibration's size: the legs from a [body]
-    leg_length_m, the arms from the standing calibration's T-pose (or a [body] arm_length_m); the
-    canonical ones where neither says. A length no skeleton has fails with how to measure it."""
+    """The user's limbs (edge.proportions.UserBody) at the calibration's size: each from a [body]
+    leg_length_m / arm_length_m in the config, else from what edge calibrate measured (the arms in the
+    T-pose, the legs with --legs); the canonical ones where neither says. A length no skeleton has
+    fails with how to measure it."""
     from edge.proportions import UserBody, arms_for, legs_for
     scale = calibration.height_scale
-    legs = legs_for(cfg.leg_length_m, scale) if cfg.leg_length_m else 1.0
+    leg = cfg.leg_length_m or calibration.leg_length_m
+    legs = legs_for(leg, scale) if leg else 1.0
     arm = cfg.arm_length_m or calibration.arm_length_m
     arms = arms_for(arm, scale) if arm else 1.0
     try:

@@ -235,3 +235,57 @@ def test_a_leg_length_in_the_config_gives_the_board_the_users_legs_or_fails_with
     assert user_body(config_mod.from_dict(raw), cal).arms == pytest.approx(1.06)
     written = config_mod.from_dict({**raw, "body": {"height_m": 1.75, "arm_length_m": round(0.95 * CANONICAL_ARM / cal.height_scale, 4)}})
     assert user_body(written, cal).arms == pytest.approx(0.95, abs=1e-3)
+
+
+def test_the_legs_are_measured_from_a_controller_held_at_the_hip_and_refused_when_it_cannot_be():
+    """#54 item 2, the legs: on bodies with legs 8 % short or long for three statures, the left controller held
+    still at the side of the hip (at the hip joint's height, a centimetre of tremor) gives legs within
+    2 cm of the truth, the board's `legs` from it within 0.02; a moving, lost or misplaced controller
+    says what to do."""
+    from edge.calibration import height_scale_for, leg_length_from_hip
+    from edge.proportions import legs_for
+    from edge.skeleton import JOINT, TOE_HEIGHT, rest_positions
+    from motion.bodies import Body, eye_height
+    rng = np.random.default_rng(5)
+    K = 90
+    for height, legs in ((1.55, 0.92), (1.75, 1.08), (1.95, 0.92), (1.95, 1.08)):
+        body = Body("b", height, legs)
+        off = body.offsets()
+        rest = rest_positions(off)
+        hip = TOE_HEIGHT * body.leg_scale() + rest[JOINT["l_hip"], 1] - rest[JOINT["l_toe"], 1]
+        pos = np.zeros((K, 2, 3))
+        pos[:, 0] = [0.25, hip, 0.0] + rng.normal(0, 0.005, (K, 3))          # held at the hip
+        pos[:, 1] = [-0.3, 0.85 * hip, 0.1]                                  # the other hand hanging, lower
+        valid = np.ones((K, 2), bool)
+        eye = eye_height(off)
+        measured = leg_length_from_hip(pos, valid, eye)
+        assert measured == pytest.approx(hip, abs=0.02)
+        assert legs_for(measured, height_scale_for(eye)) == pytest.approx(legs, abs=0.02)
+    moving = pos.copy()
+    moving[:, 0, 1] += np.linspace(0, 0.2, K)
+    with pytest.raises(CalibrationError, match="hold it still"):
+        leg_length_from_hip(moving, valid, eye)
+    lost = valid.copy()
+    lost[: K // 2, 0] = lost[: K // 2, 1] = False
+    with pytest.raises(CalibrationError, match="keep it in view"):
+        leg_length_from_hip(pos, lost, eye)
+    low = pos.copy()
+    low[:, 0, 1] = 0.3
+    with pytest.raises(CalibrationError, match="bony point at the side of the left hip, standing"):
+        leg_length_from_hip(low, valid, eye)
+
+
+def test_a_calibration_keeps_the_legs_it_measured_and_the_board_uses_them(tmp_path):
+    from edge.proportions import CANONICAL_HIP_HEIGHT
+    from firmware_bridge import config as config_mod
+    from firmware_bridge.wiring import load_calibration, user_body
+    cal = calibrate(np.tile([0, 1.62, 0], (10, 1)), np.tile([1.0, 0, 0, 0], (10, 1)), {})
+    cal.leg_length_m = 1.06 * CANONICAL_HIP_HEIGHT / cal.height_scale
+    cal.save(tmp_path / "cal.json")
+    loaded = Calibration.load(tmp_path / "cal.json")
+    assert loaded.leg_length_m == pytest.approx(cal.leg_length_m)
+    cfg = config_mod.from_dict({"headset": {"url": "serial:///dev/ttyAMA0?role=headset"},
+                                "runtime": {"calibration": str(tmp_path / "cal.json")}})
+    body = user_body(cfg, load_calibration(cfg))
+    assert 1.05 < body.legs < 1.09
+    assert load_calibration(cfg).with_stature(1.8).leg_length_m == pytest.approx(cal.leg_length_m)

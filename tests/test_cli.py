@@ -261,6 +261,18 @@ def test_calibrate_stores_the_body_size_and_tracker_mounting(tmp_path):
     assert replay.returncode == 0, said(replay)
 
 
+def test_calibrate_with_legs_asks_for_the_hand_at_the_hip_and_says_why_it_could_not_measure(tmp_path):
+    """`edge calibrate --legs`: after the T-pose, the left controller at the hip; the session walks, so the
+    hold is refused with what to do, the file is still written, and the legs are said not measured."""
+    with Devices() as devices:
+        run = edge("calibrate", "--config", devices.config(tmp_path), "--seconds", 1, "--out", "cal.json", "--legs",
+                   cwd=tmp_path, timeout=60)
+    assert run.returncode == 0, said(run)
+    assert "bony point at the side of your left hip" in run.stderr, said(run)
+    assert "legs not measured (the left controller" in run.stderr, said(run)
+    assert json.loads((tmp_path / "cal.json").read_text())["leg_length_m"] is None
+
+
 def test_calibrate_without_its_devices_names_the_missing_one(tmp_path):
     (tmp_path / "board.toml").write_text(f'[headset]\nurl = "serial://{tmp_path}/ttyNONE?role=headset"\n')
     run = edge("calibrate", "--config", "board.toml", "--seconds", 1, "--out", "cal.json", cwd=tmp_path)
