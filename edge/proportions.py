@@ -99,7 +99,8 @@ class UserBody:
             goal[:, 1] += lift
             apply_limb_ik(local, world, pos, PARENTS, self._legs, goal[None], (lift > 0)[None].astype(float),
                           self._leg_poles, offsets=self.offsets)
-        fk(local, pos[:, 0], offsets=self.offsets, out=(world, pos))     # every joint below the chains follows
+            # the toes follow their ankles (which kept their world rotation); the wrists end their chains
+            pos[0, TOES] = pos[0, ANKLES] + (world[0, ANKLES] @ self.offsets[TOES][..., None])[..., 0]
         out.rotations, out.contacts = local[0], pose.contacts
         out.frame, out.sample, out.transition = pose.frame, pose.sample, pose.transition
         return out

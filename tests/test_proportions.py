@@ -104,6 +104,10 @@ def test_long_legs_under_a_trunk_bent_over_are_lifted_onto_the_floor():
     out = body.on_user(pose).positions
     assert (out[ANKLES, 1] >= FLOOR_ANKLE - 1e-6).all() and (out[TOES, 1] >= FLOOR_TOE - 1e-6).all()
     np.testing.assert_allclose(out[HEAD], pos[HEAD], atol=1e-9)
+    want = bone_lengths(fk(np.tile(np.eye(3), (len(OFFSETS), 1, 1)), np.zeros(3), offsets=body.offsets)[1])
+    np.testing.assert_allclose(bone_lengths(out), want, atol=1e-9)             # the toes moved with their feet
+    world = fk(body.pose.rotations, out[0], offsets=body.offsets)
+    np.testing.assert_allclose(world[1], out, atol=1e-9)                        # the pose is its rotations' FK
 
 
 def test_a_board_told_the_users_legs_records_its_bvh_on_them(tmp_path):
