@@ -16,7 +16,7 @@ wrist where the pose had it, on the controller, the hand turned as it was.
 import numpy as np
 
 from edge.calibration import CANONICAL_ARM
-from edge.frame import LIMB_CHAINS, LIMB_POLES
+from edge.frame import LIMB_CHAINS, LIMB_POLES, Pose
 from edge.ik import apply_limb_ik
 from edge.physics import FLOOR_ANKLE, FLOOR_TOE
 from edge.skeleton import ANKLES, HEAD, JOINT, OFFSETS, PARENTS, TOE_HEIGHT, TOES, fk, rest_positions
@@ -40,14 +40,14 @@ def proportioned_offsets(legs=1.0, arms=1.0, size=1.0):
     return off
 
 
-CANONICAL_HIP_HEIGHT = TOE_HEIGHT + float(rest_positions(OFFSETS)[JOINT["l_hip"], 1] - rest_positions(OFFSETS)[JOINT["l_toe"], 1])
+HIP_OVER_TOE = float(rest_positions(OFFSETS)[JOINT["l_hip"], 1] - rest_positions(OFFSETS)[JOINT["l_toe"], 1])
+CANONICAL_HIP_HEIGHT = TOE_HEIGHT + HIP_OVER_TOE        # floor to hip joint, standing, the canonical body
 
 
 def legs_for(leg_length_m, height_scale):
     """`legs` from a leg length measured on the user (floor to the hip joint, standing, m) and the
     calibration's height scale (user -> canonical units)."""
-    rest = rest_positions(OFFSETS)
-    return (leg_length_m * height_scale - TOE_HEIGHT) / float(rest[JOINT["l_hip"], 1] - rest[JOINT["l_toe"], 1])
+    return (leg_length_m * height_scale - TOE_HEIGHT) / HIP_OVER_TOE
 
 
 def arms_for(arm_length_m, height_scale):
@@ -66,7 +66,6 @@ class UserBody:
             if not LIMBS_RANGE[0] <= v <= LIMBS_RANGE[1]:
                 raise ValueError(f"{name} {v:g} times the canonical body's for the height: expected "
                                  f"{LIMBS_RANGE[0]:g} to {LIMBS_RANGE[1]:g}")
-        from edge.frame import Pose
         self.legs, self.arms = float(legs), float(arms)
         self.canonical = self.legs == 1.0 and self.arms == 1.0
         self.offsets = proportioned_offsets(legs, arms)
