@@ -13,13 +13,16 @@ arm and forearm against the canonical body's for the height: the standing calibr
 from the controllers held out) reach farther, so each arm is solved again (two-bone IK) to put its
 wrist where the pose had it, on the controller, the hand turned as it was.
 """
+import ctypes
+
 import numpy as np
 
+from edge import native
 from edge.calibration import CANONICAL_ARM
-from edge.frame import LIMB_CHAINS, LIMB_POLES, Pose
+from edge.frame import LIMB_CHAINS, LIMB_POLES, NECK, Pose
 from edge.ik import apply_limb_ik
 from edge.physics import FLOOR_ANKLE, FLOOR_TOE
-from edge.skeleton import ANKLES, HEAD, JOINT, OFFSETS, PARENTS, TOE_HEIGHT, TOES, fk, rest_positions
+from edge.skeleton import ANKLES, HEAD, JOINT, NUM_JOINTS, OFFSETS, PARENTS, TOE_HEIGHT, TOES, fk, rest_positions
 
 LEG_BONES = np.array([JOINT[f"{s}_{j}"] for s in "lr" for j in ("hip", "knee", "ankle", "toe")])
 ARM_BONES = np.array([JOINT[f"{s}_{j}"] for s in "lr" for j in ("elbow", "wrist")])
@@ -59,9 +62,11 @@ def arms_for(arm_length_m, height_scale):
 class UserBody:
     """A pose's joint angles on the user's skeleton (`legs`, `arms`), hung from the head joint.
     on_user(pose) -> a Pose of its own (kept, written each frame) with the arms' rotations solved again
-    and the positions on the user's skeleton; the canonical body hands the pose back untouched."""
+    and the positions on the user's skeleton; the canonical body hands the pose back untouched.
+    Each frame is one call into the compiled core (edge.native's ep_on_user, nothing allocated) where
+    it loads; on_user_numpy is the reference it is tested against, and the fallback."""
 
-    def __init__(self, legs=1.0, arms=1.0):
+    def __init__(self, legs=1.0, arms=1.0, compiled=True):
         for name, v in (("legs", legs), ("arms", arms)):
             if not LIMBS_RANGE[0] <= v <= LIMBS_RANGE[1]:
                 raise ValueError(f"{name} {v:g} times the canonical body's for the height: expected "
@@ -76,8 +81,45 @@ class UserBody:
         self._ones = np.ones((1, 2))
         self._legs, self._arms = LIMB_CHAINS[:2], LIMB_CHAINS[2:]     # (hip, knee, ankle), (shoulder, elbow, wrist)
         self._leg_poles, self._arm_poles = LIMB_POLES[:2], LIMB_POLES[2:]
+        self._lib = native.load() if compiled and not self.canonical else None
+        if self._lib is not None:
+            self._bind_compiled()
+
+    def _bind_compiled(self):
+        """The skeleton and output rows ep_on_user reads and writes, their addresses taken once."""
+        chk = native.checked_addr
+        self._c = {"parents": np.ascontiguousarray(PARENTS, np.int64), "chains": np.ascontiguousarray(LIMB_CHAINS, np.int64),
+                   "ankles": np.ascontiguousarray(ANKLES, np.int64), "offsets": np.ascontiguousarray(self.offsets),
+                   "poles": np.ascontiguousarray(LIMB_POLES, np.float64)}
+        a = {k: chk(v, v.dtype) for k, v in self._c.items()}
+        self._sk = native.Skeleton(J=NUM_JOINTS, head=HEAD, neck=NECK, **a)
+        self._rows = native.PoseRows(local=chk(self._local, np.float64, (1, NUM_JOINTS, 3, 3), "user local"),
+                                     world=chk(self._world, np.float64, (1, NUM_JOINTS, 3, 3), "user world"),
+                                     pos=chk(self.pose.positions, np.float64, (NUM_JOINTS, 3), "user positions"))
+        self._sk_ref, self._rows_ref = ctypes.byref(self._sk), ctypes.byref(self._rows)
+        self._seen = (None, None, 0, 0)         # the last input arrays and their addresses
 
     def on_user(self, pose):
+        if self.canonical:
+            return pose
+        if self._lib is None:
+            return self.on_user_numpy(pose)
+        rot, pos = pose.rotations, pose.positions
+        seen = self._seen
+        if rot is not seen[0] or pos is not seen[1]:        # a new array: check it once, then only its address
+            self._seen = seen = (rot, pos, native.checked_addr(rot, np.float64, (NUM_JOINTS, 3, 3), "pose rotations"),
+                                 native.checked_addr(pos, np.float64, (NUM_JOINTS, 3), "pose positions"))
+        self._lib.ep_on_user(self._sk_ref, seen[2], seen[3], self._rows_ref)
+        return self._finish(pose)
+
+    def _finish(self, pose):
+        out = self.pose
+        out.rotations, out.contacts = self._local[0], pose.contacts
+        out.frame, out.sample, out.transition = pose.frame, pose.sample, pose.transition
+        return out
+
+    def on_user_numpy(self, pose):
+        """on_user in numpy (the compiled core's reference)."""
         if self.canonical:
             return pose
         out, local, world = self.pose, self._local, self._world
@@ -100,6 +142,4 @@ class UserBody:
                           self._leg_poles, offsets=self.offsets)
             # the toes follow their ankles (which kept their world rotation); the wrists end their chains
             pos[0, TOES] = pos[0, ANKLES] + (world[0, ANKLES] @ self.offsets[TOES][..., None])[..., 0]
-        out.rotations, out.contacts = local[0], pose.contacts
-        out.frame, out.sample, out.transition = pose.frame, pose.sample, pose.transition
-        return out
+        return self._finish(pose)

@@ -141,3 +141,74 @@ def test_a_board_told_the_users_legs_records_its_bvh_on_them(tmp_path):
         np.testing.assert_allclose(named[joint], svc.outputs.body.offsets[JOINT[joint]] / scale, atol=1e-4)
     assert clip.positions.shape[0] > 60
     np.testing.assert_allclose(clip.positions[-1, 0] / 100.0, svc.outputs.body.pose.positions[0] / scale, atol=1e-4)
+
+
+def bent_over_pose():
+    """Bent over at the spine, legs straight, standing on the floor: longer legs push this one's feet
+    under the floor (the pose test_long_legs_under_a_trunk_bent_over_are_lifted_onto_the_floor uses)."""
+    from edge import quat
+    from edge.frame import Pose
+    from edge.skeleton import TOE_HEIGHT
+    local = np.tile(np.eye(3), (len(OFFSETS), 1, 1))
+    local[JOINT["spine"]] = quat.to_matrix(quat.from_axis_angle(np.array([1.0, 0, 0]), np.radians(80)))
+    _, pos = fk(local, np.zeros(3))
+    pos[:, 1] += TOE_HEIGHT - pos[TOES, 1].min()
+    return Pose(0, pos, local, np.ones(2))
+
+
+needs_native = pytest.mark.skipif(not __import__("edge.native").native.load(),
+                                  reason="the compiled core is the board's frame")
+
+
+@needs_native
+@pytest.mark.parametrize("legs,arms", [(0.92, 1.0), (1.08, 1.0), (1.0, 0.92), (1.05, 1.08), (1.15, 0.85)])
+def test_the_compiled_user_body_is_numpys_on_every_body_walking_crouching_and_lifted(poses, legs, arms):
+    compiled, reference = UserBody(legs, arms), UserBody(legs, arms, compiled=False)
+    assert compiled._lib is not None and reference._lib is None
+    rows = [as_pose(r) for r in poses[::7]] + [bent_over_pose()]
+    for pose in rows:
+        want = reference.on_user(pose)
+        want_pos, want_rot = want.positions.copy(), want.rotations.copy()
+        got = compiled.on_user(pose)
+        # C's IK takes cos and sin where numpy takes acos: a near-straight arm (acos at +-1) turns 1e-16
+        # into 1e-8 (tests/test_native.py's limb IK allows the same micrometre)
+        np.testing.assert_allclose(got.positions, want_pos, rtol=0, atol=1e-6)
+        np.testing.assert_allclose(got.rotations, want_rot, rtol=0, atol=1e-6)
+        assert got.frame == pose.frame and got.contacts is pose.contacts
+
+
+@needs_native
+def test_sending_a_pose_on_the_users_body_makes_no_arrays(poses):
+    """The compiled path is one ctypes call on buffers bound once: what a frame's memory peaks at is
+    the call's own objects (numpy's was ~10 KB of temporaries a frame)."""
+    import tracemalloc
+    body = UserBody(1.06, 0.95)
+    rows = [as_pose(r) for r in poses[:50]]
+    pose = rows[0]
+    for r in rows:                      # the same input arrays each frame, as the pipeline's output pose
+        np.copyto(pose.positions, r.positions)
+        np.copyto(pose.rotations, r.rotations)
+        body.on_user(pose)
+    tracemalloc.start()
+    try:
+        peaks = []
+        for r in rows * 4:
+            np.copyto(pose.positions, r.positions)
+            np.copyto(pose.rotations, r.rotations)
+            before = tracemalloc.get_traced_memory()[0]
+            tracemalloc.reset_peak()
+            body.on_user(pose)
+            peaks.append(tracemalloc.get_traced_memory()[1] - before)
+    finally:
+        tracemalloc.stop()
+    assert max(peaks) < 1024, max(peaks)
+    reference = UserBody(1.06, 0.95, compiled=False)
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        tracemalloc.reset_peak()
+        reference.on_user(pose)
+        numpy_peak = tracemalloc.get_traced_memory()[1] - before
+    finally:
+        tracemalloc.stop()
+    assert numpy_peak > 4 * max(peaks)        # the measure sees numpy's temporaries

@@ -171,6 +171,7 @@ _SIGNATURES = {
     "ep_orientation_features": [_P, _P],
     "ep_physical_cost": [_I, _I, _P, _P, _P, ctypes.POINTER(PhysicalParams), _P],
     "ep_post": [ctypes.POINTER(Skeleton), _I, ctypes.POINTER(LimbGoals), ctypes.POINTER(PoseRows)],
+    "ep_on_user": [ctypes.POINTER(Skeleton), _P, _P, ctypes.POINTER(PoseRows)],
     "ep_switch_to": [_I, _P, _I, _D],
     "ep_frame_poses": [ctypes.POINTER(CoreContext), _I, _I, _I, _I, _I, _D, _P, _P, _P, _P, _I],
     "ep_frame_costs": [ctypes.POINTER(CoreContext), ctypes.POINTER(Selection), _I, _I, _D, _D, _I, _D],

@@ -772,6 +772,48 @@ void ep_post(const skeleton *sk, int R, const limb_goals *g, const pose_rows *ro
     }
 }
 
+/* edge.proportions.UserBody.on_user: one pose's local rotations local_in [J,9] on the skeleton sk (the
+ * user's limb lengths in sk->offsets), hung so joint sk->head sits where the pose's positions pos_in
+ * [J,3] have it; each arm (chains 2, 3) solved again so its wrist is where pos_in has it, the hand's
+ * world rotation kept; and, where an ankle or toe is then under the floor, both legs (chains 0, 1)
+ * solved to lift it onto the floor (the other leg's goal its own ankle), the toes following. Writes
+ * out's local, world and pos (any of them NULL: not wanted). */
+static inline int toe_of(const skeleton *sk, int f);
+
+static int below_floor(const block *k, const skeleton *sk) {
+    for (int f = 0; f < 2; f++)
+        if (k->P[sk->ankles[f]][1][0] < FLOOR_ANKLE || k->P[toe_of(sk, f)][1][0] < FLOOR_TOE) return 1;
+    return 0;
+}
+
+void ep_on_user(const skeleton *sk, const double *local_in, const double *pos_in, const pose_rows *out) {
+    const int J = sk->J, head = sk->head;
+    const int64_t *parents = sk->parents;
+    block k;
+    lane v[3], shift[3];
+    for (int j = 0; j < J; j++) gather(k.L[j], 9, local_in + j * 9, 0, 0, 1);
+    lane_copy(k.W[0], k.L[0], 9);                       /* edge.skeleton.fk from the origin */
+    for (int i = 0; i < 3; i++) EACH k.P[0][i][l] = 0.0;
+    for (int j = 1; j < J; j++) {
+        int p = (int)parents[j];
+        lane_matmul3(k.W[p], k.L[j], k.W[j]);
+        lane_matvec3_shared_v(k.W[p], sk->offsets + j * 3, v);
+        for (int i = 0; i < 3; i++) EACH k.P[j][i][l] = k.P[p][i][l] + v[i][l];
+    }
+    gather(shift, 3, pos_in + head * 3, 0, 0, 1);
+    for (int i = 0; i < 3; i++) EACH shift[i][l] = shift[i][l] - k.P[head][i][l];
+    for (int j = 0; j < J; j++)
+        for (int i = 0; i < 3; i++) EACH k.P[j][i][l] += shift[i][l];
+    for (int c = 2; c < 4; c++)                         /* the wrists back on the controllers */
+        block_chain(&k, 0, 1, J, parents, sk->offsets, sk->chains + c * 3, pos_in + sk->chains[c * 3 + 2] * 3, 0,
+                    0, 0, 1.0, sk->poles + c * 3, 0, 0, 0, 0, 0);
+    if (below_floor(&k, sk))                            /* longer legs bent reach under the floor */
+        for (int c = 0; c < 2; c++)
+            block_chain(&k, 0, 1, J, parents, sk->offsets, sk->chains + c * 3, pos_in, 0, 0, 0, 0.0,
+                        sk->poles + c * 3, 0, 0, 1, 0, 0);
+    block_store(&k, 0, 1, J, out->local, out->world, out->pos);
+}
+
 /* The transpose of edge.plausibility.yaw_matrix of a pelvis rotation R. */
 static void yaw_transpose(const double *R, double *yt) {
     double theta = atan2(R[2], R[8]), c = cos(theta), s = sin(theta);
