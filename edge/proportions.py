@@ -74,10 +74,10 @@ class UserBody:
         self.legs, self.arms = float(legs), float(arms)
         self.canonical = self.legs == 1.0 and self.arms == 1.0
         self.offsets = proportioned_offsets(legs, arms)
-        self.pose = Pose()
         self._world = np.zeros((1, len(OFFSETS), 3, 3))
         self._root = np.zeros((1, 3))
         self._local = np.zeros((1, len(OFFSETS), 3, 3))
+        self.pose = Pose(rotations=self._local[0])          # one array each, written in place every frame
         self._ones = np.ones((1, 2))
         self._legs, self._arms = LIMB_CHAINS[:2], LIMB_CHAINS[2:]     # (hip, knee, ankle), (shoulder, elbow, wrist)
         self._leg_poles, self._arm_poles = LIMB_POLES[:2], LIMB_POLES[2:]
@@ -114,7 +114,7 @@ class UserBody:
 
     def _finish(self, pose):
         out = self.pose
-        out.rotations, out.contacts = self._local[0], pose.contacts
+        out.contacts = pose.contacts
         out.frame, out.sample, out.transition = pose.frame, pose.sample, pose.transition
         return out
 

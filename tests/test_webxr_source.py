@@ -26,6 +26,7 @@ from firmware_bridge import commands
 from firmware_bridge import config as config_mod
 from firmware_bridge.service import Service
 from firmware_bridge.transports import open_source
+from edge.skeleton import OFFSETS
 from firmware_bridge.wire import webxr as wire
 from tests.test_webxr_wire import doc_vectors, headset_payload
 
@@ -299,6 +300,69 @@ def test_the_service_survives_anything_on_the_socket(service, messages):
     answer_pings(ws, seconds=0.05)
     assert source.stats["sent"] > sent
     assert np.all(np.isfinite(svc.outputs.frame.root_pos))
+
+
+def test_a_page_gets_the_users_body_after_welcome_and_again_when_it_changes(board):
+    """BODY_SHAPE: told before a page pairs, the page gets it right after WELCOME; told while one is
+    paired, it gets it at once."""
+    first = wire.encode_body_shape(OFFSETS * 0.9, 1.58, 1.05, 1.0)
+    board.tell_body(first)
+    ws, _ = pair(board)
+    assert received_text(ws) == first
+    second = wire.encode_body_shape(OFFSETS * 1.1, 1.93, 0.95, 1.02)
+    board.tell_body(second)
+    assert received_text(ws) == second
+    ws.close()
+
+
+def received_text(ws, seconds=2.0):
+    """The next text message from the board (pings answered on the way)."""
+    give_up = time.monotonic() + seconds
+    while time.monotonic() < give_up:
+        try:
+            message = ws.recv(timeout=0.05)
+        except TimeoutError:
+            continue
+        if isinstance(message, str):
+            return message
+        if message[0] == wire.CLOCK_PING:
+            ws.send(struct.pack("<Bdd", wire.CLOCK_PONG, struct.unpack("<Bd", message)[1], time.monotonic() * 1000))
+    return None
+
+
+def test_the_service_tells_the_page_the_body_its_poses_are_on(tmp_path):
+    """With the user's legs and height in the config, the page is told their body (the user's limbs at
+    their size) before the first pose, so it draws them, not the canonical 1.84 m body."""
+    from edge.proportions import legs_for
+    cfg = config_mod.from_dict({"headset": {"url": f"webxr://127.0.0.1:0?state={tmp_path}&tls=0"},
+                                "body": {"height_m": 1.62, "leg_length_m": 0.86},
+                                "runtime": {"samples": 2, "adaptive": False, "precision": "fp32"}}, "shape")
+    svc = Service(cfg, status=None, threaded=False)
+    source = svc.headset.source
+    ws, _ = pair(source)
+    answer_pings(ws, until=lambda: source.clock_offset_ms is not None, seconds=2.0)
+    messages = []
+    try:
+        for k in range(10):
+            ws.send(wire.encode_xr_pose(k, page_now(source), headset_payload()))
+            time.sleep(0.004)
+            svc.step(time.monotonic())
+            while True:
+                try:
+                    message = ws.recv(timeout=0.01)
+                except TimeoutError:
+                    break
+                if isinstance(message, str) or message[0] == wire.XR_BODY:
+                    messages.append(message)
+    finally:
+        ws.close()
+        svc.close()
+    assert isinstance(messages[0], str) and all(isinstance(m, bytes) for m in messages[1:]) and len(messages) > 3
+    shape = json.loads(messages[0])
+    scale = svc.calibration.height_scale
+    assert shape["body_shape"] == 1 and shape["stature_m"] == pytest.approx(1.62, abs=1e-3)
+    assert shape["legs"] == pytest.approx(legs_for(0.86, scale), abs=1e-3) and shape["legs"] > 1.0
+    np.testing.assert_allclose(shape["offsets"], svc.outputs.body.offsets / scale, atol=1e-4)
 
 
 # --- start-up ----------------------------------------------------------------------------------------

@@ -178,3 +178,54 @@ console.log(JSON.stringify(Array.from(new Uint8Array(v.buffer))));
         sign = np.sign(np.dot(decoded, expected))
         np.testing.assert_allclose(sign * decoded, expected, atol=1e-4)
     np.testing.assert_allclose(np.vstack([sample.head_pos, sample.hand_pos]), pos, atol=1e-6)
+
+
+def test_the_page_draws_the_users_own_body_from_the_shape_the_board_sends():
+    """BODY_SHAPE's offsets (the user's legs and arms at their size) are the bones the page's FK hangs
+    each XR_BODY on: the page's joints are the board's FK on the same offsets, not the canonical body's."""
+    from edge.proportions import UserBody
+    rng = np.random.default_rng(4)
+    frame = example_pose_frame()
+    frame.rotations = quat.normalize(rng.normal(size=(21, 4)))
+    body = bytearray(wire.XR_BODY_SIZE)
+    wire.encode_xr_body_into(body, 9, 5.0, pose_record(frame).tobytes())
+    user = UserBody(1.08, 0.93)
+    offsets = user.offsets / 1.1                             # a user 1.1x shorter than the canonical body
+    text = wire.encode_body_shape(offsets, 1.62, user.legs, user.arms)
+    got = run_node(f"""
+import {{ decodeXrBody, describeShape, newBody, readBodyShape }} from "{(PAGE / 'wire.js').as_uri()}";
+import {{ forwardKinematics }} from "{(PAGE / 'skeleton.js').as_uri()}";
+const bytes = new Uint8Array({list(body)});
+const body = newBody();
+decodeXrBody(new DataView(bytes.buffer), body);
+const shape = readBodyShape(JSON.parse({json.dumps(text)}));
+const positions = new Float64Array(63), scratch = new Float64Array(84);
+forwardKinematics(body.rotations, body.root, positions, scratch, shape.offsets);
+console.log(JSON.stringify({{ positions: Array.from(positions), text: describeShape(shape),
+                             canonical: describeShape(readBodyShape({{ ...JSON.parse({json.dumps(text)}), legs: 1, arms: 1 }})) }}));
+""")
+    root = np.round(frame.root_pos * 1000) / 1000
+    _, expected = fk(quat.to_matrix(frame.rotations), root, offsets=offsets)
+    np.testing.assert_allclose(np.reshape(got["positions"], (21, 3)), expected, atol=2e-4)   # Q14, offsets to 0.1 mm
+    _, canonical = fk(quat.to_matrix(frame.rotations), root)
+    assert np.abs(canonical - expected).max() > 0.05                # the shape matters by centimetres
+    assert got["text"] == "1.62 m legs 1.08x arms 0.93x" and got["canonical"] == "1.62 m"
+
+
+@pytest.mark.parametrize("change", [
+    {"body_shape": 2}, {"offsets": "x"}, {"offsets": [[0, 0, 0]] * 20}, {"offsets": [[0, 0]] + [[0, 0, 0]] * 20},
+    {"offsets": [[0, 0, 1.5]] + [[0, 0, 0]] * 20}, {"offsets": [[0, 0, "1"]] + [[0, 0, 0]] * 20},
+    {"stature_m": 0.2}, {"stature_m": None}, {"legs": 3}, {"arms": "1"}])
+def test_the_page_keeps_its_body_when_a_shape_is_not_one(change):
+    good = json.loads(wire.encode_body_shape(OFFSETS, 1.75))
+    got = run_node(f"""
+import {{ readBodyShape }} from "{(PAGE / 'wire.js').as_uri()}";
+console.log(JSON.stringify([readBodyShape({json.dumps(good)}) !== null, readBodyShape({json.dumps({**good, **change})})]));
+""")
+    assert got == [True, None]
+
+
+def test_the_board_refuses_to_describe_a_body_no_one_has():
+    for bad in (np.zeros((20, 3)), np.full((21, 3), np.nan), np.full((21, 3), 1.5)):
+        with pytest.raises(ValueError, match="body shape"):
+            wire.encode_body_shape(bad, 1.75)

@@ -38,6 +38,12 @@ def open_sinks(cfg, size, offsets=None):
     return outs
 
 
+def body_shape(body, calibration):
+    """The BODY_SHAPE text of `body` (edge.proportions.UserBody) at the calibrated user's size."""
+    from firmware_bridge.wire.webxr import encode_body_shape
+    return encode_body_shape(body.offsets / calibration.height_scale, calibration.stature_m(), body.legs, body.arms)
+
+
 class PoseOutputs:
     """The pose stream and the sinks. `tick(index, now)` remembers when each input tick was (a pose
     that comes out later, after the look-ahead, is stamped with its own tick's time); `send` encodes
@@ -61,11 +67,15 @@ class PoseOutputs:
                 print(f"edge run: pose stream {cfg.pose_stream}: {self.port.start_error}; waiting for it", file=status)
         self.stream = headset if cfg.pose_stream == "headset" else self.port
         self.sinks = open_sinks(cfg, 1.0 / height_scale, None if self.body.canonical else self.body.offsets)
-        self._rotations = rotations
+        # what the stream encodes: the pipeline's rotations, or the user's body's own (edge.proportions)
+        self._rotations = rotations if self.body.canonical else self.body.pose.rotations
+        # the page draws the body it is told (firmware_bridge.wire.webxr's BODY_SHAPE), at the user's size
+        self.shape = body_shape(self.body, calibration)
+        self._told = None                                    # the stream's source that has the shape
         self._tick_times = np.zeros(TICK_MEMORY)             # input tick time by pipeline frame index
         self._root = np.zeros(3)                             # the pose's root in the user's size
         self._quat = np.zeros((len(rotations), 4))           # the pose stream's quaternions
-        self._to_quat = native.from_matrix_bound(rotations, self._quat)
+        self._to_quat = native.from_matrix_bound(self._rotations, self._quat)
         self.frame = messages.PoseFrame(0.0, np.zeros(3), np.tile([1.0, 0, 0, 0], (len(rotations), 1)), np.zeros(2))
 
     def tick(self, index, now):
@@ -97,6 +107,9 @@ class PoseOutputs:
             stream.drain(self.clock)            # a pose port that is not there (yet): retried with the backoff
         try:
             if stream is not None and stream.source is not None:
+                if stream.source is not self._told:            # a link (re)opened: tell it the body first
+                    self._told = stream.source
+                    stream.source.tell_body(self.shape)
                 stream.source.send_pose(p)
         except (TransportError, ValueError, AttributeError):
             self.errors += 1

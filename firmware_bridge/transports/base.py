@@ -75,6 +75,10 @@ class Source(ABC):
         link that carries none."""
         raise TransportError(f"{type(self).__name__} carries no pose stream")
 
+    def tell_body(self, shape):
+        """The user's body the poses are posed on (a BODY_SHAPE text, firmware_bridge.wire.webxr), for a
+        link that draws it (the WebXR page); the others have no use for it."""
+
     def link_summary(self):
         """The link's own account (a webxr headset: pairing, wrong codes, refused, frames), or None."""
         return None

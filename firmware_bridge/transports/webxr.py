@@ -275,6 +275,7 @@ class WebXRSource(Source):
         self._wrong_codes = deque()
         self._locked_until = -float("inf")
         self._seq = 0
+        self._shape = None                    # the BODY_SHAPE text the page gets after WELCOME (tell_body)
         # One XR_BODY buffer, its POSE_FRAME payload a numpy view into it: a pose is written in place.
         self._body = bytearray(wire.XR_BODY_SIZE)
         self._record = np.frombuffer(self._body, POSE_RECORD, count=1, offset=wire.XR_BODY_HEADER.size).reshape(())
@@ -364,6 +365,14 @@ class WebXRSource(Source):
         self._seq = (self._seq + 1) & 0xFFFF
         loop.call_soon_threadsafe(self._send_body, h, bytes(self._body))
         return True
+
+    def tell_body(self, shape):
+        """The body the poses are posed on, as a BODY_SHAPE text (wire.encode_body_shape): the connected
+        page gets it now, and every page that pairs after it, right after WELCOME."""
+        self._shape = shape
+        h, loop = self._headset, self._loop
+        if h is not None and loop is not None:
+            loop.call_soon_threadsafe(self._send_shape, h, shape)
 
     def _close_internal(self):
         if self._loop is not None and self._stop is not None:
@@ -511,6 +520,8 @@ class WebXRSource(Source):
         self.stats["paired"] += 1
         try:
             await ws.send(json.dumps({"welcome": 1, "token": token, "board": socket.gethostname()}))
+            if self._shape is not None:
+                await ws.send(self._shape)
         except ConnectionClosed:
             return None
         return headset
@@ -536,6 +547,19 @@ class WebXRSource(Source):
             self.stats["send_dropped"] += 1
             return
         asyncio.ensure_future(self._send(headset, data))
+
+    def _send_shape(self, headset, shape):
+        """Never dropped for a full buffer, as a body is: the page would draw the wrong body until it
+        reconnected."""
+        if headset is self._headset:
+            asyncio.ensure_future(self._send_text(headset, shape))
+
+    @staticmethod
+    async def _send_text(headset, text):
+        try:
+            await headset.ws.send(text)
+        except Exception:                    # closed under us: the page reconnects and gets it after WELCOME
+            pass
 
     async def _send(self, headset, data):
         try:

@@ -6,6 +6,9 @@
     page  -> board   CLOCK_PONG (0x21, binary) that value and the page's clock, so the board maps page time
     page  -> board   HELLO (text JSON)         {"code": "123456"} to pair, or {"token": "..."} once paired
     board -> page    WELCOME (text JSON)       {"welcome": 1, "token": ..., "board": ..., "hz": ...}
+    board -> page    BODY_SHAPE (text JSON)    {"body_shape": 1, "offsets": [[x, y, z] x 21], "stature_m": ...,
+                                               "legs": ..., "arms": ...}: the user's body the XR_BODYs are posed
+                                               on, after WELCOME and whenever it changes
 
 Each binary message starts with its type byte; WebSocket frames the messages, TLS protects them, so
 there is no COBS or CRC here. XR_POSE and XR_BODY carry the serial link's HEADSET_POSE and POSE_FRAME
@@ -16,6 +19,9 @@ import json
 import math
 import struct
 
+import numpy as np
+
+from edge.skeleton import NUM_JOINTS
 from firmware_bridge.wire.framing import ProtocolError
 from firmware_bridge.wire.messages import HEADSET_RECORD, POSE_RECORD, decode_headset_pose
 
@@ -35,6 +41,7 @@ XR_BODY_SIZE = XR_BODY_HEADER.size + POSE_RECORD.itemsize         # 192
 PAGE_TIME_LIMIT_MS = 10 * 365.25 * 86400e3
 MAX_TEXT = 256                                   # the longest HELLO a page sends is ~80 bytes
 CODE_DIGITS = 6
+SHAPE_LIMIT_M = 1.0                              # no bone of a person 2.5 m tall is longer
 
 
 def decode_xr_pose(data):
@@ -60,6 +67,17 @@ def encode_xr_body_into(buffer, seq, page_ms, pose_payload):
     """Fill `buffer` (XR_BODY_SIZE bytes, reused every frame) with one XR_BODY message."""
     XR_BODY_HEADER.pack_into(buffer, 0, XR_BODY, 0, seq & 0xFFFF, page_ms)
     buffer[XR_BODY_HEADER.size:] = pose_payload
+
+
+def encode_body_shape(offsets, stature_m, legs=1.0, arms=1.0):
+    """BODY_SHAPE: the rest offsets [J,3] of the body the XR_BODYs are posed on, metres at the user's size
+    (edge.proportions' limbs scaled by the calibration), so the page draws the user's own body rather
+    than the canonical one; the stature and the limbs against the canonical body's, for its panel."""
+    offsets = np.asarray(offsets, dtype=np.float64)
+    if offsets.shape != (NUM_JOINTS, 3) or not np.isfinite(offsets).all() or np.abs(offsets).max() > SHAPE_LIMIT_M:
+        raise ValueError(f"a body shape is {NUM_JOINTS} finite offsets within {SHAPE_LIMIT_M} m, got {offsets.shape}")
+    return json.dumps({"body_shape": 1, "offsets": np.round(offsets, 4).tolist(), "stature_m": round(float(stature_m), 3),
+                       "legs": round(float(legs), 3), "arms": round(float(arms), 3)}, separators=(",", ":"))
 
 
 def encode_clock_ping(board_ms):

@@ -1,7 +1,7 @@
 // The headset page: pairs with the board, sends the viewer and grip poses every XR frame, answers the
 // board's clock pings, and draws the body the board returns. Uses the browser's own navigator.xr.
-import { CLOCK_PING, CLOCK_PONG_SIZE, XR_BODY, XR_POSE_SIZE, decodeXrBody, encodeClockPong, encodeXrPose,
-         newBody } from "./wire.js";
+import { CLOCK_PING, CLOCK_PONG_SIZE, XR_BODY, XR_POSE_SIZE, decodeXrBody, describeShape, encodeClockPong,
+         encodeXrPose, newBody, readBodyShape } from "./wire.js";
 import { Mirror } from "./mirror.js";
 
 const TOKEN_KEY = "edgepose.token";
@@ -13,7 +13,7 @@ const $ = (id) => document.getElementById(id);
 const state = window.edgepose = {
   connected: false, paired: false, board: "", closeReason: "", reconnects: 0,
   sent: 0, skipped: 0, xrFrames: 0, bodies: 0, drawn: 0, lastSent: null, lastBody: null,
-  rate: 0, latencyMs: null, samples: null, session: null,
+  rate: 0, latencyMs: null, samples: null, session: null, shape: null,
   roundTrips: new Float64Array(4096), roundTripCount: 0,     // every body's round trip (ms), a ring
 };
 
@@ -65,13 +65,17 @@ function connect() {
 
 function onMessage(ws, data) {
   if (typeof data === "string") {
-    const hello = JSON.parse(data);
+    let hello;
+    try { hello = JSON.parse(data); } catch { return; }      // not JSON: nothing the page can use
     if (hello.welcome) {
       localStorage.setItem(TOKEN_KEY, hello.token);
       code = null; retry = 0;
       state.paired = true; state.board = hello.board;
       show(`Paired with ${hello.board}. ${state.session ? "" : "Put the headset on and press Enter VR."}`);
       updateButtons();
+    } else if (hello.body_shape !== undefined) {
+      const shape = readBodyShape(hello);          // a malformed one is ignored: the body drawn stays
+      if (shape) { state.shape = shape; if (mirror) mirror.setShape(shape.offsets); }
     }
     return;
   }
@@ -128,6 +132,7 @@ async function enter(mode) {
   session.updateRenderState({ baseLayer: layer });
   const space = await session.requestReferenceSpace("local-floor");
   mirror = new Mirror(gl);
+  if (state.shape) mirror.setShape(state.shape.offsets);
   mirror.passthrough = session.environmentBlendMode !== undefined && session.environmentBlendMode !== "opaque";
   state.session = mode;
   updateButtons();
@@ -172,7 +177,7 @@ function statusLines() {
   const recent = Array.from(latencies.subarray(0, n)).sort((a, b) => a - b);
   state.latencyMs = n ? recent[n >> 1] : null;
   const link = state.paired ? "connected" : state.connected ? "pairing..." : "reconnecting...";
-  return [`${link}  ${state.rate.toFixed(0)}/s`,
+  return [`${link}  ${state.rate.toFixed(0)}/s  ${describeShape(state.shape)}`,
           `lag ${state.latencyMs === null ? "-" : state.latencyMs.toFixed(0)} ms   N=${state.samples ?? "-"}`];
 }
 

@@ -1,6 +1,6 @@
 // Draws the body the board returns as a mirror image in front of the user, and a small status panel
 // under it, into each XR view. WebGL2, flat colours, buffers made once: a frame only refills them.
-import { forwardKinematics, NUM_JOINTS, PARENTS } from "./skeleton.js";
+import { forwardKinematics, NUM_JOINTS, OFFSETS, PARENTS } from "./skeleton.js";
 
 const BONE_WIDTH = 0.035;          // metres
 const MIRROR_DISTANCE = 1.0;       // the mirror plane this far in front of the head: the body shows at twice that
@@ -61,6 +61,7 @@ export class Mirror {
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
     this.plane = null;             // {point, normal}: set from the head when the first body arrives
     this.hasBody = false;
+    this.offsets = OFFSETS;        // the canonical body until the board says whose it is
     this.passthrough = false;
     this.statusLines = ["", ""];
     this.setStatus(["connecting...", ""]);
@@ -90,8 +91,13 @@ export class Mirror {
     this.plane = { point: [p.x + MIRROR_DISTANCE * fx, p.y, p.z + MIRROR_DISTANCE * fz], normal: [fx, 0, fz] };
   }
 
+  // The user's body (BODY_SHAPE's offsets): every body after this is drawn on its bones.
+  setShape(offsets) {
+    this.offsets = offsets;
+  }
+
   setBody(body) {
-    forwardKinematics(body.rotations, body.root, this.positions, this.worldRot);
+    forwardKinematics(body.rotations, body.root, this.positions, this.worldRot, this.offsets);
     this.hasBody = true;
   }
 

@@ -30,8 +30,9 @@ function rotateAddInto(out, o, q, iq, v, base, ib) {
 }
 
 // Forward kinematics: local rotations [21*4] (w, x, y, z) and the root position [3] -> world joint
-// positions [21*3], using `worldRot` [21*4] as scratch. Parents come before their children.
-export function forwardKinematics(local, root, positions, worldRot) {
+// positions [21*3], using `worldRot` [21*4] as scratch, on the bones `offsets` (the user's body the board
+// sent in BODY_SHAPE; the canonical one until then). Parents come before their children.
+export function forwardKinematics(local, root, positions, worldRot, offsets = OFFSETS) {
   for (let j = 0; j < NUM_JOINTS; j++) {
     const p = PARENTS[j];
     if (p < 0) {
@@ -39,7 +40,7 @@ export function forwardKinematics(local, root, positions, worldRot) {
       positions[0] = root[0]; positions[1] = root[1]; positions[2] = root[2];
     } else {
       mulInto(worldRot, 4 * j, worldRot, 4 * p, local, 4 * j);
-      rotateAddInto(positions, 3 * j, worldRot, 4 * p, OFFSETS[j], positions, 3 * p);
+      rotateAddInto(positions, 3 * j, worldRot, 4 * p, offsets[j], positions, 3 * p);
     }
   }
 }

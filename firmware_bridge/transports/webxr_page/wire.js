@@ -60,3 +60,27 @@ export function newBody() {
   return { seq: 0, inputMs: 0, root: new Float64Array(3), rotations: new Float64Array(84), contacts: new Float64Array(2),
            samples: 0, ssiFlags: 0, trackersLost: 0 };
 }
+
+// A BODY_SHAPE text message, already parsed from JSON (protocol.md section 9.2): the rest offsets of the
+// user's body the XR_BODYs are posed on, metres at the user's size. The shape, or null when it is not
+// one (21 offsets of 3 finite numbers within 1 m, a stature of 0.5-2.5 m): the page then keeps the body
+// it had.
+export function readBodyShape(message) {
+  if (!message || message.body_shape !== 1 || !Array.isArray(message.offsets) || message.offsets.length !== 21) return null;
+  const offsets = [];
+  for (const o of message.offsets) {
+    if (!Array.isArray(o) || o.length !== 3 || !o.every((v) => typeof v === "number" && Number.isFinite(v) && Math.abs(v) <= 1)) return null;
+    offsets.push([o[0], o[1], o[2]]);
+  }
+  const stature = message.stature_m, legs = message.legs ?? 1, arms = message.arms ?? 1;
+  if (typeof stature !== "number" || !(stature >= 0.5 && stature <= 2.5)) return null;
+  if (![legs, arms].every((v) => typeof v === "number" && v >= 0.5 && v <= 1.5)) return null;
+  return { offsets, stature, legs, arms };
+}
+
+// The shape in a few words for the panel: the height, and the limbs where they are not the average's.
+export function describeShape(shape) {
+  if (!shape) return "";
+  const limb = (name, v) => (Math.abs(v - 1) >= 0.005 ? ` ${name} ${v.toFixed(2)}x` : "");
+  return `${shape.stature.toFixed(2)} m${limb("legs", shape.legs)}${limb("arms", shape.arms)}`;
+}
