@@ -37,6 +37,10 @@ def _add_eval(sub):
     ev.add_argument("--body-known", action="store_true",
                     help="with --bodies: the runtime is told each body's legs, as a [body] leg_length_m in the "
                          "board's config tells it, and sends its poses on them (edge.proportions)")
+    ev.add_argument("--body-measured", action="store_true",
+                    help="with --bodies: the runtime is told the legs and arms edge calibrate measures of each body "
+                         "(the T-pose and the hip hold, simulated with hand tremor), and each body's entry gets "
+                         "limb_error_cm")
     ev.add_argument("--json", required=True, help="write the metrics here")
     ev.add_argument("--dump", help="write one .npz per clip (gt_pos, pred_pos) into this folder")
     ev.add_argument("--models", help="model folder (default: the shipped models/)")

@@ -41,16 +41,26 @@ def body_entry(body, result):
 
 def evaluate_bodies(args, bodies):
     """The same clips on each body; the canonical body's full result, with "bodies" added."""
+    import numpy as np
+
+    from motion.bodies import measured_limbs
     from motion.evaluate import on_canonical_scale
     out, entries = None, []
-    for body in bodies:
+    for k, body in enumerate(bodies):
         print(f"edge eval: body {body.name} ({body.height_m:.2f} m, legs {body.legs:g}x, arms {body.arms:g}x)",
               file=sys.stderr)
+        measured = None
+        if getattr(args, "body_measured", False):       # what edge calibrate's holds measure of this body
+            measured = measured_limbs(body, np.random.default_rng([args.seed, k]))
         r = evaluate(args.data, pipeline_options(args), split=args.split, people=args.people, models=args.models,
                      trackers=parse_set(args.trackers), faults=args.faults, max_frames=args.max_frames,
-                     max_clips=args.max_clips, body=body, body_known=getattr(args, "body_known", False))
+                     max_clips=args.max_clips, body=body, body_known=getattr(args, "body_known", False),
+                     limbs=measured[:2] if measured else None)
         r["height_scale"] = on_canonical_scale(body)
         entries.append(body_entry(body, r))
+        if measured:
+            entries[-1].update({"measured_legs": round(measured[0], 4), "measured_arms": round(measured[1], 4),
+                                "limb_error_cm": round(measured[2], 3)})
         if body.name == "canonical":
             out = r
     out["bodies"] = entries
@@ -80,6 +90,7 @@ def main(args):
     for b in result.get("bodies", []):
         print(f"  body {b['name']:<22} {b['height_m']:.2f} m  mpjpe {b['mpjpe_cm']:.2f} cm = {b['mpjpe_pct_height']:.2f} % "
               f"of height  knees {b['knees_cm']:.2f}  ankles {b['ankles_cm']:.2f}  wrists {b['wrists_cm']:.2f} cm  "
-              f"under the floor {100 * b['penetration_rate']:.2f} %")
+              f"under the floor {100 * b['penetration_rate']:.2f} %"
+              + (f"  limbs measured within {b['limb_error_cm']:.1f} cm" if "limb_error_cm" in b else ""))
     print(f"wrote {args.json}")
     return 0

@@ -12,6 +12,7 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 
 from edge import quat
 from edge.calibration import EYE_TO_STATURE          # Winter (2009) fig. 4.1
@@ -101,3 +102,32 @@ def take_on(motion, body, fps, name):
     world_rot_m, pos = fk(quat.to_matrix(motion.rotations), root, offsets=offsets)
     sig = synthesize_from_pose(world_rot_m, pos, fps)
     return Take(name, sig, pos, fps, {n: sig.imu_rot[:, k] for k, n in enumerate(IMU_LOCATIONS)})
+
+
+def measured_limbs(body, rng, hold_frames=60, tremor_m=0.005):
+    """What the board measures of `body` in `edge calibrate` (#54 item 2): the arms from the controllers
+    held out in the T-pose (edge.calibration.arm_length_from_tpose) and the legs from the left controller
+    held at the side of the hip (leg_length_from_hip), each hold `hold_frames` long with `tremor_m` of
+    hand tremor, the devices synthesised on the body standing on the floor. Returns (legs, arms) as
+    UserBody takes them and the largest error of the two limb lengths (cm). The hand's placement on the
+    bony point is taken as exact: the error a person adds there is theirs, not the measurement's."""
+    from edge.calibration import arm_length_from_tpose, height_scale_for, leg_length_from_hip
+    from edge.proportions import arms_for, legs_for
+    from edge.signals import GRIP_OFFSET
+    off = body.offsets()
+    rest = rest_positions(off)
+    rest[:, 1] += TOE_HEIGHT * body.leg_scale() - rest[JOINT["l_toe"], 1]       # standing on the floor
+    eye = eye_height(off)
+    scale = height_scale_for(eye)
+    wrists = rest[[JOINT["l_wrist"], JOINT["r_wrist"]]]
+    hand_rot = np.tile([1.0, 0, 0, 0], (hold_frames, 2, 1))
+    held_out = wrists + GRIP_OFFSET + rng.normal(0, tremor_m, (hold_frames, 2, 3))
+    arm = arm_length_from_tpose(held_out, hand_rot, np.ones((hold_frames, 2), bool), scale)
+    at_hip = np.zeros((hold_frames, 2, 3))
+    at_hip[:, 0] = rest[JOINT["l_hip"]] + [0.1, 0.0, 0.0] + rng.normal(0, tremor_m, (hold_frames, 3))
+    at_hip[:, 1] = rest[JOINT["r_wrist"]] * [1, 0, 1] + [0, 0.8 * rest[JOINT["l_hip"], 1], 0]    # the other hanging
+    leg = leg_length_from_hip(at_hip, np.ones((hold_frames, 2), bool), eye)
+    true_arm = float(np.linalg.norm(off[JOINT["l_elbow"]]) + np.linalg.norm(off[JOINT["l_wrist"]]))
+    true_leg = float(rest[JOINT["l_hip"], 1])
+    error_cm = 100 * max(abs(arm - true_arm), abs(leg - true_leg))
+    return legs_for(leg, scale), arms_for(arm, scale), error_cm

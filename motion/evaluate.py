@@ -86,7 +86,7 @@ def take_signals(take, trackers, faults=None, seed=0, index=0, imu_noise=None, h
 
 def evaluate(paths, options=None, *, split=None, people=None, models=None, trackers=(), faults=None, imu_noise=None,
              hand_bend=None, max_frames=None, max_clips=None, dump=None, log=print, conventions=True, body=None,
-             body_known=False):
+             body_known=False, limbs=None):
     """Every clip of `paths` (BVH files, folders, sample .npz; a folder filtered by its MANIFEST.tsv's
     `split`, and with `people` to the performers the model never saw or those it saw) through a
     Pipeline(options, models), wearing the extra IMUs `trackers` (with `faults`: DragPoser's disconnect
@@ -98,9 +98,11 @@ def evaluate(paths, options=None, *, split=None, people=None, models=None, track
     onto the canonical body as the standing calibration does, the poses taken back to the body's size
     and scored against its FK; body_known: the runtime is told the body's limbs (a [body] leg_length_m
     in the board's config, the arms the T-pose measures) and sends its poses on them
-    (edge.proportions.UserBody)."""
+    (edge.proportions.UserBody); limbs (legs, arms): the runtime is told these instead (what the board
+    measured of the body, motion.bodies.measured_limbs)."""
     options = PipelineOptions() if options is None else options
-    user_body = UserBody(body.legs, body.arms) if body_known and body is not None else None
+    user_body = (UserBody(*limbs) if limbs is not None and body is not None
+                 else UserBody(body.legs, body.arms) if body_known and body is not None else None)
     files = _clips(paths, split, max_clips, people)
     who = people_of_files(paths, files)
     if faults not in (None, "disconnect"):

@@ -91,3 +91,33 @@ def test_eval_on_bodies_scores_each_on_its_own_size_and_the_canonical_one_as_pla
     assert canon["mpjpe_cm"] == pytest.approx(json.loads((tmp_path / "plain.json").read_text())["mpjpe_cm"], rel=1e-6)
     assert small["scale_to_canonical"] > 1.1 and small["wrists_cm"] < 1.0
     assert small["mpjpe_pct_height"] < 2 * canon["mpjpe_pct_height"]
+
+
+def test_edge_calibrates_holds_measure_every_standard_body_within_2_cm():
+    """#54 item 2 on the whole body set: the T-pose (arms) and the hip hold (legs), simulated on each body
+    with 5 mm of hand tremor, give both limbs within 2 cm and the board's legs and arms within 0.02."""
+    from motion.bodies import measured_limbs
+    for k, body in enumerate(standard_bodies()):
+        legs, arms, error_cm = measured_limbs(body, np.random.default_rng([0, k]))
+        assert error_cm < 2.0, body
+        assert legs == pytest.approx(body.legs, abs=0.02) and arms == pytest.approx(body.arms, abs=0.02), body
+
+
+@pytest.mark.skipif(not CLIP.exists(), reason="needs ../shared/mocap (the CMU clips)")
+def test_eval_on_measured_bodies_reports_the_limbs_error_and_sends_on_the_measured_limbs(tmp_path):
+    bodies = tmp_path / "bodies.json"
+    bodies.write_text(json.dumps([{"name": "long legs", "height_m": 1.62, "legs": 1.08}]))
+    out = {}
+    for how in ("--body-measured", "--body-known", None):
+        path = tmp_path / f"{how}.json"
+        proc = subprocess.run([sys.executable, "-m", "edgecli", "eval", "--data", str(CLIP), "--max-frames", "300",
+                               "--bodies", str(bodies), "--json", str(path)] + ([how] if how else []),
+                              cwd=ROOT, capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        out[how] = json.loads(path.read_text())["bodies"][1]
+    measured, known, told_nothing = out["--body-measured"], out["--body-known"], out[None]
+    assert measured["limb_error_cm"] < 2.0 and abs(measured["measured_legs"] - 1.08) < 0.02
+    assert "limb_error_cm" not in known
+    # measured limbs do what the true ones do, and better than the canonical legs
+    assert abs(measured["mpjpe_cm"] - known["mpjpe_cm"]) < 0.05 * known["mpjpe_cm"]
+    assert measured["mpjpe_cm"] < told_nothing["mpjpe_cm"]
