@@ -78,6 +78,7 @@ class Source(ABC):
     def tell_body(self, shape):
         """The user's body the poses are posed on (a BODY_SHAPE text, firmware_bridge.wire.webxr), for a
         link that draws it (the WebXR page); the others have no use for it."""
+        return None
 
     def link_summary(self):
         """The link's own account (a webxr headset: pairing, wrong codes, refused, frames), or None."""
