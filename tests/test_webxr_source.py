@@ -115,7 +115,34 @@ def answer_pings(ws, until=lambda: False, seconds=0.5):
         except TimeoutError:
             continue
         if isinstance(message, bytes) and message[0] == wire.CLOCK_PING:
-            ws.send(struct.pack("<Bdd", wire.CLOCK_PONG, struct.unpack("<Bd", message)[1], time.monotonic() * 1000))
+            answer_ping(ws, message)
+
+
+def answer_ping(ws, message):
+    """Answer one clock ping as the page does, with its own clock."""
+    ws.send(struct.pack("<Bdd", wire.CLOCK_PONG, struct.unpack("<Bd", message)[1], time.monotonic() * 1000))
+
+
+def play(svc, ws, frames):
+    """Send `frames` XR_POSEs a few ms apart, stepping the service after each: (the page times sent, every
+    text and XR_BODY the page got back, in order), the pings answered on the way."""
+    source, payload = svc.headset.source, headset_payload()
+    sent, got = [], []
+    for k in range(frames):
+        sent.append(page_now(source))
+        ws.send(wire.encode_xr_pose(k, sent[-1], payload))
+        time.sleep(0.004)
+        svc.step(time.monotonic())
+        while True:
+            try:
+                message = ws.recv(timeout=0.01)
+            except TimeoutError:
+                break
+            if isinstance(message, bytes) and message[0] == wire.CLOCK_PING:
+                answer_ping(ws, message)
+            elif isinstance(message, str) or message[0] == wire.XR_BODY:
+                got.append(message)
+    return sent, got
 
 
 def test_serves_the_page_over_https_with_the_printed_fingerprint(tls_board):
@@ -326,7 +353,7 @@ def received_text(ws, seconds=2.0):
         if isinstance(message, str):
             return message
         if message[0] == wire.CLOCK_PING:
-            ws.send(struct.pack("<Bdd", wire.CLOCK_PONG, struct.unpack("<Bd", message)[1], time.monotonic() * 1000))
+            answer_ping(ws, message)
     return None
 
 
@@ -341,19 +368,8 @@ def test_the_service_tells_the_page_the_body_its_poses_are_on(tmp_path):
     source = svc.headset.source
     ws, _ = pair(source)
     answer_pings(ws, until=lambda: source.clock_offset_ms is not None, seconds=2.0)
-    messages = []
     try:
-        for k in range(10):
-            ws.send(wire.encode_xr_pose(k, page_now(source), headset_payload()))
-            time.sleep(0.004)
-            svc.step(time.monotonic())
-            while True:
-                try:
-                    message = ws.recv(timeout=0.01)
-                except TimeoutError:
-                    break
-                if isinstance(message, str) or message[0] == wire.XR_BODY:
-                    messages.append(message)
+        _, messages = play(svc, ws, 10)
     finally:
         ws.close()
         svc.close()
@@ -460,27 +476,12 @@ def test_the_body_tells_the_page_the_lag_its_user_sees_look_ahead_included(tmp_p
     source = svc.headset.source
     ws, _ = pair(source)
     answer_pings(ws, until=lambda: source.clock_offset_ms is not None, seconds=2.0)
-    sent, bodies = [], []
-    payload = headset_payload()
     try:
-        for k in range(30):
-            sent.append(page_now(source))
-            ws.send(wire.encode_xr_pose(k, sent[-1], payload))
-            time.sleep(0.004)
-            svc.step(time.monotonic())
-            while True:
-                try:
-                    message = ws.recv(timeout=0.01)
-                except TimeoutError:
-                    break
-                if isinstance(message, bytes) and message[0] == wire.XR_BODY:
-                    bodies.append(wire.XR_BODY_HEADER.unpack_from(message)[3])
-                elif isinstance(message, bytes) and message[0] == wire.CLOCK_PING:
-                    ws.send(struct.pack("<Bdd", wire.CLOCK_PONG, struct.unpack("<Bd", message)[1],
-                                        time.monotonic() * 1000))
+        sent, got = play(svc, ws, 30)
     finally:
         ws.close()
         svc.close()
+    bodies = [wire.XR_BODY_HEADER.unpack_from(m)[3] for m in got if isinstance(m, bytes)]
     held_ms = 1000.0 * lookahead / 60.0
     assert len(bodies) >= 10
     for stands_for in bodies:       # each is one of the poses the page sent, less the look-ahead
