@@ -177,8 +177,9 @@ function statusLines() {
   const recent = Array.from(latencies.subarray(0, n)).sort((a, b) => a - b);
   state.latencyMs = n ? recent[n >> 1] : null;
   const link = state.paired ? "connected" : state.connected ? "pairing..." : "reconnecting...";
-  return [`${link}  ${state.rate.toFixed(0)}/s  ${describeShape(state.shape)}`,
-          `lag ${state.latencyMs === null ? "-" : state.latencyMs.toFixed(0)} ms   N=${state.samples ?? "-"}`];
+  return [`${link}  ${state.rate.toFixed(0)}/s`,
+          `lag ${state.latencyMs === null ? "-" : state.latencyMs.toFixed(0)} ms   N=${state.samples ?? "-"}`,
+          state.shape ? `body ${describeShape(state.shape)}` : ""];
 }
 
 $("enter-vr").addEventListener("click", () => enter("immersive-vr").catch((e) => show(`Enter VR failed: ${e.message}`, true)));

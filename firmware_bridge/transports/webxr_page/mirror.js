@@ -5,6 +5,7 @@ import { forwardKinematics, NUM_JOINTS, OFFSETS, PARENTS } from "./skeleton.js";
 const BONE_WIDTH = 0.035;          // metres
 const MIRROR_DISTANCE = 1.0;       // the mirror plane this far in front of the head: the body shows at twice that
 const LEFT = [0.15, 0.55, 1.0], RIGHT = [1.0, 0.55, 0.1], CENTRE = [0.95, 0.95, 0.95];
+const PANEL_PX = [512, 192];       // the status panel's texture: three lines
 const CORNER_END = [0, 0, 1, 0, 1, 1], CORNER_SIDE = [-1, 1, 1, -1, 1, -1];
 const BONES = [];
 for (let j = 1; j < NUM_JOINTS; j++) BONES.push(j);
@@ -52,7 +53,7 @@ export class Mirror {
     gl.bindBuffer(gl.ARRAY_BUFFER, this.panelVbo);
     gl.bufferData(gl.ARRAY_BUFFER, this.panelVertices.byteLength, gl.DYNAMIC_DRAW);
     this.canvas = document.createElement("canvas");
-    this.canvas.width = 512; this.canvas.height = 128;
+    [this.canvas.width, this.canvas.height] = PANEL_PX;
     this.text = this.canvas.getContext("2d");
     this.texture = gl.createTexture();
     gl.bindTexture(gl.TEXTURE_2D, this.texture);
@@ -63,8 +64,8 @@ export class Mirror {
     this.hasBody = false;
     this.offsets = OFFSETS;        // the canonical body until the board says whose it is
     this.passthrough = false;
-    this.statusLines = ["", ""];
-    this.setStatus(["connecting...", ""]);
+    this.statusLines = ["", "", ""];
+    this.setStatus(["connecting...", "", ""]);
   }
 
   // Keep the mirror in front: placed when the first body arrives, and again when the user has walked up
@@ -101,13 +102,15 @@ export class Mirror {
     this.hasBody = true;
   }
 
+  // Three lines: the link, the lag and N, the body drawn (BODY_SHAPE's height and limbs).
   setStatus(lines) {
-    if (lines[0] === this.statusLines[0] && lines[1] === this.statusLines[1]) return;
+    if (lines.every((line, k) => line === this.statusLines[k])) return;
     this.statusLines = lines;
     const c = this.text;
-    c.fillStyle = "rgba(20, 24, 30, 0.85)"; c.fillRect(0, 0, 512, 128);
+    c.fillStyle = "rgba(20, 24, 30, 0.85)"; c.fillRect(0, 0, PANEL_PX[0], PANEL_PX[1]);
     c.fillStyle = "#f2f2f2"; c.font = "bold 40px sans-serif"; c.fillText(lines[0], 16, 52);
     c.font = "32px sans-serif"; c.fillStyle = "#b8c4d0"; c.fillText(lines[1], 16, 104);
+    c.fillText(lines[2] || "", 16, 160);
     const gl = this.gl;
     gl.bindTexture(gl.TEXTURE_2D, this.texture);
     gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA, gl.RGBA, gl.UNSIGNED_BYTE, this.canvas);
@@ -148,7 +151,7 @@ export class Mirror {
     const { point, normal } = this.plane;
     const rx = -normal[2], rz = normal[0];          // to the user's right when facing the mirror
     // closer than the mirror, low and to the right, so it is easy to read and never covers the body
-    const w = 0.2, h = 0.05, y = point[1] - 0.35, side = 0.4, near = 0.4;
+    const w = 0.2, h = w * PANEL_PX[1] / PANEL_PX[0], y = point[1] - 0.35, side = 0.4, near = 0.4;
     const cx = point[0] - near * normal[0] + side * rx, cz = point[2] - near * normal[2] + side * rz;
     const c = [[cx - w * rx, y + h, cz - w * rz, 0, 0], [cx - w * rx, y - h, cz - w * rz, 0, 1],
                [cx + w * rx, y - h, cz + w * rz, 1, 1], [cx - w * rx, y + h, cz - w * rz, 0, 0],
