@@ -135,6 +135,9 @@ def main(argv=None):
     ap.add_argument("--arms-from-ik", action="store_true",
                     help="fit and choose on every joint but the elbows and wrists, which the runtime's arm IK "
                          "puts on the controllers (so the collars fit the shoulders, not the FK wrists)")
+    ap.add_argument("--source-conventions", action="store_true",
+                    help="train and choose on clips with each source's skeleton conventions left in (the old ruler; "
+                         "for a CVAE trained with models.train --source-conventions)")
     a = ap.parse_args(argv)
     torch.manual_seed(a.seed)
     out = Path(a.out)
@@ -149,8 +152,8 @@ def main(argv=None):
     cvae, _, meta = load_checkpoint(a.ckpt)
     for p in cvae.parameters():
         p.requires_grad_(False)
-    train = read_clips(a.data, "train")
-    val = read_clips(a.data, "val")
+    train = read_clips(a.data, "train", conventions=not a.source_conventions)
+    val = read_clips(a.data, "val", conventions=not a.source_conventions)
     if val.people is None or not (val.people == "unseen").any():
         raise SystemExit(f"{a.data}: val has no unseen people to choose on (MANIFEST.tsv)")
     val = val.subset(val.people == "unseen")
@@ -201,7 +204,7 @@ def main(argv=None):
             shutil.copyfile(Path(a.ckpt) / name, out / name)
     torch.save(head.state_dict(), out / "upper.pt")
     info = {"hidden": a.hidden, "steps": step, "minutes": a.minutes, "batch": a.batch, "window": WINDOW,
-            "warmup": WARMUP, "lr": a.lr, "bend_share": a.bend_share, "seed": a.seed, "ckpt": a.ckpt,
+            "warmup": WARMUP, "lr": a.lr, "bend_share": a.bend_share, "seed": a.seed, "ckpt": a.ckpt, "source_conventions": a.source_conventions,
             "arms_from_ik": a.arms_from_ik,
             "val_unseen_mean_cm": {"cvae": float(before.mean()), "with_head": best}}
     (out / "upper_meta.json").write_text(json.dumps(info, indent=2) + "\n")
