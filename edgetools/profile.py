@@ -263,9 +263,11 @@ def board_service(cfg, samples, feeder, steps):
         runtime["models"] = cfg["models"]
     k = cfg.get("refine_steps", 0)
     refine = {"steps": k} if k else {"enabled": False}
-    board = config_mod.from_dict({"headset": {"url": headset}, "trackers": [{"url": waist}],
-                                  "output": {"pose_stream": "headset"}, "runtime": runtime, "refine": refine},
-                                 "edge profile")
+    raw = {"headset": {"url": headset}, "trackers": [{"url": waist}], "output": {"pose_stream": "headset"},
+           "runtime": runtime, "refine": refine}
+    if cfg.get("body"):             # a user's [body] (their height and legs: the poses sent on their limbs)
+        raw["body"] = cfg["body"]
+    board = config_mod.from_dict(raw, "edge profile")
     service = Service(board, clock=lambda: feeder.now, status=None, threaded=False)   # the feed is in-process
     service.pipeline.set_refine_steps(steps)
     return service

@@ -15,11 +15,14 @@ TICKS = 2000
 PEAK_BYTES = 1200
 
 
-@pytest.fixture(scope="module")
-def service():
+# The canonical body, and a user whose legs are long for their height: every pose then goes through
+# edge.proportions.UserBody on its way out.
+@pytest.fixture(scope="module", params=[None, {"height_m": 1.62, "leg_length_m": 0.86}], ids=["canonical", "user"])
+def service(request):
     from edgetools.profile import Feeder, board_service
     feeder = Feeder(60.0, "tick-memory")
-    svc = board_service({"hz": 60.0, "precision": "int8", "refine_steps": 0}, 4, feeder, 0)
+    svc = board_service({"hz": 60.0, "precision": "int8", "refine_steps": 0, "body": request.param}, 4, feeder, 0)
+    assert svc.outputs.body.canonical == (request.param is None)
     for k in range(700):            # past the frame-time ring (600) and every stream's ring
         svc.step(feeder.frame(k))
     yield svc, feeder
