@@ -145,6 +145,22 @@ def play(svc, ws, frames):
     return sent, got
 
 
+def played(tmp_path, frames, **sections):
+    """A service on a webxr:// headset (and the config's other `sections`), a page paired with it and
+    its clock synced, `frames` poses played (play): (the closed service, the page times sent, what came back)."""
+    cfg = config_mod.from_dict({"headset": {"url": f"webxr://127.0.0.1:0?state={tmp_path}&tls=0"}, **sections}, "page")
+    svc = Service(cfg, status=None, threaded=False)
+    source = svc.headset.source
+    ws, _ = pair(source)
+    answer_pings(ws, until=lambda: source.clock_offset_ms is not None, seconds=2.0)
+    try:
+        sent, got = play(svc, ws, frames)
+    finally:
+        ws.close()
+        svc.close()
+    return svc, sent, got
+
+
 def test_serves_the_page_over_https_with_the_printed_fingerprint(tls_board):
     board = tls_board
     pem = ssl.get_server_certificate(("127.0.0.1", board.port))
@@ -361,18 +377,8 @@ def test_the_service_tells_the_page_the_body_its_poses_are_on(tmp_path):
     """With the user's legs and height in the config, the page is told their body (the user's limbs at
     their size) before the first pose, so it draws them, not the canonical 1.84 m body."""
     from edge.proportions import legs_for
-    cfg = config_mod.from_dict({"headset": {"url": f"webxr://127.0.0.1:0?state={tmp_path}&tls=0"},
-                                "body": {"height_m": 1.62, "leg_length_m": 0.86},
-                                "runtime": {"samples": 2, "adaptive": False, "precision": "fp32"}}, "shape")
-    svc = Service(cfg, status=None, threaded=False)
-    source = svc.headset.source
-    ws, _ = pair(source)
-    answer_pings(ws, until=lambda: source.clock_offset_ms is not None, seconds=2.0)
-    try:
-        _, messages = play(svc, ws, 10)
-    finally:
-        ws.close()
-        svc.close()
+    svc, _, messages = played(tmp_path, 10, body={"height_m": 1.62, "leg_length_m": 0.86},
+                              runtime={"samples": 2, "adaptive": False, "precision": "fp32"})
     assert isinstance(messages[0], str) and all(isinstance(m, bytes) for m in messages[1:]) and len(messages) > 3
     shape = json.loads(messages[0])
     scale = svc.calibration.height_scale
@@ -469,18 +475,8 @@ def test_the_body_tells_the_page_the_lag_its_user_sees_look_ahead_included(tmp_p
     """Each XR_BODY carries the page time the body stands for: the newest headset pose the board had,
     less the look-ahead its frame was held for. The page's panel shows now minus that, so at tau = 10
     it says 167 ms more than the round trip, and at tau = 0 the round trip itself."""
-    cfg = config_mod.from_dict({"headset": {"url": f"webxr://127.0.0.1:0?state={tmp_path}&tls=0"},
-                                "runtime": {"samples": 2, "lookahead": lookahead, "adaptive": False,
-                                            "precision": "fp32"}}, "lag")
-    svc = Service(cfg, status=None, threaded=False)
-    source = svc.headset.source
-    ws, _ = pair(source)
-    answer_pings(ws, until=lambda: source.clock_offset_ms is not None, seconds=2.0)
-    try:
-        sent, got = play(svc, ws, 30)
-    finally:
-        ws.close()
-        svc.close()
+    _, sent, got = played(tmp_path, 30, runtime={"samples": 2, "lookahead": lookahead, "adaptive": False,
+                                                  "precision": "fp32"})
     bodies = [wire.XR_BODY_HEADER.unpack_from(m)[3] for m in got if isinstance(m, bytes)]
     held_ms = 1000.0 * lookahead / 60.0
     assert len(bodies) >= 10
